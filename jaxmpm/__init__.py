@@ -1,0 +1,38 @@
+"""jaxmpm: a differentiable Material Point Method in JAX for granular flows.
+
+The public surface: static configuration (``Grid``, ``Config``, ``Wall``, materials), the
+parameter pytree (``Params``), the state (``State``, ``init_state``, ``seed_box``), the pure
+step and rollout factories, the public ``simulate`` call and HDF5 output.
+"""
+
+from importlib import metadata as _metadata
+
+from .boundary import Wall
+from .config import Config, Grid
+from .materials import Hencky, Material, hencky_stress, invariants
+from .params import DEFAULTS, PARAM_KEYS, Params, validate_params
+from .rollout import frame_observer, make_rollout
+from .simulate import Result, SimulationError, compiled_rollout, simulate
+from .state import (
+    BUDGET,
+    J_NONPOSITIVE,
+    LEFT_GRID,
+    NONFINITE,
+    State,
+    describe_status,
+    init_state,
+    seed_box,
+)
+from .step import make_step
+
+try:
+    __version__ = _metadata.version("jaxmpm")
+except _metadata.PackageNotFoundError:  # running from a source tree
+    __version__ = "0.1.0"
+
+__all__ = [
+    "BUDGET", "Config", "DEFAULTS", "Grid", "Hencky", "J_NONPOSITIVE", "LEFT_GRID", "Material",
+    "NONFINITE", "PARAM_KEYS", "Params", "Result", "SimulationError", "State", "Wall",
+    "compiled_rollout", "describe_status", "frame_observer", "hencky_stress", "init_state",
+    "invariants", "make_rollout", "make_step", "seed_box", "simulate", "validate_params",
+]

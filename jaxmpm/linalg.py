@@ -1,0 +1,238 @@
+"""Small-matrix linear algebra with derivatives that stay finite.
+
+Autodiff through ``jnp.linalg.svd``/``eigh`` divides by differences of eigenvalues and returns
+NaN when two coincide, which is every particle at F_e = I. Here symmetric matrix functions
+f(A) = Q f(Λ) Qᵀ carry a custom JVP (the Daleckii–Krein formula)
+
+    d f(A)[dA] = Q (Γ ∘ (Qᵀ dA Q)) Qᵀ,   Γ_ij = (f(λ_i) - f(λ_j)) / (λ_i - λ_j),  Γ_ii = f'(λ_i),
+
+with the divided differences written in a form that is accurate for equal and for close
+eigenvalues, so the derivative is exact and finite everywhere. The eigen-decomposition itself
+is never differentiated: a closed form in 2D, a fixed number of cyclic Jacobi sweeps in 3D
+(both vectorise well, unlike a batched LAPACK call on the CPU).
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+
+__all__ = ["eigh_sym", "sym_log", "sym_exp", "sym", "trace", "det", "mm", "mt", "safe_sqrt", "safe_div"]
+
+JACOBI_SWEEPS = 6
+
+
+def mm(a, b):
+    """a @ b for batches of small matrices, unrolled (XLA's batched dot is slow for 2×2/3×3)."""
+    d = a.shape[-1]
+    rows = [jnp.stack([sum(a[..., i, k] * b[..., k, j] for k in range(d)) for j in range(b.shape[-1])], -1)
+            for i in range(a.shape[-2])]
+    return jnp.stack(rows, axis=-2)
+
+
+def mt(a):
+    """Transpose of the last two axes."""
+    return jnp.swapaxes(a, -1, -2)
+
+
+def sym(a):
+    """Symmetric part of a batch of square matrices."""
+    return 0.5 * (a + jnp.swapaxes(a, -1, -2))
+
+
+def trace(a):
+    return jnp.trace(a, axis1=-2, axis2=-1)
+
+
+def det(a):
+    """Determinant of 2×2 or 3×3 matrices by cofactors (cheaper than LU for tiny batches)."""
+    if a.shape[-1] == 2:
+        return a[..., 0, 0] * a[..., 1, 1] - a[..., 0, 1] * a[..., 1, 0]
+    return (
+        a[..., 0, 0] * (a[..., 1, 1] * a[..., 2, 2] - a[..., 1, 2] * a[..., 2, 1])
+        - a[..., 0, 1] * (a[..., 1, 0] * a[..., 2, 2] - a[..., 1, 2] * a[..., 2, 0])
+        + a[..., 0, 2] * (a[..., 1, 0] * a[..., 2, 1] - a[..., 1, 1] * a[..., 2, 0])
+    )
+
+
+def safe_sqrt(x, eps=0.0):
+    """sqrt(x) for x > eps, else 0, with a zero (not NaN/inf) derivative where x <= eps."""
+    ok = x > eps
+    return jnp.where(ok, jnp.sqrt(jnp.where(ok, x, 1.0)), 0.0)
+
+
+def safe_div(num, den, fill=0.0):
+    """num / den where den != 0, else ``fill``, with finite derivatives on both branches."""
+    ok = den != 0
+    return jnp.where(ok, num / jnp.where(ok, den, 1.0), fill)
+
+
+# ---------------------------------------------------------------------------------------------
+# Eigen-decomposition of symmetric matrices (values only; never differentiated)
+
+
+def _eigh2(a):
+    a00, a01, a11 = a[..., 0, 0], 0.5 * (a[..., 0, 1] + a[..., 1, 0]), a[..., 1, 1]
+    mean = 0.5 * (a00 + a11)
+    half = 0.5 * (a00 - a11)
+    radius = jnp.sqrt(half * half + a01 * a01)
+    theta = 0.5 * jnp.arctan2(a01, half)
+    c, s = jnp.cos(theta), jnp.sin(theta)
+    lam = jnp.stack([mean + radius, mean - radius], axis=-1)
+    q = jnp.stack([jnp.stack([c, -s], -1), jnp.stack([s, c], -1)], axis=-2)
+    return lam, q
+
+
+def _jacobi_rotation(a, v, p, r):
+    """One Jacobi rotation zeroing a[p, r] for a batch of symmetric 3×3 matrices."""
+    apq = a[..., p, r]
+    app, aqq = a[..., p, p], a[..., r, r]
+    nonzero = jnp.abs(apq) > 0
+    theta = (aqq - app) / (2.0 * jnp.where(nonzero, apq, 1.0))
+    t = jnp.sign(theta) / (jnp.abs(theta) + jnp.sqrt(theta * theta + 1.0))
+    t = jnp.where(theta == 0, 1.0, t)
+    t = jnp.where(nonzero, t, 0.0)
+    c = 1.0 / jnp.sqrt(t * t + 1.0)
+    s = t * c
+    eye = jnp.broadcast_to(jnp.eye(3, dtype=a.dtype), a.shape)
+    j = eye.at[..., p, p].set(c).at[..., r, r].set(c).at[..., p, r].set(s).at[..., r, p].set(-s)
+    a = mm(mt(j), mm(a, j))
+    return a, mm(v, j)
+
+
+def _eigh3(a):
+    a = sym(a)
+    v = jnp.broadcast_to(jnp.eye(3, dtype=a.dtype), a.shape)
+    for _ in range(JACOBI_SWEEPS):
+        for p, r in ((0, 1), (0, 2), (1, 2)):
+            a, v = _jacobi_rotation(a, v, p, r)
+    lam = jnp.stack([a[..., 0, 0], a[..., 1, 1], a[..., 2, 2]], axis=-1)
+    return lam, v
+
+
+def eigh_sym(a):
+    """Eigenvalues (..., d) and eigenvectors (columns of (..., d, d)) of symmetric 2×2/3×3 ``a``."""
+    a = jax.lax.stop_gradient(a)
+    if a.shape[-1] == 2:
+        return _eigh2(a)
+    if a.shape[-1] == 3:
+        return _eigh3(a)
+    raise ValueError(f"eigh_sym supports 2x2 and 3x3 matrices, got shape {a.shape}")
+
+
+# ---------------------------------------------------------------------------------------------
+# Symmetric matrix functions with a finite, exact derivative
+
+
+def _apply(q, values):
+    """Q diag(values) Qᵀ."""
+    return mm(q * values[..., None, :], mt(q))
+
+
+def _small_series(x, c1, c2):
+    """1 + c1 x + c2 x^2, used where a divided difference would cancel catastrophically."""
+    return 1.0 + x * (c1 + c2 * x)
+
+
+def _log_divided_difference(li, lj):
+    # (log li - log lj) / (li - lj) = log1p(x) / (x lj) with x = (li - lj) / lj.
+    x = (li - lj) / lj
+    small = jnp.abs(x) < 1e-3
+    xs = jnp.where(small, 1.0, x)
+    ratio = jnp.where(small, _small_series(x, -0.5, 1.0 / 3.0), jnp.log1p(xs) / xs)
+    return ratio / lj
+
+
+def _exp_divided_difference(li, lj):
+    # (exp li - exp lj) / (li - lj) = exp(lj) expm1(x) / x with x = li - lj.
+    x = li - lj
+    small = jnp.abs(x) < 1e-3
+    xs = jnp.where(small, 1.0, x)
+    ratio = jnp.where(small, _small_series(x, 0.5, 1.0 / 6.0), jnp.expm1(xs) / xs)
+    return ratio * jnp.exp(lj)
+
+
+def _make_sym_fn(f, divided_difference, name, positive=False):
+    def decompose(a):
+        lam, q = eigh_sym(a)
+        if positive:  # clamp eigenvalues away from 0 (MODEL.md §1); J <= 0 is flagged elsewhere
+            lam = jnp.maximum(lam, jnp.finfo(lam.dtype).tiny)
+        return lam, q
+
+    @jax.custom_jvp
+    def fn(a):
+        lam, q = decompose(a)
+        return _apply(q, f(lam))
+
+    @fn.defjvp
+    def fn_jvp(primals, tangents):
+        (a,), (da,) = primals, tangents
+        lam, q = decompose(a)
+        out = _apply(q, f(lam))
+        gamma = divided_difference(lam[..., :, None], lam[..., None, :])
+        qt = mt(q)
+        dout = mm(q, mm(gamma * mm(qt, mm(sym(da), q)), qt))
+        return out, dout
+
+    fn.__name__ = name
+    return fn
+
+
+_sym_log3 = _make_sym_fn(jnp.log, _log_divided_difference, "sym_log", positive=True)
+_sym_exp3 = _make_sym_fn(jnp.exp, _exp_divided_difference, "sym_exp")
+
+
+# In 2D, f(A) = α I + β (A - m I) with m = tr(A)/2, r² = ((a00 - a11)/2)² + a01², and α, β even
+# functions of r: written in r² with a series near r = 0, plain autodiff is finite and exact,
+# and no eigenvectors (no atan2/cos/sin) are needed. This is several times cheaper on the CPU.
+
+
+def _sym_parts2(a):
+    a00, a11 = a[..., 0, 0], a[..., 1, 1]
+    a01 = 0.5 * (a[..., 0, 1] + a[..., 1, 0])
+    m = 0.5 * (a00 + a11)
+    half = 0.5 * (a00 - a11)
+    return m, half, a01, half * half + a01 * a01
+
+
+def _compose2(alpha, beta, half, a01):
+    return jnp.stack(
+        [jnp.stack([alpha + beta * half, beta * a01], -1), jnp.stack([beta * a01, alpha - beta * half], -1)], -2
+    )
+
+
+def _even_series(x2, f, c0, c1, c2, cut):
+    """f(x) for an even function given as f(sqrt(x2)), with its Taylor series c0 + c1 x2 + c2 x2²
+    below ``cut`` so that value and derivative are finite at x2 = 0."""
+    small = x2 < cut
+    x = jnp.sqrt(jnp.where(small, 1.0, x2))
+    return jnp.where(small, c0 + x2 * (c1 + c2 * x2), f(x))
+
+
+def _sym_log2(a):
+    m, half, a01, r2 = _sym_parts2(a)
+    tiny = jnp.finfo(a.dtype).tiny
+    det_ = jnp.maximum(m * m - r2, tiny)  # product of the eigenvalues, clamped away from 0
+    x2 = jnp.minimum(r2 / (m * m), 1.0 - jnp.finfo(a.dtype).eps)  # (r/m)² < 1 for SPD input
+    # β = atanh(r/m)/r = (1/m) atanh(x)/x, x = r/m
+    beta = _even_series(x2, lambda x: jnp.arctanh(x) / x, 1.0, 1.0 / 3.0, 1.0 / 5.0, 1e-4) / m
+    return _compose2(0.5 * jnp.log(det_), beta, half, a01)
+
+
+def _sym_exp2(a):
+    m, half, a01, r2 = _sym_parts2(a)
+    em = jnp.exp(m)
+    alpha = em * _even_series(r2, jnp.cosh, 1.0, 0.5, 1.0 / 24.0, 1e-4)
+    beta = em * _even_series(r2, lambda x: jnp.sinh(x) / x, 1.0, 1.0 / 6.0, 1.0 / 120.0, 1e-4)
+    return _compose2(alpha, beta, half, a01)
+
+
+def sym_log(a):
+    """Matrix logarithm of symmetric positive-definite 2×2/3×3 matrices (eigenvalues clamped
+    away from 0), with finite derivatives everywhere."""
+    return _sym_log2(a) if a.shape[-1] == 2 else _sym_log3(a)
+
+
+def sym_exp(a):
+    """Matrix exponential of symmetric 2×2/3×3 matrices, with finite derivatives everywhere."""
+    return _sym_exp2(a) if a.shape[-1] == 2 else _sym_exp3(a)

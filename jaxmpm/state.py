@@ -1,0 +1,141 @@
+"""The simulation state (a pytree of arrays), its status bits, and particle seeding.
+
+Glossary: x positions, v velocities, C the APIC affine matrix, F the elastic deformation
+gradient F_e, tau the Kirchhoff stress from the last constitutive update (update-stress-last),
+vol0 initial particle volumes V0, internal the material's internal variables, t the time,
+steps the number of steps taken, status a bitmask (below), dt the last step size.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .config import Config
+
+__all__ = [
+    "State",
+    "LEFT_GRID",
+    "NONFINITE",
+    "J_NONPOSITIVE",
+    "BUDGET",
+    "STATUS_BITS",
+    "describe_status",
+    "init_state",
+    "seed_box",
+]
+
+# Status bits, OR-ed over the run.
+LEFT_GRID = 1  # a particle left the grid interior where its stencil fits
+NONFINITE = 2  # a non-finite position, velocity or stress appeared
+J_NONPOSITIVE = 4  # det(F_e trial) <= 0: a particle was inverted or crushed
+BUDGET = 8  # the step budget ran out before t_end
+STATUS_BITS = {
+    LEFT_GRID: "a particle left the grid (enlarge the grid or add walls)",
+    NONFINITE: "non-finite state (reduce cfl/cfl_elastic or check parameters)",
+    J_NONPOSITIVE: "det(F_e) <= 0 (the time step is too large for the deformation)",
+    BUDGET: "the step budget max_steps ran out before t_end (raise max_steps)",
+}
+
+
+def describe_status(status: int) -> list[str]:
+    """Plain-language descriptions of the bits set in ``status``."""
+    return [text for bit, text in STATUS_BITS.items() if int(status) & bit]
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class State:
+    x: Any
+    v: Any
+    C: Any
+    F: Any
+    tau: Any
+    vol0: Any
+    internal: Any
+    t: Any
+    dt: Any
+    steps: Any
+    status: Any
+
+    @property
+    def n_particles(self) -> int:
+        return self.x.shape[-2]
+
+    def replace(self, **values) -> "State":
+        return dataclasses.replace(self, **values)
+
+
+def seed_box(lower, upper, dx: float, ppc: int | tuple[int, ...] = 2):
+    """Particles on a regular lattice filling the box [lower, upper] (MODEL.md §5).
+
+    ``ppc`` is the number of particles per cell along each axis (2 gives 2×2 in 2D). Returns
+    positions (N, dim) and volumes V0 = dx^dim / ppc_total as numpy float64 arrays.
+    """
+    lower = np.asarray(lower, dtype=float)
+    upper = np.asarray(upper, dtype=float)
+    dim = lower.size
+    if upper.shape != lower.shape or dim not in (2, 3):
+        raise ValueError(f"lower and upper must both have 2 or 3 entries, got {lower} and {upper}")
+    if not np.all(upper > lower):
+        raise ValueError(f"upper must exceed lower on every axis, got lower={lower}, upper={upper}")
+    if not dx > 0:
+        raise ValueError(f"dx must be > 0, got {dx!r}")
+    per_axis = (ppc,) * dim if np.isscalar(ppc) else tuple(ppc)
+    if len(per_axis) != dim or any(int(n) != n or n < 1 for n in per_axis):
+        raise ValueError(f"ppc must be a positive integer or {dim} of them, got {ppc!r}")
+    spacing = dx / np.asarray(per_axis, dtype=float)
+    counts = np.maximum(np.round((upper - lower) / spacing).astype(int), 1)
+    axes = [lower[a] + spacing[a] * (np.arange(counts[a]) + 0.5) for a in range(dim)]
+    x = np.stack([m.reshape(-1) for m in np.meshgrid(*axes, indexing="ij")], axis=-1)
+    vol = np.full(len(x), float(np.prod(spacing)))
+    return x, vol
+
+
+def init_state(config: Config, x, vol0, v=None, dtype=None) -> State:
+    """A stress-free initial state (F_e = I, C = 0) with validated positions and volumes.
+
+    Raises ``ValueError`` (before any tracing) for an empty scene, wrong shapes, non-finite
+    values, non-positive volumes, or particles outside the grid interior.
+    """
+    dtype = jnp.dtype(dtype) if dtype is not None else jnp.zeros(()).dtype
+    x = np.asarray(x, dtype=float)
+    dim = config.dim
+    if x.ndim != 2 or x.shape[1] != dim:
+        raise ValueError(f"x must have shape (n_particles, {dim}), got {x.shape}")
+    n = x.shape[0]
+    if n == 0:
+        raise ValueError("x is empty: the scene has no particles")
+    vol0 = np.broadcast_to(np.asarray(vol0, dtype=float), (n,))
+    v = np.zeros_like(x) if v is None else np.broadcast_to(np.asarray(v, dtype=float), x.shape)
+    for name, arr in (("x", x), ("vol0", vol0), ("v", v)):
+        if not np.all(np.isfinite(arr)):
+            raise ValueError(f"{name} must be finite; {int(np.sum(~np.isfinite(arr)))} entries are not")
+    if np.any(vol0 <= 0):
+        raise ValueError(f"vol0 must be > 0, got min {vol0.min()!r}")
+    lower, upper = config.grid.lower, config.grid.upper
+    outside = np.any((x < lower) | (x >= upper), axis=1)
+    if np.any(outside):
+        i = int(np.argmax(outside))
+        raise ValueError(
+            f"x: {int(outside.sum())} particle(s) lie outside the grid interior "
+            f"[{lower.tolist()}, {upper.tolist()}) at t = 0, e.g. particle {i} at {x[i].tolist()}"
+        )
+    eye = np.broadcast_to(np.eye(dim), (n, dim, dim))
+    return State(
+        x=jnp.asarray(x, dtype),
+        v=jnp.asarray(v, dtype),
+        C=jnp.zeros((n, dim, dim), dtype),
+        F=jnp.asarray(eye, dtype),
+        tau=jnp.zeros((n, dim, dim), dtype),
+        vol0=jnp.asarray(vol0, dtype),
+        internal=config.material.init_internal(n, dtype),
+        t=jnp.zeros((), dtype),
+        dt=jnp.zeros((), dtype),
+        steps=jnp.zeros((), jnp.int32),
+        status=jnp.zeros((), jnp.int32),
+    )
