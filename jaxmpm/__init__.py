@@ -7,6 +7,7 @@ step and rollout factories, the public ``simulate`` call and HDF5 output.
 
 from importlib import metadata as _metadata
 
+from . import io, scenes
 from .boundary import Wall
 from .config import Config, Grid
 from .materials import Hencky, Material, hencky_stress, invariants
@@ -34,5 +35,5 @@ __all__ = [
     "BUDGET", "Config", "DEFAULTS", "Grid", "Hencky", "J_NONPOSITIVE", "LEFT_GRID", "Material",
     "NONFINITE", "PARAM_KEYS", "Params", "Result", "SimulationError", "State", "Wall",
     "compiled_rollout", "describe_status", "frame_observer", "hencky_stress", "init_state",
-    "invariants", "make_rollout", "make_step", "seed_box", "simulate", "validate_params",
+    "invariants", "io", "make_rollout", "make_step", "scenes", "seed_box", "simulate", "validate_params",
 ]

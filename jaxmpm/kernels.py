@@ -85,5 +85,5 @@ def make_stencil(x, origin, dx, node_shape) -> Stencil:
     flat_offsets = np.array([0], np.int32)
     for a in range(dim):
         flat_offsets = (flat_offsets[:, None] + np.arange(3, dtype=np.int32)[None, :] * strides[a]).reshape(-1)
-    index = flat_offsets[:, None] + jnp.sum(base * strides, axis=-1)[None, :]
+    index = jnp.asarray(flat_offsets)[:, None] + jnp.sum(base * strides, axis=-1, dtype=jnp.int32)[None, :]
     return Stencil(index=index, weight=weight, grad=grad, offset=offset)

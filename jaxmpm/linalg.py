@@ -84,30 +84,46 @@ def _eigh2(a):
 
 
 def _jacobi_rotation(a, v, p, r):
-    """One Jacobi rotation zeroing a[p, r] for a batch of symmetric 3×3 matrices."""
-    apq = a[..., p, r]
-    app, aqq = a[..., p, p], a[..., r, r]
-    nonzero = jnp.abs(apq) > 0
-    theta = (aqq - app) / (2.0 * jnp.where(nonzero, apq, 1.0))
-    t = jnp.sign(theta) / (jnp.abs(theta) + jnp.sqrt(theta * theta + 1.0))
-    t = jnp.where(theta == 0, 1.0, t)
+    """One Jacobi rotation zeroing a[p][r]; ``a`` (symmetric) and ``v`` are 3×3 nested lists
+    of batched scalars (element-wise formulas keep the compiled graph small)."""
+    apr = a[p][r]
+    nonzero = apr != 0
+    theta = (a[r][r] - a[p][p]) / (2.0 * jnp.where(nonzero, apr, 1.0))
+    t = jnp.where(theta >= 0, 1.0, -1.0) / (jnp.abs(theta) + jnp.sqrt(theta * theta + 1.0))
     t = jnp.where(nonzero, t, 0.0)
-    c = 1.0 / jnp.sqrt(t * t + 1.0)
+    c = jax.lax.rsqrt(t * t + 1.0)
     s = t * c
-    eye = jnp.broadcast_to(jnp.eye(3, dtype=a.dtype), a.shape)
-    j = eye.at[..., p, p].set(c).at[..., r, r].set(c).at[..., p, r].set(s).at[..., r, p].set(-s)
-    a = mm(mt(j), mm(a, j))
-    return a, mm(v, j)
+    a = [row[:] for row in a]
+    k = 3 - p - r  # the third index
+    akp, akr = a[k][p], a[k][r]
+    a[k][p] = a[p][k] = c * akp - s * akr
+    a[k][r] = a[r][k] = s * akp + c * akr
+    a[p][p] = a[p][p] - t * apr
+    a[r][r] = a[r][r] + t * apr
+    a[p][r] = a[r][p] = jnp.zeros_like(apr)
+    v = [row[:] for row in v]
+    for i in range(3):
+        vip, vir = v[i][p], v[i][r]
+        v[i][p] = c * vip - s * vir
+        v[i][r] = s * vip + c * vir
+    return a, v
 
 
 def _eigh3(a):
     a = sym(a)
-    v = jnp.broadcast_to(jnp.eye(3, dtype=a.dtype), a.shape)
-    for _ in range(JACOBI_SWEEPS):
+    one, zero = jnp.ones_like(a[..., 0, 0]), jnp.zeros_like(a[..., 0, 0])
+    rows = [[a[..., i, j] for j in range(3)] for i in range(3)]
+    v = [[one if i == j else zero for j in range(3)] for i in range(3)]
+
+    def sweep(_, av):
         for p, r in ((0, 1), (0, 2), (1, 2)):
-            a, v = _jacobi_rotation(a, v, p, r)
-    lam = jnp.stack([a[..., 0, 0], a[..., 1, 1], a[..., 2, 2]], axis=-1)
-    return lam, v
+            av = _jacobi_rotation(*av, p, r)
+        return av
+
+    rows, v = jax.lax.fori_loop(0, JACOBI_SWEEPS, sweep, (rows, v))
+    lam = jnp.stack([rows[0][0], rows[1][1], rows[2][2]], axis=-1)
+    q = jnp.stack([jnp.stack(row, -1) for row in v], -2)
+    return lam, q
 
 
 def eigh_sym(a):

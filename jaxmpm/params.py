@@ -141,4 +141,4 @@ def validate_params(params: Params | Mapping[str, Any]) -> None:
 
 def _show(value: np.ndarray) -> str:
     value = np.asarray(value)
-    return repr(float(value)) if value.size == 1 else np.array2string(value, threshold=6)
+    return repr(float(value.reshape(()))) if value.size == 1 else np.array2string(value, threshold=6)

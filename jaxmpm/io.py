@@ -1,0 +1,205 @@
+"""HDF5 output: one file per run, written atomically.
+
+Layout of a file written by ``write_h5``::
+
+    /frames/frame_00000 ...   one group per frame time, attribute ``t``; a dataset per key of
+                              ``Result.frames`` (x, v, p, q and the internal variables)
+    /final                    the final state: x, v, p, q and the internal variables
+    root attributes           ``param/<key>`` per parameter, ``params_json``, ``config_json``,
+                              ``jaxmpm_version``, ``status``, ``status_text`` (JSON list),
+                              ``t_end``, ``steps``, ``frame_times`` and any extra attributes
+
+The file is written under a temporary name in the target directory and moved onto ``path``
+with ``os.replace`` only once it is complete and closed, so a file at ``path`` is never a
+partial run. Batched results (leading batch axes, from ``jax.vmap``) are stored as they are:
+each frame dataset keeps the batch axes in front.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import pathlib
+import uuid
+from typing import Any, Mapping
+
+import h5py
+import jax
+import numpy as np
+
+from .config import Config
+from .materials.base import invariants
+from .params import Params
+from .simulate import Result
+from .state import describe_status
+
+__all__ = ["write_h5", "read_h5"]
+
+#: Root attributes stored as JSON strings (decoded by ``read_h5``).
+_JSON_KEY_LIST = "json_keys"
+_RESERVED = (
+    "params_json", "config_json", "jaxmpm_version", "status", "status_text", "t_end", "steps",
+    "frame_times", _JSON_KEY_LIST,
+)
+
+
+def _json_default(obj):
+    if isinstance(obj, (np.ndarray, np.generic, jax.Array)):
+        return np.asarray(obj).tolist()
+    raise TypeError(f"{type(obj).__name__} is not JSON serialisable")
+
+
+def _dumps(obj) -> str:
+    return json.dumps(obj, default=_json_default)
+
+
+def _leaves(tree) -> dict[str, np.ndarray]:
+    """A pytree's leaves as numpy arrays named by their key paths ("x", "internal/pc", ...)."""
+    if tree is None:
+        return {}
+    out = {}
+    for path, leaf in jax.tree_util.tree_flatten_with_path(tree)[0]:
+        parts = []
+        for key in path:
+            for attr in ("key", "name", "idx"):
+                if hasattr(key, attr):
+                    parts.append(str(getattr(key, attr)))
+                    break
+            else:
+                parts.append(str(key))
+        out["/".join(parts) or "value"] = np.asarray(leaf)
+    return out
+
+
+def _version() -> str:
+    from . import __version__
+
+    return str(__version__)
+
+
+def _write(f: h5py.File, result: Result, config: Config, params: Params, extra: Mapping[str, Any]):
+    state = result.state
+    batch = np.ndim(state.x) - 2  # number of leading batch axes
+    frame_times = tuple(float(t) for t in result.frame_times)
+
+    frames = f.create_group("frames")
+    arrays = _leaves(result.frames)
+    for k, t in enumerate(frame_times if arrays else ()):
+        group = frames.create_group(f"frame_{k:05d}")
+        group.attrs["t"] = t
+        for name, arr in arrays.items():
+            group.create_dataset(name, data=arr[(slice(None),) * batch + (k,)])
+
+    final = f.create_group("final")
+    p, q = invariants(state.tau)
+    values = {"x": state.x, "v": state.v, "p": p, "q": q, **_leaves(state.internal)}
+    for name, arr in values.items():
+        final.create_dataset(name, data=np.asarray(arr))
+
+    attrs = f.attrs
+    param_values = params.to_dict()
+    for key, value in param_values.items():
+        attrs[f"param/{key}"] = value
+    attrs["params_json"] = _dumps(param_values)
+    attrs["config_json"] = _dumps(config.to_dict())
+    attrs["jaxmpm_version"] = _version()
+    attrs["status"] = int(result.status)
+    attrs["status_text"] = _dumps(describe_status(result.status))
+    attrs["t_end"] = float(config.t_end)
+    attrs["steps"] = np.asarray(state.steps)
+    attrs["frame_times"] = np.asarray(frame_times, dtype=float)
+    json_keys = ["params_json", "config_json", "status_text"]
+    for key, value in extra.items():
+        if isinstance(value, (str, bool, int, float, np.generic)):
+            attrs[key] = value
+        else:
+            attrs[key] = _dumps(value)
+            json_keys.append(key)
+    attrs[_JSON_KEY_LIST] = _dumps(json_keys)
+
+
+def write_h5(
+    path: str | os.PathLike,
+    result: Result,
+    config: Config,
+    params: Params,
+    attrs: Mapping[str, Any] | None = None,
+) -> pathlib.Path:
+    """Write one run to the HDF5 file ``path`` (layout in the module docstring); return its path.
+
+    ``attrs`` adds root attributes: strings and scalars as they are, anything else as JSON. An
+    existing file at ``path`` is replaced, but only once the new one is completely written; on
+    any error the temporary file is removed and the error re-raised.
+    """
+    if not isinstance(result, Result):
+        raise ValueError(f"result must be a Result, got {type(result).__name__}")
+    if not isinstance(config, Config):
+        raise ValueError(f"config must be a Config, got {type(config).__name__}")
+    if not isinstance(params, Params):
+        raise ValueError(f"params must be a Params, got {type(params).__name__}")
+    extra = dict(attrs or {})
+    for key in extra:
+        if not isinstance(key, str) or not key:
+            raise ValueError(f"attrs keys must be non-empty strings, got {key!r}")
+        if key in _RESERVED or key.startswith("param/"):
+            raise ValueError(f"attrs key {key!r} is reserved by write_h5")
+    path = pathlib.Path(path)
+    if not path.parent.is_dir():
+        raise ValueError(f"path's parent directory does not exist: {str(path.parent)!r}")
+    if path.is_dir():
+        raise ValueError(f"path is a directory: {str(path)!r}")
+
+    tmp = path.with_name(f"{path.name}.{uuid.uuid4().hex[:8]}.tmp")
+    try:
+        with h5py.File(tmp, "x") as f:
+            _write(f, result, config, params, extra)
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+    return path
+
+
+def _plain(value):
+    """An HDF5 attribute value as Python: str for strings, Python scalars for 0-d values."""
+    if isinstance(value, bytes):
+        return value.decode()
+    if isinstance(value, np.ndarray) and value.ndim == 0:
+        value = value[()]
+    if isinstance(value, np.generic):
+        return value.item()
+    return value
+
+
+def _datasets(group: h5py.Group) -> dict[str, np.ndarray]:
+    """Every dataset under ``group`` as a numpy array, by path relative to the group."""
+    out = {}
+
+    def visit(name, obj):
+        if isinstance(obj, h5py.Dataset):
+            out[name] = obj[()]
+
+    group.visititems(visit)
+    return out
+
+
+def read_h5(path: str | os.PathLike) -> dict[str, Any]:
+    """Read a file written by ``write_h5``.
+
+    Returns ``{"attrs": {...}, "frames": [{"t": t, "x": ..., ...}, ...], "final": {...}}``.
+    JSON attributes (``params_json``, ``config_json``, ``status_text`` and non-scalar extras)
+    come back decoded.
+    """
+    path = pathlib.Path(path)
+    if not path.is_file():
+        raise ValueError(f"path does not exist or is not a file: {str(path)!r}")
+    with h5py.File(path, "r") as f:
+        attrs = {key: _plain(value) for key, value in f.attrs.items()}
+        for key in json.loads(attrs.pop(_JSON_KEY_LIST, "[]")):
+            attrs[key] = json.loads(attrs[key])
+        frames = []
+        for name in sorted(f["frames"]):
+            group = f["frames"][name]
+            frames.append({"t": float(group.attrs["t"]), **_datasets(group)})
+        final = _datasets(f["final"])
+    return {"attrs": attrs, "frames": frames, "final": final}
