@@ -10,7 +10,7 @@ from importlib import metadata as _metadata
 from . import io, scenes
 from .boundary import Wall
 from .config import Config, Grid
-from .materials import Hencky, Material, hencky_stress, invariants
+from .materials import CriticalState, Hencky, Material, hencky_stress, invariants
 from .params import DEFAULTS, PARAM_KEYS, Params, validate_params
 from .rollout import frame_observer, make_rollout
 from .simulate import Result, SimulationError, compiled_rollout, simulate
@@ -32,7 +32,7 @@ except _metadata.PackageNotFoundError:  # running from a source tree
     __version__ = "0.1.0"
 
 __all__ = [
-    "BUDGET", "Config", "DEFAULTS", "Grid", "Hencky", "J_NONPOSITIVE", "LEFT_GRID", "Material",
+    "BUDGET", "Config", "CriticalState", "DEFAULTS", "Grid", "Hencky", "J_NONPOSITIVE", "LEFT_GRID", "Material",
     "NONFINITE", "PARAM_KEYS", "Params", "Result", "SimulationError", "State", "Wall",
     "compiled_rollout", "describe_status", "frame_observer", "hencky_stress", "init_state",
     "invariants", "io", "make_rollout", "make_step", "scenes", "seed_box", "simulate", "validate_params",

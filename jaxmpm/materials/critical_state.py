@@ -1,0 +1,245 @@
+"""The critical-state μ(I) rheology (MODEL.md §1-3): Hencky elasticity, a cohesive Modified
+Cam-Clay yield surface with associative flow and implicit exponential hardening, and μ(I)
+rate dependence through a cohesive inertial number.
+
+Glossary
+--------
+e            Hencky strain ½ log(F_e F_eᵀ) (symmetric dim×dim); e_v = tr e, dev e its deviator
+p, q         pressure -K e_v (compression positive) and q = sqrt(½ s:s), s = 2G dev e
+p_c          compressive strength, p_c = p_c0 exp(-ξ ε_v^p)
+p̄            effective pressure p + β p_c;  S = sqrt((p_c - p) p̄), so q_static = μ1 S on the surface
+y            yield function q² + μ1² (p - p_c)(p + β p_c)
+ε            plastic volumetric increment of this step, Δε_v^p = (p - p_tr)/K
+γ̇            plastic shear rate of the overstress (μ(I)) law;  I = γ̇ d / sqrt(p̄/ρ_s)
+
+The static return is a one-unknown problem in ε. With p = p_tr + K ε and p_c = p_c,n e^{-ξε},
+the flow rule p = p_tr - K Δγ μ1² h, h = 2p + (β-1) p_c, gives Δγ = -ε/(μ1² h), and the radial
+return q = q_tr/(1 + 2GΔγ) = q_tr μ1² h / (μ1² h - 2Gε). The root of g(ε) = y(p, q, p_c) lies
+between the trial state (ε = 0, g > 0) and the apex of the updated ellipse (h = 0, g < 0); it is
+found by a fixed number of safeguarded Newton steps (bisection when a step leaves the bracket).
+A trial state in tension beyond the tip (p_tr < -β p_c,n) returns to the tip: p = -β p_c(ε),
+q = 0 (MODEL.md §2). The iterations run on stop-gradient values; one final Newton step on live
+values gives the exact implicit-function derivative, so no derivative flows through the loop
+and the forward cost of a gradient is that of the forward pass plus one step.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+
+from ..linalg import mm, safe_div, safe_sqrt, sym_exp, trace
+from .base import Material, lame
+from .hencky import hencky_strain
+
+__all__ = ["CriticalState", "return_map", "return_invariants", "yield_function", "mu_of_I", "INTERNAL_KEYS"]
+
+#: Internal variables carried per particle: the plastic volumetric strain and the diagnostics of
+#: the last update (shear rate γ̇, inertial number I, friction μ(I), plastic flag 0/1, p_c).
+INTERNAL_KEYS = ("eps_v_p", "pc", "gamma_dot", "I", "mu_I", "plastic")
+
+
+def yield_function(p, q, pc, params):
+    """y(p, q; p_c) = q² + μ1² (p - p_c)(p + β p_c); <= 0 is admissible."""
+    return q * q + params.mu1**2 * (p - pc) * (p + params.beta * pc)
+
+
+def mu_of_I(I, params):
+    """μ(I) = μ1 + (μ2 - μ1) I / (I0 + I)."""
+    return params.mu1 + (params.mu2 - params.mu1) * safe_div(I, params.I0 + I)
+
+
+def bulk_modulus(params, dim):
+    G, lam = lame(params)
+    return G, lam + 2.0 * G / dim
+
+
+# ---------------------------------------------------------------------------------------------
+# Scalar solves (elementwise over particles)
+
+
+def _apex_increment(p_tr, pc_n, params, K, iterations):
+    """ε at the apex of the updated ellipse: h(ε) = 2(p_tr + Kε) - (1-β) p_c,n e^{-ξε} = 0.
+
+    h is increasing and concave in ε, so Newton from the linearised root approaches from the
+    left and converges monotonically."""
+    one_minus_beta = 1.0 - params.beta
+
+    def h_and_slope(eps):
+        pc = pc_n * jnp.exp(-params.xi * eps)
+        return 2.0 * (p_tr + K * eps) - one_minus_beta * pc, 2.0 * K + one_minus_beta * params.xi * pc
+
+    h0, s0 = h_and_slope(jnp.zeros_like(p_tr))
+    eps = -h0 / s0
+
+    def body(_, eps):
+        h, s = h_and_slope(eps)
+        return eps - h / s
+
+    return jax.lax.fori_loop(0, iterations, body, eps)
+
+
+def _surface_residual(eps, p_tr, q_tr, pc_n, params, K, G):
+    """g(ε) = y(p(ε), q(ε), p_c(ε)) along the return path."""
+    p = p_tr + K * eps
+    pc = pc_n * jnp.exp(-params.xi * eps)
+    h = 2.0 * p + (params.beta - 1.0) * pc
+    mu2h = params.mu1**2 * h
+    q = q_tr * safe_div(mu2h, mu2h - 2.0 * G * eps)
+    return yield_function(p, q, pc, params)
+
+
+def _tip_residual(eps, p_tr, pc_n, params, K):
+    """r(ε) = p(ε) + β p_c(ε): zero at the tension tip."""
+    return p_tr + K * eps + params.beta * pc_n * jnp.exp(-params.xi * eps)
+
+
+def _newton_value_and_slope(fn, eps):
+    return jax.jvp(fn, (eps,), (jnp.ones_like(eps),))
+
+
+def _safeguarded_newton(fn, lo, hi, eps0, iterations):
+    """Root of ``fn`` in [lo, hi] with fn(lo) < 0 < fn(hi) (either order of lo, hi in value):
+    Newton steps, replaced by bisection when they leave the current bracket."""
+
+    def body(_, carry):
+        eps, neg, pos = carry  # current iterate; bracket ends where fn < 0 and fn > 0
+        g, slope = _newton_value_and_slope(fn, eps)
+        neg = jnp.where(g < 0, eps, neg)
+        pos = jnp.where(g > 0, eps, pos)
+        step = eps - safe_div(g, slope, fill=0.0)
+        lower, upper = jnp.minimum(neg, pos), jnp.maximum(neg, pos)
+        inside = (step >= lower) & (step <= upper) & (slope != 0)
+        eps = jnp.where(g == 0, eps, jnp.where(inside, step, 0.5 * (neg + pos)))
+        return eps, neg, pos
+
+    eps, _, _ = jax.lax.fori_loop(0, iterations, body, (eps0, lo, hi))
+    return eps
+
+
+def _implicit_step(fn, eps_star, lower, upper):
+    """One Newton step from a converged root, on live inputs: its value refines the root and its
+    derivative is the implicit-function derivative -(∂fn/∂θ)/(∂fn/∂ε). Kept in the bracket."""
+    eps_star = jax.lax.stop_gradient(eps_star)
+    g, slope = _newton_value_and_slope(fn, eps_star)
+    eps = eps_star - safe_div(g, jax.lax.stop_gradient(slope), fill=0.0)
+    return jnp.clip(eps, jax.lax.stop_gradient(lower), jax.lax.stop_gradient(upper))
+
+
+# ---------------------------------------------------------------------------------------------
+# The return map
+
+
+def return_invariants(p_tr, q_tr, eps_v_p, params, dt, dim, iterations=12):
+    """Return map in invariants. Returns a dict with p, q, pc, eps_v_p (accumulated), deps_v_p
+    (this step), gamma_dot, I, mu_I and plastic (1.0 where the trial state was inadmissible)."""
+    G, K = bulk_modulus(params, dim)
+    sg = jax.lax.stop_gradient
+    pc_n = params.pc0 * jnp.exp(-params.xi * eps_v_p)
+    y_tr = yield_function(p_tr, q_tr, pc_n, params)
+    plastic = y_tr > 0
+    tension = p_tr < -params.beta * pc_n
+
+    # The loops run on stop-gradient copies of the inputs (their derivatives are never needed);
+    # the final implicit step uses the live ones.
+    p_s, q_s, pc_s, params_s, K_s, G_s = sg((p_tr, q_tr, pc_n, params, K, G))
+    zero = jnp.zeros_like(p_tr)
+
+    # --- regular (cap or shear side) return: root of g(ε) between the trial state (g > 0) and
+    # the apex of the updated ellipse (g < 0).
+    eps_apex = _apex_increment(p_s, pc_s, params_s, K_s, iterations)
+    eps_root = _safeguarded_newton(
+        lambda e: _surface_residual(e, p_s, q_s, pc_s, params_s, K_s, G_s), eps_apex, zero, 0.5 * eps_apex, iterations
+    )
+    eps_reg = _implicit_step(
+        lambda e: _surface_residual(e, p_tr, q_tr, pc_n, params, K, G),
+        eps_root, jnp.minimum(eps_apex, 0.0), jnp.maximum(eps_apex, 0.0),
+    )
+
+    # --- tension tip: p = -β p_c(ε), q = 0. r is increasing and convex: Newton from ε = 0
+    # overshoots once to the right and then converges monotonically.
+    def tip_body(_, e):
+        r, slope = _newton_value_and_slope(lambda x: _tip_residual(x, p_s, pc_s, params_s, K_s), e)
+        return e - safe_div(r, slope, fill=0.0)
+
+    eps_tip = jax.lax.fori_loop(0, iterations, tip_body, zero)
+    eps_tip = _implicit_step(
+        lambda e: _tip_residual(e, p_tr, pc_n, params, K), eps_tip, zero, jnp.full_like(zero, jnp.inf)
+    )
+
+    eps = jnp.where(plastic, jnp.where(tension, eps_tip, eps_reg), 0.0)
+    p = p_tr + K * eps
+    pc = pc_n * jnp.exp(-params.xi * eps)
+    p_bar = p + params.beta * pc
+    S = safe_sqrt(jnp.maximum(pc - p, 0.0) * jnp.maximum(p_bar, 0.0))
+    S = jnp.where(tension, 0.0, S)  # exactly at the tip (p̄ = 0 up to round-off)
+    q_static = params.mu1 * S
+
+    # --- μ(I) overstress on the static state (MODEL.md §3).
+    sqrt_p = safe_sqrt(jnp.maximum(p_bar, 0.0) / params.rho_s)
+    Q = params.I0 * sqrt_p / params.d
+    excess = jnp.maximum(q_tr - q_static, 0.0)
+    a = G * dt
+    b = (params.mu2 - params.mu1) * S + a * Q - excess
+    c = -excess * Q
+    root = safe_sqrt(b * b - 4.0 * a * c)
+    gamma_dot = jnp.where(b >= 0, safe_div(-2.0 * c, b + root), safe_div(-b + root, 2.0 * a))
+    gamma_dot = jnp.where(plastic, gamma_dot, 0.0)
+    q = jnp.where(plastic, jnp.maximum(q_static, q_tr - a * gamma_dot), q_tr)
+    inertial = safe_div(gamma_dot * params.d, sqrt_p)
+    mu_I = jnp.where(plastic, params.mu1 + (params.mu2 - params.mu1) * safe_div(gamma_dot, gamma_dot + Q), params.mu1)
+    return {
+        "p": p,
+        "q": q,
+        "pc": pc,
+        "eps_v_p": eps_v_p + eps,
+        "deps_v_p": eps,
+        "gamma_dot": gamma_dot,
+        "I": inertial,
+        "mu_I": mu_I,
+        "plastic": plastic.astype(p.dtype),
+    }
+
+
+def return_map(strain_trial, eps_v_p, params, dt, iterations=12):
+    """The constitutive update for trial Hencky strains (..., d, d).
+
+    Returns ``(strain, tau, out)``: the new Hencky strain, the Kirchhoff stress
+    τ = -p I + 2G (q/q_tr) dev e_tr, and the invariant results of ``return_invariants``.
+    """
+    dim = strain_trial.shape[-1]
+    G, K = bulk_modulus(params, dim)
+    eye = jnp.eye(dim, dtype=strain_trial.dtype)
+    e_v = trace(strain_trial)
+    dev = strain_trial - (e_v / dim)[..., None, None] * eye
+    q_tr = 2.0 * G * safe_sqrt(0.5 * jnp.sum(dev * dev, axis=(-2, -1)))
+    p_tr = -K * e_v
+    out = return_invariants(p_tr, q_tr, eps_v_p, params, dt, dim, iterations)
+    ratio = safe_div(out["q"], q_tr)[..., None, None]
+    strain = (-out["p"] / (K * dim))[..., None, None] * eye + ratio * dev
+    tau = -out["p"][..., None, None] * eye + 2.0 * G * ratio * dev
+    return strain, tau, out
+
+
+@dataclasses.dataclass(frozen=True)
+class CriticalState(Material):
+    """The critical-state μ(I) material. ``iterations``: Newton steps of each scalar solve."""
+
+    iterations: int = 12
+
+    def __post_init__(self):
+        if int(self.iterations) != self.iterations or self.iterations < 1:
+            raise ValueError(f"iterations must be a positive integer, got {self.iterations!r}")
+
+    def init_internal(self, n, dtype):
+        zeros = jnp.zeros((n,), dtype)
+        return {key: zeros for key in INTERNAL_KEYS}
+
+    def update(self, F_trial, internal, params, dt):
+        strain_trial = hencky_strain(F_trial)
+        strain, tau, out = return_map(strain_trial, internal["eps_v_p"], params, dt, self.iterations)
+        # e_new and e_trial are coaxial, so F_e = exp(e_new - e_trial) F_trial keeps the rotation.
+        F = mm(sym_exp(strain - strain_trial), F_trial)
+        return F, tau, {key: out[key] for key in INTERNAL_KEYS}
