@@ -46,6 +46,25 @@ def _run(args) -> int:
     return 0 if result.ok else 1
 
 
+def _element(args) -> int:
+    import jax
+
+    jax.config.update("jax_enable_x64", True)  # a single point: double precision costs nothing
+    from .element import element_test
+    from .params import Params
+
+    params = Params.create(**dict(_parse_set(item) for item in args.set))
+    history = element_test(args.test, params, rate=args.rate, pressure=args.pressure, steps=args.steps,
+                           strain=args.strain, dim=args.dim)
+    final = history.final()
+    print(json.dumps(final) if args.json else json.dumps(final, indent=2))
+    if args.plot:
+        from .plots import plot_stress_path
+
+        plot_stress_path(history, params, args.plot, title=f"{args.test}, rate {args.rate:g} 1/s")
+    return 0
+
+
 def _parse_set(item: str):
     key, sep, value = item.partition("=")
     if not sep:
@@ -70,7 +89,20 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--out", default="run.h5", help="HDF5 output file ('' for none; default run.h5)")
     run.add_argument("--json", action="store_true", help="print one JSON object")
 
+    element = sub.add_parser("element", help="drive one material point (a lab element test)")
+    element.add_argument("test", choices=("isotropic", "simple-shear", "triaxial"))
+    element.add_argument("--rate", type=float, default=1.0, help="applied engineering strain rate, 1/s")
+    element.add_argument("--pressure", type=float, default=1000.0, help="confining pressure p, Pa")
+    element.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="material parameter")
+    element.add_argument("--steps", type=int, default=2000)
+    element.add_argument("--strain", type=float, default=None, help="total strain (default 0.5 shear, 0.1 else)")
+    element.add_argument("--dim", type=int, default=2, choices=(2, 3))
+    element.add_argument("--json", action="store_true", help="print one JSON object")
+    element.add_argument("--plot", default=None, metavar="FILE.png", help="stress path against the yield surface")
+
     bench = sub.add_parser("bench", help="time the engine and print JSON")
+    bench.add_argument("--scene", choices=("block", "column"), default="block",
+                       help="block: 2D Hencky block, 10k particles; column: S2 collapse, full model")
     bench.add_argument("--quick", action="store_true", help="a small, fast case")
     bench.add_argument("--json", action="store_true", help="print one line of JSON")
     bench.add_argument("--dim", type=int, default=2, choices=(2, 3))
@@ -88,6 +120,8 @@ def main(argv=None) -> int:
     try:
         if args.command == "run":
             return _run(args)
+        if args.command == "element":
+            return _element(args)
         from . import bench
 
         bench.main(args)

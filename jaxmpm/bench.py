@@ -9,6 +9,7 @@ without the checkpointed blocks. Timings are medians over ``--repeat`` runs.
 from __future__ import annotations
 
 import json
+import math
 import os
 import platform
 import resource
@@ -19,7 +20,7 @@ import jax
 import jax.numpy as jnp
 
 from .rollout import make_rollout
-from .scenes import falling_block
+from .scenes import falling_block, gates_collapse
 
 __all__ = ["bench_forward", "bench_gradient", "main"]
 
@@ -43,14 +44,24 @@ def _timed(fn, *args, repeat=3):
     return statistics.median(times), out
 
 
-def _scene(quick: bool, dim: int, dtype, n_particles=None, t_end=None):
+SCENES = ("block", "column")
+
+
+def _scene(scene: str, quick: bool, dim: int, dtype, n_particles=None):
+    if scene == "column":
+        if dim != 2:
+            raise ValueError(f"--scene column is 2D (a quasi-2D channel), got dim={dim}")
+        # ~10,240 particles at dx = 1.25 mm (2x2 per cell); the first 0.05 s (~2,000 steps).
+        dx = 0.0025 if quick else 0.00125
+        if n_particles:
+            dx = math.sqrt(0.08 * 0.05 / n_particles * 4)
+        return gates_collapse(dx=dx, t_end=0.01 if quick else 0.05, dtype=dtype)
     n = n_particles or ((2_500 if dim == 2 else 4_000) if quick else (10_000 if dim == 2 else 32_000))
-    t_end = t_end or (0.05 if quick else 0.39)
-    return falling_block(n_particles=n, dim=dim, t_end=t_end, dtype=dtype)
+    return falling_block(n_particles=n, dim=dim, t_end=0.05 if quick else 0.39, dtype=dtype)
 
 
-def bench_forward(quick=False, dim=2, dtype="float32", repeat=3, n_particles=None) -> dict:
-    config, state, params = _scene(quick, dim, dtype, n_particles)
+def bench_forward(quick=False, dim=2, dtype="float32", repeat=3, n_particles=None, scene="block") -> dict:
+    config, state, params = _scene(scene, quick, dim, dtype, n_particles)
     rollout = jax.jit(make_rollout(config, observer=None))
     start = time.perf_counter()
     compiled = rollout.lower(state, params).compile()
@@ -59,7 +70,7 @@ def bench_forward(quick=False, dim=2, dtype="float32", repeat=3, n_particles=Non
     steps = int(final.steps)
     n = state.n_particles
     return {
-        "scene": "elastic-block",
+        "scene": "elastic-block" if scene == "block" else "column-S2",
         "dim": dim,
         "dtype": str(jnp.dtype(state.x.dtype)),
         "n_particles": n,
@@ -119,6 +130,6 @@ def main(args) -> dict:
     if args.grad:
         result = bench_gradient(args.quick, args.dim, dtype, args.repeat, args.particles, args.steps)
     else:
-        result = bench_forward(args.quick, args.dim, dtype, args.repeat, args.particles)
+        result = bench_forward(args.quick, args.dim, dtype, args.repeat, args.particles, args.scene)
     print(json.dumps(result) if args.json else json.dumps(result, indent=2))
     return result

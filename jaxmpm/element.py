@@ -1,0 +1,159 @@
+"""A material-point driver: what a lab triaxial cell or shear box does to one point.
+
+``drive(material, params, L, dt, n_steps, ...)`` applies a velocity gradient history to one
+material point with the same update the MPM step uses (F_e,trial = (I + dt L) F_e, then the
+material's return map) and records the history of p, q, p_c, ε_v^p, γ̇, I and μ_eff = q/p̄.
+The point starts stress-free or, with ``pressure``, isotropically compressed to p = pressure.
+In the ``triaxial`` test the lateral Cauchy stress is held at -pressure by solving for the
+lateral strain rate each step (mixed control).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .linalg import det, mm, safe_div
+from .materials.base import Material, invariants
+from .materials.critical_state import CriticalState, bulk_modulus
+from .params import Params, validate_params
+
+__all__ = ["TESTS", "ElementHistory", "drive", "element_test"]
+
+TESTS = ("isotropic", "simple-shear", "triaxial")
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class ElementHistory:
+    """Per-step histories (length n_steps) of the element test."""
+
+    t: Any
+    p: Any
+    q: Any
+    pc: Any
+    eps_v_p: Any
+    gamma_dot: Any
+    I: Any
+    mu_eff: Any
+    F: Any  # elastic deformation gradient
+
+    def final(self) -> dict[str, float]:
+        return {
+            "p": float(self.p[-1]), "q": float(self.q[-1]), "p_c": float(self.pc[-1]),
+            "eps_v_p": float(self.eps_v_p[-1]), "gamma_dot": float(self.gamma_dot[-1]),
+            "I": float(self.I[-1]), "mu_eff": float(self.mu_eff[-1]),
+        }
+
+
+def _initial_F(params, dim, pressure, dtype):
+    """Isotropic elastic state with p = pressure (Hencky: p = -K tr e, e = -pressure/(K dim) I)."""
+    _, K = bulk_modulus(params, dim)
+    stretch = jnp.exp(-jnp.asarray(pressure, dtype) / (K * dim))
+    return stretch * jnp.eye(dim, dtype=dtype)
+
+
+def drive(
+    material: Material,
+    params: Params,
+    velocity_gradient,
+    dt: float,
+    n_steps: int,
+    dim: int = 2,
+    pressure: float = 0.0,
+    lateral_control: bool = False,
+    control_iterations: int = 4,
+) -> ElementHistory:
+    """Drive one material point. Pure and differentiable in ``params``.
+
+    ``velocity_gradient`` is a (dim, dim) array (constant) or (n_steps, dim, dim). With
+    ``lateral_control`` the diagonal entries other than axis 1 are unknowns chosen each step so
+    that the lateral Cauchy stresses equal -pressure (a triaxial cell; axis 1 is axial).
+    """
+    dtype = jnp.asarray(params.E).dtype
+    L = jnp.asarray(velocity_gradient, dtype)
+    if L.ndim == 2:
+        L = jnp.broadcast_to(L, (n_steps, dim, dim))
+    eye = jnp.eye(dim, dtype=dtype)
+    lateral = jnp.asarray([0.0 if a == 1 else 1.0 for a in range(dim)], dtype)
+    pressure = jnp.asarray(pressure, dtype)
+
+    def update(F, internal, L_step):
+        return material.update(mm(eye + dt * L_step, F), internal, params, dt)
+
+    def lateral_residual(rate, F, internal, L_step):
+        F_new, tau, _ = update(F, internal, L_step + rate * jnp.diag(lateral))
+        return tau[0, 0] / det(F_new) + pressure  # lateral Cauchy stress + confining pressure
+
+    def step(carry, L_step):
+        F, internal, t, rate = carry
+        if lateral_control:
+            for _ in range(control_iterations):
+                r, slope = jax.jvp(lambda x: lateral_residual(x, F, internal, L_step), (rate,), (jnp.ones_like(rate),))
+                rate = rate - safe_div(r, slope)
+            L_step = L_step + rate * jnp.diag(lateral)
+        F, tau, internal = update(F, internal, L_step)
+        p, q = invariants(tau)
+        pc = internal.get("pc", jnp.zeros_like(p))
+        p_bar = p + params.beta * pc
+        out = {
+            "t": t + dt, "p": p, "q": q, "pc": pc,
+            "eps_v_p": internal.get("eps_v_p", jnp.zeros_like(p)),
+            "gamma_dot": internal.get("gamma_dot", jnp.zeros_like(p)),
+            "I": internal.get("I", jnp.zeros_like(p)),
+            "mu_eff": safe_div(q, p_bar), "F": F,
+        }
+        return (F, internal, t + dt, rate), out
+
+    F0 = _initial_F(params, dim, pressure, dtype)
+    internal0 = jax.tree.map(lambda a: a[0], material.init_internal(1, dtype))
+    carry = (F0, internal0, jnp.zeros((), dtype), jnp.zeros((), dtype))
+    _, history = jax.lax.scan(step, carry, L)
+    return ElementHistory(**history)
+
+
+def element_test(
+    test: str,
+    params: Params | None = None,
+    rate: float = 1.0,
+    pressure: float = 1000.0,
+    steps: int = 2000,
+    strain: float | None = None,
+    dim: int = 2,
+    material: Material | None = None,
+) -> ElementHistory:
+    """A standard test: ``isotropic`` compression (volumetric strain rate ``rate``),
+    ``simple-shear`` at engineering shear rate ``rate`` and constant volume, or ``triaxial``
+    compression at axial strain rate ``rate`` under lateral stress ``pressure`` (Pa). The point
+    starts at p = ``pressure``; ``strain`` is the total applied strain (default 0.1 for isotropic
+    and triaxial, 0.5 for shear), reached in ``steps`` steps."""
+    if test not in TESTS:
+        raise ValueError(f"test must be one of {TESTS}, got {test!r}")
+    for name, value in (("rate", rate), ("steps", steps)):
+        if not (np.isfinite(value) and value > 0):
+            raise ValueError(f"{name} must be > 0, got {value!r}")
+    if not (np.isfinite(pressure) and pressure >= 0):
+        raise ValueError(f"pressure must be >= 0, got {pressure!r}")
+    if dim not in (2, 3):
+        raise ValueError(f"dim must be 2 or 3, got {dim!r}")
+    params = Params.create() if params is None else params
+    validate_params(params)
+    material = material or CriticalState()
+    strain = strain if strain is not None else (0.5 if test == "simple-shear" else 0.1)
+    if not (np.isfinite(strain) and strain > 0):
+        raise ValueError(f"strain must be > 0, got {strain!r}")
+    dt = strain / (rate * steps)
+    L = np.zeros((dim, dim))
+    if test == "isotropic":
+        L -= np.eye(dim) * rate / dim
+    elif test == "simple-shear":
+        L[0, 1] = rate
+    else:
+        L[1, 1] = -rate
+    fn = jax.jit(drive, static_argnames=("material", "n_steps", "dim", "lateral_control"))
+    return fn(material, params, L, dt, n_steps=int(steps), dim=dim, pressure=pressure,
+              lateral_control=(test == "triaxial"))
