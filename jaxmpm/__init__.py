@@ -16,6 +16,7 @@ from .rollout import frame_observer, make_rollout
 from .simulate import Result, SimulationError, compiled_rollout, simulate
 from .state import (
     BUDGET,
+    EDGE,
     J_NONPOSITIVE,
     LEFT_GRID,
     NONFINITE,
@@ -32,7 +33,7 @@ except _metadata.PackageNotFoundError:  # running from a source tree
     __version__ = "0.1.0"
 
 __all__ = [
-    "BUDGET", "Config", "CriticalState", "DEFAULTS", "Grid", "Hencky", "J_NONPOSITIVE", "LEFT_GRID", "Material",
+    "BUDGET", "Config", "CriticalState", "EDGE", "DEFAULTS", "Grid", "Hencky", "J_NONPOSITIVE", "LEFT_GRID", "Material",
     "NONFINITE", "PARAM_KEYS", "Params", "Result", "SimulationError", "State", "Wall",
     "compiled_rollout", "describe_status", "frame_observer", "hencky_stress", "init_state",
     "invariants", "io", "make_rollout", "make_step", "scenes", "seed_box", "simulate", "validate_params",

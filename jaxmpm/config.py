@@ -25,12 +25,14 @@ class Grid:
     """A dense grid of ``cells`` cells per axis with spacing ``dx``; nodes at origin + i·dx.
 
     Particles must stay in the interior band [origin + dx/2, origin + (cells - 1/2)·dx) of each
-    axis, where their 3-node quadratic stencil lies inside the grid.
+    axis, where their 3-node quadratic stencil lies inside the grid. A ``periodic`` axis has
+    ``cells`` nodes that wrap around, and positions wrap into [origin, origin + cells·dx).
     """
 
     cells: tuple[int, ...]
     dx: float
     origin: tuple[float, ...] | None = None
+    periodic: tuple[bool, ...] | None = None
 
     def __post_init__(self):
         try:
@@ -50,9 +52,15 @@ class Grid:
         origin = (0.0,) * len(cells) if self.origin is None else tuple(float(o) for o in self.origin)
         if len(origin) != len(cells) or not all(math.isfinite(o) for o in origin):
             raise ValueError(f"origin must be {len(cells)} finite numbers, got {self.origin!r}")
+        periodic = (False,) * len(cells) if self.periodic is None else tuple(bool(p) for p in self.periodic)
+        if len(periodic) != len(cells):
+            raise ValueError(f"periodic must have {len(cells)} entries, got {self.periodic!r}")
+        if any(p and c < 3 for p, c in zip(periodic, cells)):
+            raise ValueError(f"a periodic axis needs at least 3 cells, got cells={cells}")
         object.__setattr__(self, "cells", cells)
         object.__setattr__(self, "dx", dx)
         object.__setattr__(self, "origin", origin)
+        object.__setattr__(self, "periodic", periodic)
 
     @property
     def dim(self) -> int:
@@ -60,21 +68,42 @@ class Grid:
 
     @property
     def nodes(self) -> tuple[int, ...]:
-        return tuple(c + 1 for c in self.cells)
+        return tuple(c if p else c + 1 for c, p in zip(self.cells, self.periodic))
 
     @property
     def n_nodes(self) -> int:
         return int(np.prod(self.nodes))
 
     @property
+    def length(self) -> np.ndarray:
+        return np.asarray(self.cells) * self.dx
+
+    def _band(self, margin: float) -> tuple[np.ndarray, np.ndarray]:
+        origin, periodic = np.asarray(self.origin), np.asarray(self.periodic)
+        lower = np.where(periodic, origin, origin + margin * self.dx)
+        upper = np.where(periodic, origin + self.length, origin + self.length - margin * self.dx)
+        return lower, upper
+
+    @property
     def lower(self) -> np.ndarray:
         """Lowest particle position allowed, per axis."""
-        return np.asarray(self.origin) + 0.5 * self.dx
+        return self._band(0.5)[0]
 
     @property
     def upper(self) -> np.ndarray:
         """Particle positions must stay strictly below this, per axis."""
-        return np.asarray(self.origin) + (np.asarray(self.cells) - 0.5) * self.dx
+        return self._band(0.5)[1]
+
+    @property
+    def edge_band(self) -> tuple[np.ndarray, np.ndarray]:
+        """Particles outside [lower, upper) of this band are within 1.5 cells of the grid's edge
+        (non-periodic axes): the flow has reached the edge of the domain (``state.EDGE``)."""
+        return self._band(1.5)
+
+    def outside(self, x) -> np.ndarray:
+        """Mask of particles (..., N) that lie outside the allowed band."""
+        x = np.asarray(x)
+        return np.any((x < self.lower) | (x >= self.upper), axis=-1)
 
     def node_positions(self) -> np.ndarray:
         """(n_nodes, dim) node coordinates in the flat (row-major) order used by the transfers."""

@@ -57,17 +57,21 @@ def _outer(per_axis):
     return out.reshape(-1, per_axis[0].shape[-1])
 
 
-def make_stencil(x, origin, dx, node_shape) -> Stencil:
-    """Weights, gradients, node offsets and flat node indices for particles at ``x`` (N, dim).
+def make_stencil(x, grid) -> Stencil:
+    """Weights, gradients, node offsets and flat node indices for particles at ``x`` (N, dim)
+    on ``grid`` (a ``config.Grid``).
 
-    ``node_shape`` is the number of nodes per axis (cells + 1). Base indices are clamped into
-    the grid so that a stray particle can never write into another row of the flat grid; the
-    step records such particles in the status bits (``state.LEFT_GRID``).
+    Base indices are clamped into the grid on non-periodic axes, so that a stray particle can
+    never write into another row of the flat grid; the step records such particles in the
+    status bits (``state.LEFT_GRID``). On periodic axes node indices wrap around.
     """
     dim = x.shape[-1]
-    xi = (x - jnp.asarray(origin, x.dtype)) / dx
+    dx, node_shape = grid.dx, grid.nodes
+    xi = (x - jnp.asarray(grid.origin, x.dtype)) / dx
     base = jnp.floor(xi - 0.5).astype(jnp.int32)
-    base = jnp.clip(base, 0, jnp.asarray(node_shape, jnp.int32) - 3)
+    clamp_hi = np.where(grid.periodic, np.iinfo(np.int32).max, np.asarray(node_shape) - 3).astype(np.int32)
+    clamp_lo = np.where(grid.periodic, np.iinfo(np.int32).min, 0).astype(np.int32)
+    base = jnp.clip(base, clamp_lo, clamp_hi)
     fx = xi - base.astype(x.dtype)  # (N, dim)
 
     w_axis, dw_axis, off_axis = [], [], []
@@ -82,8 +86,19 @@ def make_stencil(x, origin, dx, node_shape) -> Stencil:
     offset = jnp.stack([_outer([ones] * a + [off_axis[a]] + [ones] * (dim - a - 1)) for a in range(dim)])
 
     strides = node_strides(node_shape)
-    flat_offsets = np.array([0], np.int32)
-    for a in range(dim):
-        flat_offsets = (flat_offsets[:, None] + np.arange(3, dtype=np.int32)[None, :] * strides[a]).reshape(-1)
-    index = jnp.asarray(flat_offsets)[:, None] + jnp.sum(base * strides, axis=-1, dtype=jnp.int32)[None, :]
+    if any(grid.periodic):
+        per_axis = []
+        for a in range(dim):
+            nodes = base[None, :, a] + jnp.arange(3, dtype=jnp.int32)[:, None]  # (3, N)
+            if grid.periodic[a]:
+                nodes = jnp.mod(nodes, node_shape[a])
+            per_axis.append(nodes * strides[a])
+        index = sum(
+            p.reshape(tuple(3 if b == a else 1 for b in range(dim)) + (p.shape[-1],)) for a, p in enumerate(per_axis)
+        ).reshape(-1, x.shape[0])
+    else:
+        flat_offsets = np.array([0], np.int32)
+        for a in range(dim):
+            flat_offsets = (flat_offsets[:, None] + np.arange(3, dtype=np.int32)[None, :] * strides[a]).reshape(-1)
+        index = jnp.asarray(flat_offsets)[:, None] + jnp.sum(base * strides, axis=-1, dtype=jnp.int32)[None, :]
     return Stencil(index=index, weight=weight, grad=grad, offset=offset)

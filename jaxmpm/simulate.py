@@ -60,7 +60,7 @@ def check_state(config: Config, state: State) -> None:
     if not np.all(np.isfinite(x)):
         raise ValueError("state.x must be finite")
     lower, upper = config.grid.lower, config.grid.upper
-    outside = np.any((x < lower) | (x >= upper), axis=-1)
+    outside = config.grid.outside(x)
     if np.any(outside):
         raise ValueError(
             f"state.x: {int(outside.sum())} particle(s) lie outside the grid interior "

@@ -23,6 +23,7 @@ __all__ = [
     "NONFINITE",
     "J_NONPOSITIVE",
     "BUDGET",
+    "EDGE",
     "STATUS_BITS",
     "describe_status",
     "init_state",
@@ -34,11 +35,13 @@ LEFT_GRID = 1  # a particle left the grid interior where its stencil fits
 NONFINITE = 2  # a non-finite position, velocity or stress appeared
 J_NONPOSITIVE = 4  # det(F_e trial) <= 0: a particle was inverted or crushed
 BUDGET = 8  # the step budget ran out before t_end
+EDGE = 16  # the flow came within 1.5 cells of the grid's edge: the domain is too small
 STATUS_BITS = {
     LEFT_GRID: "a particle left the grid (enlarge the grid or add walls)",
     NONFINITE: "non-finite state (reduce cfl/cfl_elastic or check parameters)",
     J_NONPOSITIVE: "det(F_e) <= 0 (the time step is too large for the deformation)",
     BUDGET: "the step budget max_steps ran out before t_end (raise max_steps)",
+    EDGE: "the flow reached the edge of the grid (enlarge the domain)",
 }
 
 
@@ -118,7 +121,7 @@ def init_state(config: Config, x, vol0, v=None, dtype=None) -> State:
     if np.any(vol0 <= 0):
         raise ValueError(f"vol0 must be > 0, got min {vol0.min()!r}")
     lower, upper = config.grid.lower, config.grid.upper
-    outside = np.any((x < lower) | (x >= upper), axis=1)
+    outside = config.grid.outside(x)
     if np.any(outside):
         i = int(np.argmax(outside))
         raise ValueError(

@@ -45,24 +45,31 @@ def make_step(config: Config):
     node_x_np = grid.node_positions().T
     stops_np = np.asarray(config.stop_times)
     lower_np, upper_np = grid.lower, grid.upper
+    edge_lo_np, edge_hi_np = grid.edge_band
+    periodic = np.asarray(grid.periodic)
 
     def advance(state, params, dt, t_new):
         dtype = state.x.dtype
-        stencil = jax.lax.optimization_barrier(make_stencil(state.x, grid.origin, dx, grid.nodes))
+        stencil = jax.lax.optimization_barrier(make_stencil(state.x, grid))
         mass = params.rho * state.vol0
         fields = p2g(stencil, mass, state.v, state.C, state.vol0, state.tau, grid.n_nodes)
         v_old, v_new = grid_velocities(fields, dt, jnp.asarray(config.gravity, dtype))
         v_new = apply_walls(config.walls, v_new, jnp.asarray(node_x_np, dtype), state.t, dt)
         moved = g2p(stencil, v_old, v_new, state.v, dx, config.transfer, alpha)
         x = state.x + dt * moved.v_pic
+        if periodic.any():  # wrap positions on periodic axes
+            origin, length = jnp.asarray(grid.origin, dtype), jnp.asarray(grid.length, dtype)
+            x = jnp.where(periodic, origin + jnp.mod(x - origin, length), x)
         F_trial = mm(jnp.eye(dim, dtype=dtype) + dt * moved.grad_v, state.F)
         F, tau, internal = config.material.update(F_trial, state.internal, params, dt)
 
         left = jnp.any((x < jnp.asarray(lower_np, dtype)) | (x >= jnp.asarray(upper_np, dtype)))
+        edge = jnp.any((x < jnp.asarray(edge_lo_np, dtype)) | (x >= jnp.asarray(edge_hi_np, dtype)))
         finite = jnp.all(jnp.isfinite(x)) & jnp.all(jnp.isfinite(moved.v)) & jnp.all(jnp.isfinite(tau))
         inverted = jnp.any(det(F_trial) <= 0)
         flags = (
             jnp.where(left, st.LEFT_GRID, 0)
+            | jnp.where(edge, st.EDGE, 0)
             | jnp.where(finite, 0, st.NONFINITE)
             | jnp.where(inverted, st.J_NONPOSITIVE, 0)
         )
