@@ -5,45 +5,107 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-import time
+
+import numpy as np
+
+
+SCENES = ("cohesive-collapse", "gates-collapse", "slope-collapse", "aspect-ratio", "elastic-block")
+
+
+def build_scene(name: str, dx=None, ppc=2, dim=2, width=None, t_end=None, frames=0, slope=None, aspect=None,
+                dtype=None, values=None):
+    """A scene by its command-line name, with the command line's options."""
+    from . import scenes
+
+    values = dict(values or {})
+    common = dict(ppc=ppc, dim=dim, width=width, frames=frames, dtype=dtype, **values)
+    if t_end is not None:
+        common["t_end"] = t_end
+    if dx is not None:
+        common["dx"] = dx
+    if name != "slope-collapse" and slope is not None:
+        raise ValueError(f"--slope applies to slope-collapse, not {name}")
+    if name != "aspect-ratio" and aspect is not None:
+        raise ValueError(f"--aspect applies to aspect-ratio, not {name}")
+    if name == "cohesive-collapse":
+        return scenes.cohesive_collapse(**common)
+    if name == "gates-collapse":
+        return scenes.gates_collapse(**{"dx": 0.005, **common})
+    if name == "slope-collapse":
+        return scenes.slope_collapse(10.0 if slope is None else slope, **{"dx": 0.01, **common})
+    if name == "aspect-ratio":
+        return scenes.aspect_ratio_collapse(1.0 if aspect is None else aspect, **common)
+    if name == "elastic-block":
+        if dim != 2 or width is not None:
+            raise ValueError("elastic-block is 2D")
+        cfg, state, params = scenes.falling_block(n_particles=2_500, t_end=t_end or 0.39, frames=frames,
+                                                  dtype=dtype, **values)
+        return scenes.Scene("elastic-block", cfg, state, params, {"front0": float(np.max(state.x[:, 0]))})
+    raise ValueError(f"scene must be one of {SCENES}, got {name!r}")
 
 
 def _run(args) -> int:
     import jax
-    import numpy as np
 
     if args.dtype == "float64":
         jax.config.update("jax_enable_x64", True)
-    from . import io, simulate
-    from .scenes import falling_block
+    from . import io
+    from .observables import deposit_profile, particle_volumes
+    from .simulate import simulate
     from .state import describe_status
 
     values = dict(_parse_set(item) for item in args.set)
-    config, state, params = falling_block(
-        n_particles=args.particles, dim=args.dim, t_end=args.t_end, frames=args.frames, dtype=args.dtype, **values
-    )
-    start = time.perf_counter()
-    result = simulate(config, state, params, throw=False)
-    jax.block_until_ready(result.state.x)
-    wall = time.perf_counter() - start
-    path = io.write_h5(args.out, result, config, params, attrs={"scene": "elastic-block"}) if args.out else None
+    frames = args.frames if args.frames is not None else (40 if args.gif else 0)
+    scene = build_scene(args.scene, dx=args.dx, ppc=args.ppc, dim=args.dim, width=args.width, t_end=args.t_end,
+                        frames=frames, slope=args.slope, aspect=args.aspect, dtype=args.dtype, values=values)
+    config, state, params = scene
+    result = simulate(config, state, params, throw=False, progress=not args.no_progress, timed=True)
     x = np.asarray(result.state.x)
     summary = {
-        "scene": "elastic-block",
+        "scene": scene.name,
         "n_particles": int(state.n_particles),
         "n_steps": int(result.state.steps),
         "dx": config.grid.dx,
         "t_end": config.t_end,
         "x_min": float(x[:, 0].min()),
         "x_max": float(x[:, 0].max()),
-        "y_max": float(x[:, -1].max()),
+        "y_max": float(x[:, 1].max()),
+        "runout": float(x[:, 0].max() - scene.meta["front0"]),
         "status": result.status,
         "status_text": describe_status(result.status),
-        "wall_s": round(wall, 3),
-        "out": str(path) if path else None,
+        "compile_s": round(result.compile_s, 3),
+        "run_s": round(result.run_s, 3),
     }
+    meta = {"scene": scene.name, **{k: v for k, v in scene.meta.items() if v is not None}}
+    if args.out:
+        summary["out"] = str(io.write_h5(args.out, result, config, params, attrs=meta))
+    if args.profile_csv or args.plot:
+        sigma = config.grid.dx / scene.meta.get("ppc", 2)
+        xs = np.arange(x[:, 0].min() - 3 * sigma, x[:, 0].max() + 3 * sigma, sigma / 2)
+        h = np.asarray(deposit_profile(result.state.x, particle_volumes(result.state), xs, sigma,
+                                       width=scene.meta.get("width")))
+        if args.profile_csv:
+            io.write_profile_csv(args.profile_csv, xs, h, {
+                "experiment": f"{scene.name} (synthetic, jaxmpm {_version()})", "time_s": config.t_end,
+                "units": "m", "source": "python -m jaxmpm run " + " ".join(sys.argv[2:]),
+                "parameters": params.to_dict(), "status": result.status,
+            })
+    if args.plot:
+        from .plots import plot_run
+
+        plot_run(scene, result, args.plot, profile=(xs, h))
+    if args.gif:
+        from .plots import animate_run
+
+        animate_run(scene, result, args.gif)
     print(json.dumps(summary) if args.json else json.dumps(summary, indent=2))
     return 0 if result.ok else 1
+
+
+def _version() -> str:
+    from . import __version__
+
+    return __version__
 
 
 def _element(args) -> int:
@@ -79,14 +141,23 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="python -m jaxmpm", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True)
 
-    run = sub.add_parser("run", help="run the default scene (an elastic block bouncing on a floor)")
-    run.add_argument("--particles", type=int, default=2_500, help="number of particles (default 2500)")
-    run.add_argument("--dim", type=int, default=2, choices=(2, 3))
-    run.add_argument("--t-end", type=float, default=0.39, help="end time in s (default 0.39)")
-    run.add_argument("--frames", type=int, default=20, help="number of output frames (default 20)")
+    run = sub.add_parser("run", help="run a reference scene (SCENES.md)")
+    run.add_argument("scene", choices=SCENES)
     run.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="material parameter")
+    run.add_argument("--dx", type=float, default=None, help="grid spacing, m (default: a coarse, fast value)")
+    run.add_argument("--ppc", type=int, default=2, help="particles per cell and axis (default 2)")
+    run.add_argument("--dim", type=int, default=2, choices=(2, 3))
+    run.add_argument("--width", type=float, default=None, help="channel width for --dim 3, m")
+    run.add_argument("--slope", type=float, default=None, help="bed angle for slope-collapse, degrees")
+    run.add_argument("--aspect", type=float, default=None, help="aspect ratio H0/L0 for aspect-ratio")
+    run.add_argument("--t-end", type=float, default=None, help="end time, s (default: the scene's)")
+    run.add_argument("--frames", type=int, default=None, help="output frames (default 0, or 40 with --gif)")
     run.add_argument("--dtype", choices=("float32", "float64"), default="float32")
-    run.add_argument("--out", default="run.h5", help="HDF5 output file ('' for none; default run.h5)")
+    run.add_argument("--out", default=None, help="HDF5 output file")
+    run.add_argument("--profile-csv", default=None, help="write the final deposit profile h(x) as CSV")
+    run.add_argument("--plot", default=None, metavar="FIG.png", help="final deposit and profile")
+    run.add_argument("--gif", default=None, metavar="ANIM.gif", help="animation of the frames")
+    run.add_argument("--no-progress", action="store_true", help="no progress bar")
     run.add_argument("--json", action="store_true", help="print one JSON object")
 
     element = sub.add_parser("element", help="drive one material point (a lab element test)")

@@ -33,7 +33,7 @@ from .params import Params
 from .simulate import Result
 from .state import describe_status
 
-__all__ = ["write_h5", "read_h5"]
+__all__ = ["write_h5", "read_h5", "write_profile_csv", "PROFILE_COLUMNS"]
 
 #: Root attributes stored as JSON strings (decoded by ``read_h5``).
 _JSON_KEY_LIST = "json_keys"
@@ -203,3 +203,26 @@ def read_h5(path: str | os.PathLike) -> dict[str, Any]:
             frames.append({"t": float(group.attrs["t"]), **_datasets(group)})
         final = _datasets(f["final"])
     return {"attrs": attrs, "frames": frames, "final": final}
+
+
+#: Columns of a deposit-profile CSV (the schema that ``experiments_data/`` and the calibration
+#: loader read): comment lines "# key: value" (experiment, time_s, units, source, ...), then a
+#: header line and rows of x and h in metres.
+PROFILE_COLUMNS = ("x_m", "h_m")
+
+
+def write_profile_csv(path: str | os.PathLike, x, h, meta: Mapping[str, Any]) -> pathlib.Path:
+    """Write a deposit profile h(x) (metres) with its metadata header, atomically."""
+    path = pathlib.Path(path)
+    if not path.parent.exists():
+        raise ValueError(f"path: directory {str(path.parent)!r} does not exist")
+    x, h = np.asarray(x, float), np.asarray(h, float)
+    if x.shape != h.shape or x.ndim != 1:
+        raise ValueError(f"x and h must be 1-D of equal length, got {x.shape} and {h.shape}")
+    lines = [f"# {key}: {value if isinstance(value, str) else _dumps(value)}" for key, value in meta.items()]
+    lines.append(",".join(PROFILE_COLUMNS))
+    lines += [f"{xi:.6e},{hi:.6e}" for xi, hi in zip(x, h)]
+    tmp = path.with_name(f".{path.name}.{uuid.uuid4().hex[:8]}.tmp")
+    tmp.write_text("\n".join(lines) + "\n")
+    os.replace(tmp, path)
+    return path

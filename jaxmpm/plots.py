@@ -42,3 +42,58 @@ def plot_stress_path(history, params, path, title=""):
     fig.savefig(path, dpi=120)
     plt.close(fig)
     return path
+
+
+def plot_run(scene, result, path, profile=None):
+    """The final deposit (particles coloured by pressure) over the initial column outline, and
+    the deposit profile h(x) if given."""
+    plt = _pyplot()
+    x0, x = np.asarray(scene.state.x), np.asarray(result.state.x)
+    from .materials.base import invariants
+
+    p = np.asarray(invariants(result.state.tau)[0])
+    fig, ax = plt.subplots(figsize=(8, 3.2))
+    L, H = scene.meta.get("L"), scene.meta.get("H")
+    if L is not None:
+        ax.plot([0, 0, L, L], [0, H, H, 0], "k:", lw=1, label="initial column")
+    art = ax.scatter(x[:, 0], x[:, 1], s=2, c=p, cmap="viridis", lw=0)
+    fig.colorbar(art, ax=ax, label="p (Pa)", shrink=0.8)
+    if profile is not None:
+        ax.plot(profile[0], profile[1], "C3-", lw=1.5, label="deposit profile h(x)")
+    ax.axhline(0, color="k", lw=0.8)
+    ax.set_aspect("equal")
+    ax.set_xlabel("x along the bed (m)")
+    ax.set_ylabel("y (m)")
+    ax.set_title(f"{scene.name}, t = {float(result.state.t):.3f} s, status {result.status}")
+    ax.legend(fontsize=8, loc="upper right")
+    fig.tight_layout()
+    fig.savefig(path, dpi=130)
+    plt.close(fig)
+    return path
+
+
+def animate_run(scene, result, path, fps=15):
+    """A GIF of the particle positions at the frame times (needs frames with positions)."""
+    plt = _pyplot()
+    from matplotlib.animation import FuncAnimation, PillowWriter
+
+    if result.frames is None or "x" not in result.frames:
+        raise ValueError("the run has no frames with positions: pass --frames N")
+    xs = np.asarray(result.frames["x"])
+    fig, ax = plt.subplots(figsize=(8, 3))
+    lo, hi = xs.min(axis=(0, 1)), xs.max(axis=(0, 1))
+    ax.set_xlim(lo[0] - 0.01, hi[0] + 0.01)
+    ax.set_ylim(min(lo[1], 0) - 0.005, hi[1] + 0.01)
+    ax.set_aspect("equal")
+    ax.axhline(0, color="k", lw=0.8)
+    art = ax.scatter(xs[0, :, 0], xs[0, :, 1], s=2, lw=0)
+    title = ax.set_title("")
+
+    def draw(k):
+        art.set_offsets(xs[k, :, :2])
+        title.set_text(f"{scene.name}, t = {result.frame_times[k]:.3f} s")
+        return art, title
+
+    FuncAnimation(fig, draw, frames=len(xs), blit=False).save(path, writer=PillowWriter(fps=fps))
+    plt.close(fig)
+    return path

@@ -8,7 +8,7 @@ about sqrt(n) steps it grows like sqrt(n) instead of n.
 
 from __future__ import annotations
 
-from typing import Any, Callable
+from typing import Any, Callable, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -18,7 +18,7 @@ from .config import Config
 from .materials.base import invariants
 from .step import make_step
 
-__all__ = ["make_rollout", "frame_observer", "Observer"]
+__all__ = ["make_rollout", "make_rollout_parts", "RolloutParts", "frame_observer", "Observer"]
 
 Observer = Callable[[Any, Any], Any]
 
@@ -36,6 +36,58 @@ def _scan_steps(fn, carry, n: int, checkpoint: bool):
     return jax.checkpoint(block)(carry) if checkpoint else block(carry)
 
 
+class RolloutParts(NamedTuple):
+    """The rollout in three pure pieces, for callers that drive the blocks themselves (a
+    progress bar, early exit): ``start(state, params) -> carry``, ``block(carry, params) ->
+    carry`` (``steps_per_block`` steps) and ``finish(carry) -> (final_state, frames)``."""
+
+    start: Callable
+    block: Callable
+    finish: Callable
+    steps_per_block: int
+
+
+def make_rollout_parts(config: Config, observer: Observer | None = frame_observer, checkpoint: bool = True,
+                       steps_per_block: int | None = None) -> RolloutParts:
+    step = make_step(config)
+    frame_times = config.frame_times if observer is not None else ()
+    n_frames = len(frame_times)
+    block = steps_per_block or config.blocks[1]
+
+    def record(frames, k, s, params):
+        return jax.tree.map(lambda f, o: f.at[k].set(o), frames, observer(s, params))
+
+    def start(state, params):
+        if not n_frames:
+            return state, None, jnp.zeros((), jnp.int32)
+        times = jnp.asarray(frame_times, state.t.dtype)
+        first = observer(state, params)
+        frames = jax.tree.map(lambda o: jnp.zeros((n_frames,) + o.shape, o.dtype), first)
+        at_start = state.t == times[0]
+        frames = jax.lax.cond(at_start, lambda f: record(f, 0, state, params), lambda f: f, frames)
+        return state, frames, at_start.astype(jnp.int32)
+
+    def one(carry, params):
+        s, frames, k = carry
+        s = step(s, params)
+        if n_frames:
+            times = jnp.asarray(frame_times, s.t.dtype)
+            hit = (k < n_frames) & (s.t == times[jnp.minimum(k, n_frames - 1)])
+            frames = jax.lax.cond(hit, lambda f: record(f, k, s, params), lambda f: f, frames)
+            k = k + hit.astype(jnp.int32)
+        return s, frames, k
+
+    def run_block(carry, params, n=block):
+        return _scan_steps(lambda c: one(c, params), carry, n, checkpoint)
+
+    def finish(carry):
+        final, frames, _ = carry
+        budget = jnp.where(final.t < config.t_end, st.BUDGET, 0)
+        return final.replace(status=final.status | budget), frames
+
+    return RolloutParts(start, run_block, finish, block)
+
+
 def make_rollout(config: Config, observer: Observer | None = frame_observer, checkpoint: bool = True):
     """Build ``rollout(state, params) -> (final_state, frames)``.
 
@@ -44,44 +96,14 @@ def make_rollout(config: Config, observer: Observer | None = frame_observer, che
     in ``jax.jit``, ``jax.vmap`` or ``jax.grad`` as needed. The final state's ``status`` carries
     the ``BUDGET`` bit if ``t_end`` was not reached within ``config.max_steps``.
     """
-    step = make_step(config)
-    frame_times = config.frame_times if observer is not None else ()
-    n_frames = len(frame_times)
-    n_blocks, block = config.blocks
-    n_full, remainder = divmod(config.max_steps, block)
+    parts = make_rollout_parts(config, observer, checkpoint)
+    n_full, remainder = divmod(config.max_steps, parts.steps_per_block)
 
     def rollout(state, params):
-        times = jnp.asarray(frame_times, state.t.dtype)
-
-        def record(frames, k, s):
-            return jax.tree.map(lambda f, o: f.at[k].set(o), frames, observer(s, params))
-
-        if n_frames:
-            first = observer(state, params)
-            frames = jax.tree.map(lambda o: jnp.zeros((n_frames,) + o.shape, o.dtype), first)
-            at_start = state.t == times[0]
-            frames = jax.lax.cond(at_start, lambda f: record(f, 0, state), lambda f: f, frames)
-            k = at_start.astype(jnp.int32)
-        else:
-            frames, k = None, jnp.zeros((), jnp.int32)
-
-        def one(carry):
-            s, frames, k = carry
-            s = step(s, params)
-            if n_frames:
-                hit = (k < n_frames) & (s.t == times[jnp.minimum(k, n_frames - 1)])
-                frames = jax.lax.cond(hit, lambda f: record(f, k, s), lambda f: f, frames)
-                k = k + hit.astype(jnp.int32)
-            return s, frames, k
-
-        carry = (state, frames, k)
-        carry = jax.lax.scan(
-            lambda c, _: (_scan_steps(one, c, block, checkpoint), None), carry, None, length=n_full
-        )[0]
+        carry = parts.start(state, params)
+        carry = jax.lax.scan(lambda c, _: (parts.block(c, params), None), carry, None, length=n_full)[0]
         if remainder:
-            carry = _scan_steps(one, carry, remainder, checkpoint)
-        final, frames, _ = carry
-        budget = jnp.where(final.t < config.t_end, st.BUDGET, 0)
-        return final.replace(status=final.status | budget), frames
+            carry = parts.block(carry, params, remainder)
+        return parts.finish(carry)
 
     return rollout

@@ -1,6 +1,12 @@
-"""Scene builders: each returns ``(config, state0, params)`` ready for ``simulate``."""
+"""Scene builders: each returns a ``Scene`` that unpacks as ``(config, state, params)``."""
 
-from .collapse import S2_PARAMS, gates_collapse
+from .collapse import (
+    S2_PARAMS, S3_PARAMS, S4_PARAMS, S5_PARAMS, Scene, aspect_ratio_collapse, cohesive_collapse, collapse,
+    gates_collapse, slope_collapse,
+)
 from .elastic import falling_block
 
-__all__ = ["S2_PARAMS", "falling_block", "gates_collapse"]
+__all__ = [
+    "S2_PARAMS", "S3_PARAMS", "S4_PARAMS", "S5_PARAMS", "Scene", "aspect_ratio_collapse", "cohesive_collapse",
+    "collapse", "falling_block", "gates_collapse", "slope_collapse",
+]

@@ -1,56 +1,198 @@
-"""S2 of SCENES.md: a granular column collapsing between two lifted gates."""
+"""Granular collapses of SCENES.md: S2 (two lifted gates), S3 (sloping bed), S4 (cohesive),
+S5 (aspect ratio). All share one builder.
+
+Coordinates: the column initially occupies [0, L] × [0, H] with the floor (bed) at y = 0 and the
+back wall at x = 0; on a slope x runs along the bed and gravity is rotated,
+g = 9.81 (sin θ, -cos θ). In 3D the channel spans z ∈ [0, W] between slip-free side walls. The
+grid covers only where the flow can go (an estimate of the runout times a safety factor, plus
+three cells of wall margin); a flow that reaches its edge sets the ``EDGE`` status bit.
+"""
 
 from __future__ import annotations
 
+import dataclasses
 import math
+from typing import Any
 
 from ..boundary import Wall
 from ..config import Config, Grid
 from ..materials.critical_state import CriticalState
 from ..params import Params
-from ..state import init_state, seed_box
+from ..state import State, init_state, seed_box
 
-__all__ = ["gates_collapse", "S2_PARAMS"]
+__all__ = [
+    "Scene", "S2_PARAMS", "S3_PARAMS", "S4_PARAMS", "S5_PARAMS",
+    "gates_collapse", "slope_collapse", "cohesive_collapse", "aspect_ratio_collapse", "collapse",
+]
 
-#: SCENES.md S2 material (other keys take MODEL.md defaults: E = 1e6, nu = 0.3, rho = 1550,
-#: rho_s = 2500, mu1 = tan 20.9°, mu2 = tan 32.76°, I0 = 0.279).
+G = 9.81
+#: SCENES.md S2 material; unlisted keys take MODEL.md §4 defaults (E = 1e6, ν = 0.3,
+#: ρ = 1550, ρ_s = 2500, μ1 = tan 20.9°, μ2 = tan 32.76°, I0 = 0.279).
 S2_PARAMS = {"d": 2e-3, "beta": 0.0, "pc0": 100.0, "xi": 50.0}
+#: S3 glass beads (d = 0.7 mm, ρ_s = 2500, ρ = 1550). SCENES.md gives no p_c0, ξ: S2's are used.
+S3_PARAMS = {"d": 0.7e-3, "rho_s": 2500.0, "rho": 1550.0, "beta": 0.0, "pc0": 100.0, "xi": 50.0}
+#: S4 coated beads: d = 0.8 mm, ρ_s = 2600, packing 0.58 (ρ = 1508), p_c0 = 500, ξ = 50.
+S4_PARAMS = {"d": 0.8e-3, "rho_s": 2600.0, "rho": 1508.0, "beta": 0.0, "pc0": 500.0, "xi": 50.0}
+#: S5 dry glass beads, as S3.
+S5_PARAMS = dict(S3_PARAMS)
 
 
-def gates_collapse(
-    dx: float = 0.0025,
+@dataclasses.dataclass(frozen=True)
+class Scene:
+    """A ready-to-run scene. Unpacks as ``config, state, params = scene``."""
+
+    name: str
+    config: Config
+    state: State
+    params: Params
+    meta: dict[str, Any]  # geometry and set-up facts (L, H, slope, initial front, ...)
+
+    def __iter__(self):
+        return iter((self.config, self.state, self.params))
+
+
+def _check_positive(**values):
+    for name, value in values.items():
+        if value is None:
+            continue
+        if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
+            raise ValueError(f"{name} must be > 0, got {value!r}")
+
+
+def collapse(
+    name: str,
+    length: float,
+    height: float,
+    *,
+    dx: float,
     ppc: int = 2,
-    t_end: float = 0.4198,
+    dim: int = 2,
+    width: float | None = None,
+    slope_deg: float = 0.0,
+    back_wall: bool = True,
+    front_gate_speed: float | None = None,
+    back_gate_speed: float | None = None,
+    runout: float,
+    backward_runout: float = 0.0,
+    t_end: float,
     frames: int = 0,
-    gate_speed: float = 0.45,
-    runout: float = 0.09,
     max_steps: int | None = None,
+    transfer: str = "aflip",
+    alpha: float = 0.95,
+    cfl: float = 0.5,
     dtype=None,
+    base_params: dict | None = None,
     **param_values: float,
-):
-    """A 0.08 m × 0.05 m column on a no-slip floor between two slip-free gates lifted at
-    ``gate_speed`` (SCENES.md S2). The grid spans ``runout`` metres beyond each gate (the flow
-    reaches about 0.07 m at t = 0.42 s) and a few cells above the column. Coordinates: column on
-    [x_left, x_left + 0.08] × [floor, floor + 0.05]."""
-    width, height = 0.08, 0.05
-    if not dx > 0:
-        raise ValueError(f"dx must be > 0, got {dx!r}")
-    params = Params.create(dtype=dtype, **{**S2_PARAMS, **param_values})
-    floor = 3 * dx
-    x_left = floor + runout
-    cells = (math.ceil((2 * x_left + width) / dx), math.ceil((floor + height + 4 * dx) / dx))
-    gate = dict(kind="slip-free", velocity=(0.0, gate_speed), edge=(0.0, 1.0), thickness=2 * dx)
-    walls = (
-        Wall((0.0, floor), (0.0, 1.0), "no-slip"),
-        Wall((x_left, floor), (1.0, 0.0), **gate),
-        Wall((x_left + width, floor), (-1.0, 0.0), **gate),
-    )
+) -> Scene:
+    """The common builder: a column [0, L] × [0, H] on a no-slip bed inclined at ``slope_deg``.
+
+    ``back_wall``: a slip-free wall at x = 0. ``front_gate_speed``/``back_gate_speed``: slip-free
+    gates at x = L / x = 0 lifted at that speed (their lower edge starts on the bed). ``runout``
+    and ``backward_runout``: how far beyond x = L and before x = 0 the grid reaches.
+    """
+    _check_positive(dx=dx, length=length, height=height, runout=runout, t_end=t_end, width=width)
+    if dim not in (2, 3):
+        raise ValueError(f"dim must be 2 or 3, got {dim!r}")
+    if dim == 3 and width is None:
+        raise ValueError("width (the channel width, m) is required when dim=3")
+    if int(ppc) != ppc or ppc < 1:
+        raise ValueError(f"ppc must be a positive integer, got {ppc!r}")
+    if not (math.isfinite(slope_deg) and -60.0 < slope_deg < 60.0):
+        raise ValueError(f"slope_deg must be in (-60, 60) degrees, got {slope_deg!r}")
+    if not (isinstance(frames, int) and frames >= 0):
+        raise ValueError(f"frames must be a non-negative integer, got {frames!r}")
+    params = Params.create(dtype=dtype, **{**(base_params or {}), **param_values})
+
+    margin = 3 * dx
+    theta = math.radians(slope_deg)
+    gravity = (G * math.sin(theta), -G * math.cos(theta)) + ((0.0,) if dim == 3 else ())
+    x0 = -(backward_runout + margin)
+    span_x = backward_runout + length + runout + 2 * margin
+    # Height: the column plus room for a splash (material rarely rises above its start).
+    span_y = height * 1.15 + 2 * margin
+    cells = [math.ceil(span_x / dx), math.ceil(span_y / dx)]
+    origin = [x0, -margin]
+    if dim == 3:
+        cells.append(math.ceil((width + 2 * margin) / dx))
+        origin.append(-margin)
+    grid = Grid(tuple(cells), dx, origin=tuple(origin))
+
+    def vec(*c):
+        return tuple(c) + ((0.0,) if dim == 3 else ())
+
+    walls = [Wall(vec(0.0, 0.0), vec(0.0, 1.0), "no-slip")]
+    if back_gate_speed is not None:
+        walls.append(Wall(vec(0.0, 0.0), vec(1.0, 0.0), "slip-free", velocity=vec(0.0, back_gate_speed),
+                          edge=vec(0.0, 1.0), thickness=2 * dx))
+    elif back_wall:
+        walls.append(Wall(vec(0.0, 0.0), vec(1.0, 0.0), "slip-free"))
+    if front_gate_speed is not None:
+        walls.append(Wall(vec(length, 0.0), vec(-1.0, 0.0), "slip-free", velocity=vec(0.0, front_gate_speed),
+                          edge=vec(0.0, 1.0), thickness=2 * dx))
+    if dim == 3:
+        walls.append(Wall((0.0, 0.0, 0.0), (0.0, 0.0, 1.0), "slip-free"))
+        walls.append(Wall((0.0, 0.0, width), (0.0, 0.0, -1.0), "slip-free"))
+
     if max_steps is None:
+        # The elastic bound sets dt (flow speeds stay far below sqrt(E/ρ)); 25 % margin.
         dt = 0.5 * dx / math.sqrt(float(params.E) / float(params.rho))
         max_steps = int(1.25 * t_end / dt) + frames + 10
     config = Config(
-        grid=Grid(cells, dx), t_end=t_end, max_steps=max_steps, walls=walls, material=CriticalState(),
+        grid=grid, t_end=t_end, max_steps=max_steps, material=CriticalState(), walls=tuple(walls),
+        gravity=gravity, transfer=transfer, alpha=alpha, cfl=cfl,
         frame_times=tuple(t_end * (k + 1) / frames for k in range(frames)),
     )
-    x, vol = seed_box((x_left, floor), (x_left + width, floor + height), dx, ppc)
-    return config, init_state(config, x, vol, dtype=dtype), params
+    upper = (length, height) + ((width,) if dim == 3 else ())
+    x, vol = seed_box((0.0,) * dim, upper, dx, ppc)
+    meta = {"L": length, "H": height, "slope_deg": slope_deg, "front0": length, "dim": dim, "dx": dx,
+            "ppc": ppc, "width": width}
+    return Scene(name, config, init_state(config, x, vol, dtype=dtype), params, meta)
+
+
+def gates_collapse(dx: float = 0.0025, ppc: int = 2, dim: int = 2, width: float | None = None,
+                   t_end: float = 0.4198, frames: int = 0, **kw) -> Scene:
+    """S2: a 0.08 m × 0.05 m column between two slip-free gates lifted at 0.45 m/s; it spreads to
+    both sides (about 0.07 m each way by t = 0.42 s)."""
+    kw.setdefault("runout", 0.09)
+    kw.setdefault("backward_runout", kw["runout"])
+    return collapse("gates-collapse", 0.08, 0.05, dx=dx, ppc=ppc, dim=dim, width=width, back_wall=False,
+                    front_gate_speed=0.45, back_gate_speed=0.45, t_end=t_end, frames=frames,
+                    base_params=S2_PARAMS, **kw)
+
+
+def slope_collapse(slope_deg: float = 10.0, dx: float = 0.005, ppc: int = 2, dim: int = 2,
+                   width: float | None = None, t_end: float | None = None, frames: int = 0, **kw) -> Scene:
+    """S3 (Mangeney et al. 2010 set-up): a 0.20 m × 0.14 m column against a slip-free back wall
+    on a no-slip bed inclined at ``slope_deg``, released at t = 0 with no gate."""
+    t_end = t_end if t_end is not None else (1.0 if slope_deg < 15 else 1.5)
+    # Runout estimate: the flat-bed law 1.2 a L (a = 0.7) grows on a slope; generous factors.
+    kw.setdefault("runout", 0.2 * (1.2 * 0.7) * 2.0 * (1.0 + max(slope_deg, 0.0) / 8.0))
+    return collapse("slope-collapse", 0.20, 0.14, dx=dx, ppc=ppc, dim=dim, width=width, slope_deg=slope_deg,
+                    t_end=t_end, frames=frames, base_params=S3_PARAMS, **kw)
+
+
+def cohesive_collapse(beta: float = 0.0, dx: float = 0.089 / 16, ppc: int = 2, dim: int = 2,
+                      width: float | None = None, t_end: float = 0.5, frames: int = 0, **kw) -> Scene:
+    """S4 (Gans et al. 2023 set-up): a 0.089 m square column of coated beads on a no-slip floor
+    against a slip-free back wall; the front gate is lifted at 50 m/s (practically instantly)."""
+    kw.setdefault("runout", 0.25)  # β = 0 runs out ~0.16 m at dx = 5.6 mm
+    return collapse("cohesive-collapse", 0.089, 0.089, dx=dx, ppc=ppc, dim=dim, width=width,
+                    front_gate_speed=50.0, t_end=t_end, frames=frames, base_params=S4_PARAMS, beta=beta, **kw)
+
+
+def aspect_ratio_collapse(a: float = 1.0, L0: float = 0.05, dx: float | None = None, ppc: int = 2,
+                          dim: int = 2, width: float | None = None, t_end: float | None = None,
+                          frames: int = 0, **kw) -> Scene:
+    """S5: a column L0 × a L0 on a horizontal no-slip floor against a slip-free back wall,
+    released at t = 0. The grid allows 1.6× the runout of the glass-bead scaling law
+    (ΔL/L0 ≈ 1.2 a for a ≲ 2.3, 1.9 a^{2/3} above; Lajeunesse et al. 2005, secondary)."""
+    _check_positive(a=a, L0=L0)
+    dx = dx if dx is not None else L0 / 10
+    height = a * L0
+    law = 1.2 * a if a <= 2.3 else 1.9 * a ** (2.0 / 3.0)
+    kw.setdefault("runout", 1.6 * law * L0 + 4 * dx)
+    t_end = t_end if t_end is not None else 4.0 * math.sqrt(height / G) + 0.1
+    scene = collapse("aspect-ratio", L0, height, dx=dx, ppc=ppc, dim=dim, width=width, t_end=t_end,
+                     frames=frames, base_params=S5_PARAMS, **kw)
+    scene.meta["a"] = a
+    return scene
