@@ -5,6 +5,9 @@ import json
 import subprocess
 import sys
 
+import numpy as np
+import pytest
+
 import jaxmpm as jm
 
 
@@ -13,21 +16,42 @@ def _cli(*args, cwd=None):
     return out
 
 
-def test_run_writes_h5_and_json(tmp_path):
-    path = tmp_path / "block.h5"
-    out = _cli("run", "--particles", "64", "--t-end", "0.02", "--frames", "2", "--out", str(path), "--json",
-               "--set", "E=2e6")
+def test_run_writes_h5_csv_and_json(tmp_path):
+    path, csv = tmp_path / "run.h5", tmp_path / "deposit.csv"
+    out = _cli("run", "cohesive-collapse", "--dx", "0.0111", "--t-end", "0.05", "--frames", "2", "--out", str(path),
+               "--profile-csv", str(csv), "--json", "--no-progress", "--set", "beta=0.1")
     assert out.returncode == 0, out.stderr
     summary = json.loads(out.stdout)
-    assert summary["n_particles"] == 64 and summary["status"] == 0 and summary["t_end"] == 0.02
+    for key in ("scene", "n_particles", "n_steps", "dx", "t_end", "x_min", "x_max", "y_max", "runout", "status",
+                "compile_s", "run_s"):
+        assert key in summary
+    assert summary["scene"] == "cohesive-collapse" and summary["status"] == 0 and summary["t_end"] == 0.05
+    assert abs(summary["runout"] - (summary["x_max"] - 0.089)) < 1e-6
     data = jm.io.read_h5(path)
-    assert len(data["frames"]) == 2 and data["attrs"]["param/E"] == 2e6
-    assert data["attrs"]["config_json"]["t_end"] == 0.02
+    assert len(data["frames"]) == 2 and abs(data["attrs"]["param/beta"] - 0.1) < 1e-7
+    lines = csv.read_text().splitlines()
+    assert lines[0].startswith("# experiment: cohesive-collapse (synthetic") and "x_m,h_m" in lines
+    rows = np.loadtxt(csv, delimiter=",", comments="#", skiprows=lines.index("x_m,h_m") + 1)
+    assert rows.shape[1] == 2 and np.all(rows[:, 1] >= 0) and np.all(np.diff(rows[:, 0]) > 0)
 
 
-def test_run_rejects_bad_parameter(tmp_path):
-    out = _cli("run", "--particles", "64", "--t-end", "0.01", "--set", "nu=0.7", "--out", "", cwd=tmp_path)
-    assert out.returncode != 0 and "nu must be in (-1, 0.5)" in out.stderr
+@pytest.mark.parametrize("scene", ["gates-collapse", "slope-collapse", "aspect-ratio", "elastic-block"])
+def test_run_every_scene_on_tiny_settings(scene):
+    args = ["run", scene, "--t-end", "0.01", "--json", "--no-progress"]
+    if scene != "elastic-block":
+        args += ["--dx", "0.02"]
+    out = _cli(*args)
+    assert out.returncode == 0, out.stderr
+    assert json.loads(out.stdout)["status"] == 0
+
+
+def test_run_rejects_bad_input(tmp_path):
+    out = _cli("run", "cohesive-collapse", "--set", "nu=0.7", cwd=tmp_path)
+    assert out.returncode == 2 and "nu must be in (-1, 0.5)" in out.stderr
+    out = _cli("run", "cohesive-collapse", "--dx", "-1", cwd=tmp_path)
+    assert out.returncode == 2 and "dx must be > 0" in out.stderr
+    out = _cli("run", "cohesive-collapse", "--slope", "10", cwd=tmp_path)
+    assert out.returncode == 2 and "--slope applies to slope-collapse" in out.stderr
 
 
 def test_bench_prints_the_documented_fields():
