@@ -171,6 +171,12 @@ def build_parser() -> argparse.ArgumentParser:
     element.add_argument("--json", action="store_true", help="print one JSON object")
     element.add_argument("--plot", default=None, metavar="FILE.png", help="stress path against the yield surface")
 
+    validate = sub.add_parser("validate", help="run a validation study (docs/validation.md)")
+    validate.add_argument("study", choices=("bagnold", "convergence", "aspect-ratio", "cohesion"))
+    validate.add_argument("--quick", action="store_true", help="a reduced, faster version")
+    validate.add_argument("--json", action="store_true", help="print one JSON object")
+    validate.add_argument("--plot", default=None, metavar="DIR", help="write the study's figure into DIR")
+
     bench = sub.add_parser("bench", help="time the engine and print JSON")
     bench.add_argument("--scene", choices=("block", "column"), default="block",
                        help="block: 2D Hencky block, 10k particles; column: S2 collapse, full model")
@@ -193,6 +199,12 @@ def main(argv=None) -> int:
             return _run(args)
         if args.command == "element":
             return _element(args)
+        if args.command == "validate":
+            from .validate import run_study
+
+            out = run_study(args.study, quick=args.quick, plot_dir=args.plot)
+            print(json.dumps(out) if args.json else json.dumps(out, indent=2))
+            return 0
         from . import bench
 
         bench.main(args)

@@ -5,8 +5,9 @@ from .collapse import (
     gates_collapse, slope_collapse,
 )
 from .elastic import falling_block
+from .incline import S1_PARAMS, bagnold_velocity, incline
 
 __all__ = [
-    "S2_PARAMS", "S3_PARAMS", "S4_PARAMS", "S5_PARAMS", "Scene", "aspect_ratio_collapse", "cohesive_collapse",
+    "S1_PARAMS", "bagnold_velocity", "incline", "S2_PARAMS", "S3_PARAMS", "S4_PARAMS", "S5_PARAMS", "Scene", "aspect_ratio_collapse", "cohesive_collapse",
     "collapse", "falling_block", "gates_collapse", "slope_collapse",
 ]

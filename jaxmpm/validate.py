@@ -1,0 +1,245 @@
+"""Validation studies: ``python -m jaxmpm validate NAME [--quick] [--json] [--plot DIR]``.
+
+- ``bagnold``: S1 at 22°, 24°, 26°, 28° against the steady Bagnold profile (MODEL.md §6);
+- ``convergence``: S3 at 10° over dx (and ppc), runout and deposit profile against the finest;
+- ``aspect-ratio``: S5 runout and final height against the glass-bead scaling laws (secondary);
+- ``cohesion``: S4 with β = 0 and β = 0.25 side by side.
+
+Every study returns a JSON-ready dict and, with a plot directory, writes its figure there.
+``--quick`` runs a reduced version (coarser, shorter) that finishes in a minute or two.
+"""
+
+from __future__ import annotations
+
+import math
+import pathlib
+import time
+
+import jax
+import numpy as np
+
+from . import scenes
+from .materials.base import invariants
+from .observables import deposit_profile, particle_volumes
+from .simulate import simulate
+
+__all__ = ["STUDIES", "run_study", "bagnold", "convergence", "aspect_ratio", "cohesion"]
+
+
+def _profile_observer(state, params):
+    return {"vx": state.v[:, 0], "y": state.x[:, 1], "vol": particle_volumes(state)}
+
+
+def _timed(scene, observer=None):
+    clock = time.perf_counter()
+    result = simulate(*scene, observer=observer, throw=False)
+    jax.block_until_ready(result.state.x)
+    return result, time.perf_counter() - clock
+
+
+def bagnold(quick=False, plot_dir=None) -> dict:
+    """S1: start from the analytic profile and measure how well the scheme holds it. The
+    surface velocity is the mean over the particles in the top cell, compared with the analytic
+    profile at the same heights, for the layer depth h measured from the particle volumes; both
+    are averaged over the last quarter of the run."""
+    slopes = (22.0, 24.0, 26.0, 28.0)
+    divisions = (8, 16) if quick else (8, 16, 32)
+    t_end = 0.5 if quick else 3.0
+    cases, profiles = [], {}
+    for slope in slopes:
+        for div in divisions:
+            scene = scenes.incline(slope, dx=0.038 / div, t_end=t_end, frames=16)
+            result, wall = _timed(scene, _profile_observer)
+            frames = {k: np.asarray(v) for k, v in result.frames.items()}
+            late = range(12, 16)
+            v_s, v_a, prof = [], [], []
+            for k in late:
+                vx, y, vol = frames["vx"][k], frames["y"][k], frames["vol"][k]
+                h = vol.sum() / scene.meta["length"]
+                analytic = scenes.bagnold_velocity(y, h, slope, scene.params)
+                top = y > y.max() - scene.meta["dx"]
+                v_s.append(vx[top].mean())
+                v_a.append(analytic[top].mean())
+                prof.append(np.sqrt(np.mean((vx - analytic) ** 2)) / analytic.max())
+            case = {
+                "slope_deg": slope, "dx": scene.meta["dx"], "n_particles": scene.state.n_particles,
+                "v_surface": float(np.mean(v_s)), "v_surface_analytic": float(np.mean(v_a)),
+                "rel_error": float(np.mean(v_s) / np.mean(v_a) - 1.0), "profile_rel_error": float(np.mean(prof)),
+                "status": result.status, "wall_s": round(wall, 2),
+            }
+            cases.append(case)
+            profiles[(slope, div)] = (frames["vx"][15], frames["y"][15], h)
+    finest = [c for c in cases if c["dx"] == min(c2["dx"] for c2 in cases)]
+    out = {"study": "bagnold", "t_end": t_end, "cases": finest, "all_cases": cases}
+    if plot_dir:
+        _plot_bagnold(profiles, slopes, divisions, cases, plot_dir)
+    return out
+
+
+def _plot_bagnold(profiles, slopes, divisions, cases, plot_dir):
+    from .plots import _pyplot
+
+    plt = _pyplot()
+    fig, axes = plt.subplots(1, len(slopes) + 1, figsize=(4 * (len(slopes) + 1), 3.6))
+    params = scenes.incline(22.0).params
+    for ax, slope in zip(axes, slopes):
+        for div in divisions:
+            vx, y, h = profiles[(slope, div)]
+            ax.plot(vx, y * 1e3, ".", ms=2, label=f"dx = h/{div}")
+        z = np.linspace(0, h, 100)
+        ax.plot(scenes.bagnold_velocity(z, h, slope, params), z * 1e3, "k-", lw=1.2, label="Bagnold (MODEL §6)")
+        ax.set_title(f"θ = {slope:g}°")
+        ax.set_xlabel("v (m/s)")
+        ax.set_ylabel("height above bed (mm)")
+    axes[0].legend(fontsize=7)
+    ax = axes[-1]
+    for slope in slopes:
+        rows = [c for c in cases if c["slope_deg"] == slope]
+        ax.loglog([c["dx"] for c in rows], [abs(c["rel_error"]) + 1e-6 for c in rows], "o-", label=f"{slope:g}°")
+    ax.set_xlabel("dx (m)")
+    ax.set_ylabel("|surface velocity error|")
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(pathlib.Path(plot_dir) / "bagnold.png", dpi=90)
+    plt.close(fig)
+
+
+def _deposit(scene, result, xs):
+    sigma = scene.meta["dx"] / scene.meta["ppc"]
+    return np.asarray(deposit_profile(result.state.x, particle_volumes(result.state), xs, sigma))
+
+
+def convergence(quick=False, plot_dir=None) -> dict:
+    """S3 at 10°: runout and deposit profile at several dx (ppc 2) and at ppc 3, against the
+    finest run; the observed order from successive differences."""
+    dxs = (0.02, 0.01) if quick else (0.02, 0.01, 0.005, 0.0025)
+    t_end = 0.3 if quick else 1.0
+    runs = []
+    for dx in dxs:
+        scene = scenes.slope_collapse(10.0, dx=dx, t_end=t_end)
+        result, wall = _timed(scene)
+        runs.append((scene, result, wall, 2))
+    scene = scenes.slope_collapse(10.0, dx=dxs[-2], ppc=3, t_end=t_end)
+    result, wall = _timed(scene)
+    runs.append((scene, result, wall, 3))
+    ref_scene, ref = runs[len(dxs) - 1][0], runs[len(dxs) - 1][1]
+    xs = np.linspace(0.0, float(np.asarray(ref.state.x)[:, 0].max()) + 0.02, 300)
+    h_ref = _deposit(ref_scene, ref, xs)
+    runout_ref = float(np.asarray(ref.state.x)[:, 0].max()) - 0.2
+    rows = []
+    for scene, result, wall, ppc in runs:
+        runout = float(np.asarray(result.state.x)[:, 0].max()) - 0.2
+        h = _deposit(scene, result, xs)
+        rows.append({
+            "dx": scene.meta["dx"], "ppc": ppc, "n_particles": scene.state.n_particles, "runout": runout,
+            "runout_diff": abs(runout - runout_ref), "profile_l2_rel": float(np.linalg.norm(h - h_ref) / np.linalg.norm(h_ref)),
+            "status": result.status, "wall_s": round(wall, 2),
+        })
+    base = [r for r in rows if r["ppc"] == 2]
+    diffs = [abs(b["runout"] - a["runout"]) for a, b in zip(base, base[1:])]
+    orders = [math.log2(d1 / d2) for d1, d2 in zip(diffs, diffs[1:]) if d1 > 0 and d2 > 0]
+    out = {"study": "convergence", "scene": "slope-collapse 10°", "t_end": t_end, "runs": rows,
+           "successive_runout_differences": diffs, "observed_order": orders}
+    if plot_dir:
+        from .plots import _pyplot
+
+        plt = _pyplot()
+        fig, (a1, a2) = plt.subplots(1, 2, figsize=(11, 3.6))
+        for scene, result, _, ppc in runs:
+            a1.plot(xs, _deposit(scene, result, xs) * 1e3, label=f"dx = {scene.meta['dx'] * 1e3:g} mm, ppc {ppc}")
+        a1.set_xlabel("x along the bed (m)")
+        a1.set_ylabel("h (mm)")
+        a1.legend(fontsize=7)
+        a1.set_title(f"S3, θ = 10°, t = {t_end} s")
+        a2.loglog([r["dx"] for r in base[:-1]], [max(r["runout_diff"], 1e-6) for r in base[:-1]], "o-", label="runout")
+        a2.loglog([r["dx"] for r in base[:-1]], [r["profile_l2_rel"] for r in base[:-1]], "s-", label="profile (rel. L2)")
+        a2.set_xlabel("dx (m)")
+        a2.set_ylabel("difference to the finest run")
+        a2.legend(fontsize=7)
+        fig.tight_layout()
+        fig.savefig(pathlib.Path(plot_dir) / "convergence.png", dpi=90)
+        plt.close(fig)
+    return out
+
+
+def aspect_ratio(quick=False, plot_dir=None) -> dict:
+    """S5: ΔL/L0 and H_f/L0 against the glass-bead laws of Lajeunesse et al. 2005 (as quoted
+    in K. Kumar's thesis: secondary)."""
+    ratios = (0.5, 1.0, 2.0) if quick else (0.5, 1.0, 2.0, 4.0, 8.0)
+    rows = []
+    for a in ratios:
+        scene = scenes.aspect_ratio_collapse(a, L0=0.05, dx=0.05 / (6 if quick else 10))
+        result, wall = _timed(scene)
+        x = np.asarray(result.state.x)
+        law = 1.2 * a if a <= 2.3 else 1.9 * a ** (2 / 3)
+        h_law = a if a <= 0.7 else a ** (1 / 3)
+        rows.append({"a": a, "runout_over_L0": float((x[:, 0].max() - 0.05) / 0.05), "law_runout_over_L0": law,
+                     "height_over_L0": float(x[:, 1].max() / 0.05), "law_height_over_L0": h_law,
+                     "status": result.status, "wall_s": round(wall, 2)})
+    out = {"study": "aspect-ratio", "laws": "Lajeunesse et al. 2005 via Kumar (secondary)", "runs": rows}
+    if plot_dir:
+        from .plots import _pyplot
+
+        plt = _pyplot()
+        fig, (a1, a2) = plt.subplots(1, 2, figsize=(10, 3.6))
+        a = np.array([r["a"] for r in rows])
+        fine = np.linspace(0.3, 10, 200)
+        a1.loglog(a, [r["runout_over_L0"] for r in rows], "o", label="jaxmpm")
+        a1.loglog(fine, np.where(fine <= 2.3, 1.2 * fine, 1.9 * fine ** (2 / 3)), "k-", label="glass beads (secondary)")
+        a1.loglog(fine, np.where(fine <= 2.3, 1.6 * fine, 2.2 * fine ** (2 / 3)), "k--", label="sand, Lube 2005 (secondary)")
+        a1.set_xlabel("a = H0/L0")
+        a1.set_ylabel("ΔL/L0")
+        a1.legend(fontsize=7)
+        a2.loglog(a, [r["height_over_L0"] for r in rows], "o", label="jaxmpm")
+        a2.loglog(fine, np.where(fine <= 0.7, fine, fine ** (1 / 3)), "k-", label="glass beads (secondary)")
+        a2.set_xlabel("a = H0/L0")
+        a2.set_ylabel("H_f/L0")
+        a2.legend(fontsize=7)
+        fig.tight_layout()
+        fig.savefig(pathlib.Path(plot_dir) / "aspect_ratio.png", dpi=90)
+        plt.close(fig)
+    return out
+
+
+def cohesion(quick=False, plot_dir=None) -> dict:
+    """S4 with β = 0 and β = 0.25: runout and final height side by side."""
+    rows, shown = [], []
+    for beta in (0.0, 0.25):
+        scene = scenes.cohesive_collapse(beta, dx=0.089 / (12 if quick else 24))
+        result, wall = _timed(scene)
+        x = np.asarray(result.state.x)
+        rows.append({"beta": beta, "runout": float(x[:, 0].max() - 0.089), "final_height": float(x[:, 1].max()),
+                     "status": result.status, "wall_s": round(wall, 2)})
+        shown.append((beta, x, np.asarray(invariants(result.state.tau)[0])))
+    out = {"study": "cohesion", "runs": rows}
+    if plot_dir:
+        from .plots import _pyplot
+
+        plt = _pyplot()
+        fig, axes = plt.subplots(2, 1, figsize=(8, 5), sharex=True)
+        for ax, (beta, x, p) in zip(axes, shown):
+            ax.plot([0, 0, 0.089, 0.089], [0, 0.089, 0.089, 0], "k:", lw=1)
+            art = ax.scatter(x[:, 0], x[:, 1], c=p, s=2, lw=0)
+            fig.colorbar(art, ax=ax, label="p (Pa)", shrink=0.8)
+            ax.set_aspect("equal")
+            ax.set_title(f"S4, β = {beta}, t = 0.5 s")
+        axes[-1].set_xlabel("x (m)")
+        fig.tight_layout()
+        fig.savefig(pathlib.Path(plot_dir) / "cohesion.png", dpi=90)
+        plt.close(fig)
+    return out
+
+
+STUDIES = {"bagnold": bagnold, "convergence": convergence, "aspect-ratio": aspect_ratio, "cohesion": cohesion}
+
+
+def run_study(name: str, quick: bool = False, plot_dir=None) -> dict:
+    if name not in STUDIES:
+        raise ValueError(f"study must be one of {sorted(STUDIES)}, got {name!r}")
+    if plot_dir is not None:
+        pathlib.Path(plot_dir).mkdir(parents=True, exist_ok=True)
+    clock = time.perf_counter()
+    out = STUDIES[name](quick=quick, plot_dir=plot_dir)
+    out["quick"] = quick
+    out["wall_s"] = round(time.perf_counter() - clock, 1)
+    return out
