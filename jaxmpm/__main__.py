@@ -172,7 +172,8 @@ def build_parser() -> argparse.ArgumentParser:
     element.add_argument("--plot", default=None, metavar="FILE.png", help="stress path against the yield surface")
 
     validate = sub.add_parser("validate", help="run a validation study (docs/validation.md)")
-    validate.add_argument("study", choices=("bagnold", "convergence", "aspect-ratio", "cohesion"))
+    validate.add_argument("study", choices=("bagnold", "convergence", "aspect-ratio", "cohesion", "speed-accuracy",
+                                            "stability"))
     validate.add_argument("--quick", action="store_true", help="a reduced, faster version")
     validate.add_argument("--json", action="store_true", help="print one JSON object")
     validate.add_argument("--plot", default=None, metavar="DIR", help="write the study's figure into DIR")

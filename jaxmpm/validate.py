@@ -3,7 +3,9 @@
 - ``bagnold``: S1 at 22°, 24°, 26°, 28° against the steady Bagnold profile (MODEL.md §6);
 - ``convergence``: S3 at 10° over dx (and ppc), runout and deposit profile against the finest;
 - ``aspect-ratio``: S5 runout and final height against the glass-bead scaling laws (secondary);
-- ``cohesion``: S4 with β = 0 and β = 0.25 side by side.
+- ``cohesion``: S4 with β = 0 and β = 0.25 side by side;
+- ``speed-accuracy``: S3 at 10°, error against wall time over dx, ppc, transfer, dtype, cfl;
+- ``stability``: settings pushed until methods fail, and how each failure is reported.
 
 Every study returns a JSON-ready dict and, with a plot directory, writes its figure there.
 ``--quick`` runs a reduced version (coarser, shorter) that finishes in a minute or two.
@@ -23,7 +25,16 @@ from .materials.base import invariants
 from .observables import deposit_profile, particle_volumes
 from .simulate import simulate
 
-__all__ = ["STUDIES", "run_study", "bagnold", "convergence", "aspect_ratio", "cohesion"]
+__all__ = ["STUDIES", "run_study", "bagnold", "convergence", "aspect_ratio", "cohesion", "speed_accuracy",
+           "stability"]
+
+
+def _save(fig, plot_dir, name, dpi):
+    import matplotlib.pyplot as plt
+
+    fig.tight_layout()
+    fig.savefig(pathlib.Path(plot_dir) / name, dpi=dpi)
+    plt.close(fig)
 
 
 def _profile_observer(state, params):
@@ -99,9 +110,7 @@ def _plot_bagnold(profiles, slopes, divisions, cases, plot_dir):
     ax.set_xlabel("dx (m)")
     ax.set_ylabel("|surface velocity error|")
     ax.legend(fontsize=7)
-    fig.tight_layout()
-    fig.savefig(pathlib.Path(plot_dir) / "bagnold.png", dpi=90)
-    plt.close(fig)
+    _save(fig, plot_dir, "bagnold.png", 90)
 
 
 def _deposit(scene, result, xs):
@@ -156,9 +165,7 @@ def convergence(quick=False, plot_dir=None) -> dict:
         a2.set_xlabel("dx (m)")
         a2.set_ylabel("difference to the finest run")
         a2.legend(fontsize=7)
-        fig.tight_layout()
-        fig.savefig(pathlib.Path(plot_dir) / "convergence.png", dpi=90)
-        plt.close(fig)
+        _save(fig, plot_dir, "convergence.png", 90)
     return out
 
 
@@ -171,10 +178,9 @@ def aspect_ratio(quick=False, plot_dir=None) -> dict:
         scene = scenes.aspect_ratio_collapse(a, L0=0.05, dx=0.05 / (6 if quick else 10))
         result, wall = _timed(scene)
         x = np.asarray(result.state.x)
-        law = 1.2 * a if a <= 2.3 else 1.9 * a ** (2 / 3)
-        h_law = a if a <= 0.7 else a ** (1 / 3)
-        rows.append({"a": a, "runout_over_L0": float((x[:, 0].max() - 0.05) / 0.05), "law_runout_over_L0": law,
-                     "height_over_L0": float(x[:, 1].max() / 0.05), "law_height_over_L0": h_law,
+        rows.append({"a": a, "runout_over_L0": float((x[:, 0].max() - 0.05) / 0.05),
+                     "law_runout_over_L0": float(scenes.runout_law(a)),
+                     "height_over_L0": float(x[:, 1].max() / 0.05), "law_height_over_L0": float(scenes.height_law(a)),
                      "status": result.status, "wall_s": round(wall, 2)})
     out = {"study": "aspect-ratio", "laws": "Lajeunesse et al. 2005 via Kumar (secondary)", "runs": rows}
     if plot_dir:
@@ -185,19 +191,17 @@ def aspect_ratio(quick=False, plot_dir=None) -> dict:
         a = np.array([r["a"] for r in rows])
         fine = np.linspace(0.3, 10, 200)
         a1.loglog(a, [r["runout_over_L0"] for r in rows], "o", label="jaxmpm")
-        a1.loglog(fine, np.where(fine <= 2.3, 1.2 * fine, 1.9 * fine ** (2 / 3)), "k-", label="glass beads (secondary)")
-        a1.loglog(fine, np.where(fine <= 2.3, 1.6 * fine, 2.2 * fine ** (2 / 3)), "k--", label="sand, Lube 2005 (secondary)")
+        a1.loglog(fine, scenes.runout_law(fine), "k-", label="glass beads (secondary)")
+        a1.loglog(fine, scenes.runout_law(fine, sand=True), "k--", label="sand, Lube 2005 (secondary)")
         a1.set_xlabel("a = H0/L0")
         a1.set_ylabel("ΔL/L0")
         a1.legend(fontsize=7)
         a2.loglog(a, [r["height_over_L0"] for r in rows], "o", label="jaxmpm")
-        a2.loglog(fine, np.where(fine <= 0.7, fine, fine ** (1 / 3)), "k-", label="glass beads (secondary)")
+        a2.loglog(fine, scenes.height_law(fine), "k-", label="glass beads (secondary)")
         a2.set_xlabel("a = H0/L0")
         a2.set_ylabel("H_f/L0")
         a2.legend(fontsize=7)
-        fig.tight_layout()
-        fig.savefig(pathlib.Path(plot_dir) / "aspect_ratio.png", dpi=90)
-        plt.close(fig)
+        _save(fig, plot_dir, "aspect_ratio.png", 90)
     return out
 
 
@@ -224,13 +228,121 @@ def cohesion(quick=False, plot_dir=None) -> dict:
             ax.set_aspect("equal")
             ax.set_title(f"S4, β = {beta}, t = 0.5 s")
         axes[-1].set_xlabel("x (m)")
-        fig.tight_layout()
-        fig.savefig(pathlib.Path(plot_dir) / "cohesion.png", dpi=90)
-        plt.close(fig)
+        _save(fig, plot_dir, "cohesion.png", 90)
     return out
 
 
-STUDIES = {"bagnold": bagnold, "convergence": convergence, "aspect-ratio": aspect_ratio, "cohesion": cohesion}
+def _s3(dx, t_end, ppc=2, transfer="aflip", alpha=0.95, cfl=0.5, dtype=None, **kw):
+    return scenes.slope_collapse(10.0, dx=dx, ppc=ppc, t_end=t_end, transfer=transfer, alpha=alpha, cfl=cfl,
+                                 dtype=dtype, **kw)
+
+
+def speed_accuracy(quick=False, plot_dir=None) -> dict:
+    """S3 at 10°: error in runout and deposit profile against a fine reference run, versus wall
+    time, over dx, ppc, transfer, float32/float64 and cfl. One point per run; the Pareto front
+    (no other run both faster and more accurate) is marked."""
+    t_end = 0.3 if quick else 1.0
+    ref_dx = 0.005 if quick else 0.0025
+    variants = [dict(dx=dx) for dx in ((0.02, 0.01) if quick else (0.02, 0.01, 0.005))]
+    variants += [dict(dx=0.01, transfer="pic"), dict(dx=0.01, transfer="apic"), dict(dx=0.01, ppc=3)]
+    if not quick:
+        variants += [dict(dx=0.01, dtype="float64"), dict(dx=0.01, cfl=0.9), dict(dx=0.005, transfer="apic"),
+                     dict(dx=0.005, transfer="pic"), dict(dx=0.02, ppc=4)]
+    ref_scene = _s3(ref_dx, t_end, dtype="float32")
+    ref, ref_wall = _timed(ref_scene)
+    xs = np.linspace(0.0, float(np.asarray(ref.state.x)[:, 0].max()) + 0.02, 300)
+    h_ref = _deposit(ref_scene, ref, xs)
+    runout_ref = float(np.asarray(ref.state.x)[:, 0].max()) - 0.2
+    rows = []
+    for v in variants:
+        if v.get("dtype") == "float64":
+            jax.config.update("jax_enable_x64", True)
+        scene = _s3(t_end=t_end, **v)
+        simulate(*scene, throw=False)  # compile outside the timing
+        result, wall = _timed(scene)
+        if v.get("dtype") == "float64":
+            jax.config.update("jax_enable_x64", False)
+        h = _deposit(scene, result, xs)
+        runout = float(np.asarray(result.state.x)[:, 0].max()) - 0.2
+        rows.append({
+            "dx": v["dx"], "ppc": v.get("ppc", 2), "transfer": v.get("transfer", "aflip"),
+            "dtype": v.get("dtype", "float32"), "cfl": v.get("cfl", 0.5), "n_particles": scene.state.n_particles,
+            "wall_s": round(wall, 3), "runout_rel_error": abs(runout - runout_ref) / runout_ref,
+            "profile_rel_error": float(np.linalg.norm(h - h_ref) / np.linalg.norm(h_ref)), "status": result.status,
+        })
+    for r in rows:
+        r["pareto"] = not any(o["wall_s"] <= r["wall_s"] and o["runout_rel_error"] < r["runout_rel_error"]
+                              for o in rows if o is not r)
+    out = {"study": "speed-accuracy", "scene": "slope-collapse 10°", "t_end": t_end,
+           "reference": {"dx": ref_dx, "transfer": "aflip", "wall_s": round(ref_wall, 2), "runout": runout_ref},
+           "runs": rows}
+    if plot_dir:
+        from .plots import _pyplot
+
+        plt = _pyplot()
+        fig, axes = plt.subplots(1, 2, figsize=(11, 4))
+        for ax, key, label in ((axes[0], "runout_rel_error", "runout error"), (axes[1], "profile_rel_error",
+                                                                                "deposit profile error (rel. L2)")):
+            for r in rows:
+                marker = {"aflip": "o", "apic": "s", "pic": "^"}[r["transfer"]]
+                ax.loglog(r["wall_s"], max(r[key], 1e-4), marker, color="C3" if r["pareto"] else "C0", ms=7)
+                ax.annotate(f"{r['dx'] * 1e3:g}mm {r['transfer']} ppc{r['ppc']}"
+                            + (" f64" if r["dtype"] == "float64" else "") + (f" cfl{r['cfl']}" if r["cfl"] != 0.5 else ""),
+                            (r["wall_s"], max(r[key], 1e-4)), fontsize=6, xytext=(3, 3), textcoords="offset points")
+            for level in (0.01, 0.05):
+                ax.axhline(level, color="k", lw=0.6, ls=":")
+            ax.set_xlabel("wall time on 2 CPU cores (s)")
+            ax.set_ylabel(label)
+        axes[0].set_title("o AFLIP  s APIC  ^ PIC;  red: Pareto front")
+        _save(fig, plot_dir, "speed_accuracy.png", 100)
+    return out
+
+
+def stability(quick=False, plot_dir=None) -> dict:
+    """Where methods fail: each case runs S4 (β = 0.25 where cohesion matters, else 0) or S3 with
+    one setting pushed, and records whether it blows up and how the code reports it."""
+    t_end = 0.1 if quick else 0.3
+    cases = [
+        ("baseline (AFLIP 0.95, cfl 0.5)", dict()),
+        ("cfl = 1.5 (elastic bound too)", dict(cfl=1.5, cfl_elastic=1.5)),
+        ("cfl = 3", dict(cfl=3.0, cfl_elastic=3.0)),
+        ("pure FLIP (alpha = 1)", dict(alpha=1.0)),
+        ("PIC", dict(transfer="pic")),
+        ("stiff E = 1e8 at the dt of E = 1e6", dict(E=1e8, cfl_elastic=5.0)),
+        ("tiny p_c0 = 1e-3 Pa", dict(pc0=1e-3)),
+        ("beta = 0.5, free surface p̄ -> 0", dict(beta=0.5)),
+        ("very coarse dx = L/4", dict(dx=0.089 / 4)),
+        ("fine dx = L/48", dict(dx=0.089 / 48)),
+    ]
+    if quick:
+        cases = cases[:6]
+    rows = []
+    for label, opts in cases:
+        opts = dict(opts)
+        dt_opts = {k: opts.pop(k) for k in ("cfl", "cfl_elastic", "alpha", "transfer") if k in opts}
+        scene = scenes.cohesive_collapse(opts.pop("beta", 0.0), dx=opts.pop("dx", 0.089 / 16), t_end=t_end, **opts)
+        if dt_opts:
+            import dataclasses
+
+            scene = dataclasses.replace(scene, config=dataclasses.replace(scene.config, **dt_opts))
+        from .state import describe_status
+
+        clock = time.perf_counter()
+        try:
+            result = simulate(*scene, throw=False)
+            status, text = result.status, describe_status(result.status)
+            v = np.asarray(result.state.v)
+            vmax = float(np.nanmax(np.abs(v))) if np.isfinite(v).any() else float("nan")
+            outcome = "ok" if status == 0 and vmax < 10.0 else ("flagged" if status else "silent blow-up")
+        except ValueError as err:
+            status, text, vmax, outcome = None, [str(err)], None, "rejected before running"
+        rows.append({"case": label, "outcome": outcome, "status": status, "status_text": text,
+                     "max_speed": vmax, "wall_s": round(time.perf_counter() - clock, 2)})
+    return {"study": "stability", "scene": "cohesive-collapse", "t_end": t_end, "cases": rows}
+
+
+STUDIES = {"bagnold": bagnold, "convergence": convergence, "aspect-ratio": aspect_ratio, "cohesion": cohesion,
+           "speed-accuracy": speed_accuracy, "stability": stability}
 
 
 def run_study(name: str, quick: bool = False, plot_dir=None) -> dict:

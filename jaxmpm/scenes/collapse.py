@@ -22,7 +22,8 @@ from ..state import State, init_state, seed_box
 
 __all__ = [
     "Scene", "S2_PARAMS", "S3_PARAMS", "S4_PARAMS", "S5_PARAMS",
-    "gates_collapse", "slope_collapse", "cohesive_collapse", "aspect_ratio_collapse", "collapse",
+    "gates_collapse", "slope_collapse", "cohesive_collapse", "aspect_ratio_collapse", "collapse", "runout_law",
+    "height_law",
 ]
 
 G = 9.81
@@ -180,6 +181,24 @@ def cohesive_collapse(beta: float = 0.0, dx: float = 0.089 / 16, ppc: int = 2, d
                     front_gate_speed=50.0, t_end=t_end, frames=frames, base_params=S4_PARAMS, beta=beta, **kw)
 
 
+def runout_law(a, sand: bool = False):
+    """Normalised runout ΔL/L0 of quasi-2D collapses against aspect ratio a (secondary: glass
+    beads, Lajeunesse et al. 2005; ``sand``: Lube et al. 2005; both as quoted by K. Kumar)."""
+    import numpy as np
+
+    a = np.asarray(a, float)
+    low, high = (1.6, 2.2) if sand else (1.2, 1.9)
+    return np.where(a <= 2.3, low * a, high * a ** (2.0 / 3.0))
+
+
+def height_law(a):
+    """Normalised final height H_f/L0 of glass-bead collapses (secondary): a below 0.7, a^{1/3} above."""
+    import numpy as np
+
+    a = np.asarray(a, float)
+    return np.where(a <= 0.7, a, a ** (1.0 / 3.0))
+
+
 def aspect_ratio_collapse(a: float = 1.0, L0: float = 0.05, dx: float | None = None, ppc: int = 2,
                           dim: int = 2, width: float | None = None, t_end: float | None = None,
                           frames: int = 0, **kw) -> Scene:
@@ -189,8 +208,7 @@ def aspect_ratio_collapse(a: float = 1.0, L0: float = 0.05, dx: float | None = N
     _check_positive(a=a, L0=L0)
     dx = dx if dx is not None else L0 / 10
     height = a * L0
-    law = 1.2 * a if a <= 2.3 else 1.9 * a ** (2.0 / 3.0)
-    kw.setdefault("runout", 1.6 * law * L0 + 4 * dx)
+    kw.setdefault("runout", 1.6 * float(runout_law(a)) * L0 + 4 * dx)
     t_end = t_end if t_end is not None else 4.0 * math.sqrt(height / G) + 0.1
     scene = collapse("aspect-ratio", L0, height, dx=dx, ppc=ppc, dim=dim, width=width, t_end=t_end,
                      frames=frames, base_params=S5_PARAMS, **kw)
