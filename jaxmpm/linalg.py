@@ -62,8 +62,10 @@ def safe_sqrt(x, eps=0.0):
 
 
 def safe_div(num, den, fill=0.0):
-    """num / den where den != 0, else ``fill``, with finite derivatives on both branches."""
-    ok = den != 0
+    """num / den, or ``fill`` where |den| is below sqrt(smallest normal) (there den² would
+    underflow and the derivative -num/den² become inf·0 = NaN); finite derivatives everywhere."""
+    den = jnp.asarray(den)
+    ok = jnp.abs(den) > jnp.sqrt(jnp.finfo(jnp.result_type(den, float)).tiny)
     return jnp.where(ok, num / jnp.where(ok, den, 1.0), fill)
 
 

@@ -119,13 +119,17 @@ def _safeguarded_newton(fn, lo, hi, eps0, iterations):
     return eps
 
 
-def _implicit_step(fn, eps_star, lower, upper):
+def _implicit_step(fn, eps_star, width):
     """One Newton step from a converged root, on live inputs: its value refines the root and its
-    derivative is the implicit-function derivative -(∂fn/∂θ)/(∂fn/∂ε). Kept in the bracket."""
+    derivative is the implicit-function derivative -(∂fn/∂θ)/(∂fn/∂ε). It is not clipped (a clip
+    would zero the derivative of a root on the bracket's edge: a barely plastic state, the
+    apex); a correction that is non-finite or larger than the bracket ``width`` (an unconverged
+    or discarded lane) is dropped instead."""
     eps_star = jax.lax.stop_gradient(eps_star)
     g, slope = _newton_value_and_slope(fn, eps_star)
-    eps = eps_star - safe_div(g, jax.lax.stop_gradient(slope), fill=0.0)
-    return jnp.clip(eps, jax.lax.stop_gradient(lower), jax.lax.stop_gradient(upper))
+    correction = -safe_div(g, jax.lax.stop_gradient(slope), fill=0.0)
+    small = jnp.isfinite(correction) & (jnp.abs(correction) <= jax.lax.stop_gradient(width) + 1e-8)
+    return eps_star + jnp.where(small, correction, 0.0)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -148,26 +152,29 @@ def return_invariants(p_tr, q_tr, eps_v_p, params, dt, dim, iterations=12):
     zero = jnp.zeros_like(p_tr)
 
     # --- regular (cap or shear side) return: root of g(ε) between the trial state (g > 0) and
-    # the apex of the updated ellipse (g < 0).
+    # the apex of the updated ellipse (g < 0). Newton starts at the trial state or at the middle
+    # of the bracket, whichever has the smaller residual (a barely plastic state starts at the
+    # trial state and converges quadratically); bisection takes over when a step leaves the
+    # bracket.
     eps_apex = _apex_increment(p_s, pc_s, params_s, K_s, iterations)
-    eps_root = _safeguarded_newton(
-        lambda e: _surface_residual(e, p_s, q_s, pc_s, params_s, K_s, G_s), eps_apex, zero, 0.5 * eps_apex, iterations
-    )
+    residual_s = lambda e: _surface_residual(e, p_s, q_s, pc_s, params_s, K_s, G_s)  # noqa: E731
+    middle = 0.5 * eps_apex
+    start = jnp.where(jnp.abs(residual_s(zero)) <= jnp.abs(residual_s(middle)), zero, middle)
+    eps_root = _safeguarded_newton(residual_s, eps_apex, zero, start, iterations)
     eps_reg = _implicit_step(
-        lambda e: _surface_residual(e, p_tr, q_tr, pc_n, params, K, G),
-        eps_root, jnp.minimum(eps_apex, 0.0), jnp.maximum(eps_apex, 0.0),
+        lambda e: _surface_residual(e, p_tr, q_tr, pc_n, params, K, G), eps_root, jnp.abs(eps_apex)
     )
 
-    # --- tension tip: p = -β p_c(ε), q = 0. r is increasing and convex: Newton from ε = 0
-    # overshoots once to the right and then converges monotonically.
-    def tip_body(_, e):
-        r, slope = _newton_value_and_slope(lambda x: _tip_residual(x, p_s, pc_s, params_s, K_s), e)
-        return e - safe_div(r, slope, fill=0.0)
-
-    eps_tip = jax.lax.fori_loop(0, iterations, tip_body, zero)
-    eps_tip = _implicit_step(
-        lambda e: _tip_residual(e, p_tr, pc_n, params, K), eps_tip, zero, jnp.full_like(zero, jnp.inf)
+    # --- tension tip: p = -β p_c(ε), q = 0. r(0) = p_tr + β p_c,n < 0 and r(-p_tr/K) > 0 bracket
+    # the root (r need not be monotone when ξ β p_c > K). Lanes not in tension get a harmless
+    # stand-in trial pressure, so that their (discarded) solve stays finite.
+    p_tip = jnp.where(tension, p_s, -params_s.beta * pc_s - 1.0)
+    hi = -p_tip / K_s
+    eps_tip = _safeguarded_newton(
+        lambda e: _tip_residual(e, p_tip, pc_s, params_s, K_s), zero, hi, zero, iterations
     )
+    p_tip_live = jnp.where(tension, p_tr, p_tip)
+    eps_tip = _implicit_step(lambda e: _tip_residual(e, p_tip_live, pc_n, params, K), eps_tip, hi)
 
     eps = jnp.where(plastic, jnp.where(tension, eps_tip, eps_reg), 0.0)
     p = p_tr + K * eps
@@ -175,7 +182,7 @@ def return_invariants(p_tr, q_tr, eps_v_p, params, dt, dim, iterations=12):
     p_bar = p + params.beta * pc
     S = safe_sqrt(jnp.maximum(pc - p, 0.0) * jnp.maximum(p_bar, 0.0))
     S = jnp.where(tension, 0.0, S)  # exactly at the tip (p̄ = 0 up to round-off)
-    q_static = params.mu1 * S
+    q_static = jnp.minimum(params.mu1 * S, q_tr)  # a return never raises q (round-off near a tip)
 
     # --- μ(I) overstress on the static state (MODEL.md §3).
     sqrt_p = safe_sqrt(jnp.maximum(p_bar, 0.0) / params.rho_s)
@@ -217,7 +224,8 @@ def return_map(strain_trial, eps_v_p, params, dt, iterations=12):
     q_tr = 2.0 * G * safe_sqrt(0.5 * jnp.sum(dev * dev, axis=(-2, -1)))
     p_tr = -K * e_v
     out = return_invariants(p_tr, q_tr, eps_v_p, params, dt, dim, iterations)
-    ratio = safe_div(out["q"], q_tr)[..., None, None]
+    # Elastic lanes keep their deviator exactly (ratio 1, so dτ/de = 2G even at e = 0).
+    ratio = jnp.where(out["plastic"] > 0, safe_div(out["q"], q_tr), 1.0)[..., None, None]
     strain = (-out["p"] / (K * dim))[..., None, None] * eye + ratio * dev
     tau = -out["p"][..., None, None] * eye + 2.0 * G * ratio * dev
     return strain, tau, out
