@@ -102,7 +102,7 @@ def hencky_stress_from_strain(e, params):
 # 1. Static returns land on the surface and satisfy the consistency equations
 
 
-def _surface_trial_states(params, dim, n, seed, log_scale=(-6.0, -2.0)):
+def _surface_trial_states(params, dim, n, seed, log_scale=(-9.0, -2.0)):
     """Points on the current surface (random ε_v^p, p over the whole ellipse, random deviatoric
     direction) plus random symmetric strain increments of norm 10^U(log_scale)."""
     rng = np.random.default_rng(seed)
@@ -122,21 +122,21 @@ def _surface_trial_states(params, dim, n, seed, log_scale=(-6.0, -2.0)):
 @pytest.mark.parametrize("beta", [0.0, 0.3])
 @pytest.mark.parametrize("xi", [0.0, 50.0])
 def test_static_return_on_surface_and_consistent(dim, beta, xi):
-    """μ2 = μ1, 600 trial states: surface points + strain increments of norm 1e-6 … 1e-2 (so
+    """μ2 = μ1, 600 trial states: surface points + strain increments of norm 1e-9 … 1e-2 (so
     |p_tr| reaches ~100 p_c, far beyond both tips). For every plastic return:
 
-    - on the surface: |y(p, q; p_c)| / p_c² < 1e-10 (measured ≤ 7e-15);
+    - on the surface: |y(p, q; p_c)| / p_c² < 1e-10 (measured ≤ 4e-15);
     - radial return + flow rule: Δγ = (q_tr/q − 1)/(2G) ≥ 0 recovered from the q equation makes
       the p equation p = p_tr − K Δγ μ1² (2p + (β−1) p_c) hold to 1e-10 (|p − p_tr| + p_c)
-      (measured ≤ 8e-12); regular (non-tension) returns only;
+      (measured ≤ 1e-12); regular (non-tension) returns only;
     - Δε_v^p = (p − p_tr)/K to 1e-10 (|p − p_tr|/K + p_c/K), ε_v^p accumulated exactly, and the
       hardening law p_c = p_c0 exp(−ξ ε_v^p) at the *updated* ε_v^p to 1e-13 (implicit, not lagged);
     - compaction on the cap (p above the apex of the updated ellipse) has Δε_v^p ≤ 0, dilation
       left of the apex has Δε_v^p ≥ 0;
     - τ = −p I + 2G (q/q_tr) dev e_tr and τ is the Hencky stress of the returned strain
       (1e-12 p_c + 1e-12 |τ|).
-    Elastic states (y_tr ≤ 0) are returned unchanged. Smaller increments (trial states barely
-    outside the surface) are covered by the xfail test at the end of the file.
+    Elastic states (y_tr ≤ 0) are returned unchanged. Trial states barely outside the surface
+    (overstress 1e-8) are also checked on their own in test_barely_plastic_return_is_consistent.
     """
     params = _static(beta=beta, xi=xi)
     G, K = _moduli(params, dim)
@@ -199,16 +199,15 @@ def test_static_return_on_surface_and_consistent(dim, beta, xi):
 def test_compression_tip_return(dim):
     """Isotropic compression beyond the compression tip (q_tr = 0, p_tr > p_c) returns to the tip
     of the updated ellipse: p = p_c(ε) (1e-12 relative), Δε_v^p < 0 (hardening for ξ > 0), and
-    q = 0 up to the square-root amplification of round-off in p_c − p: q ≤ 1e-7 p_c (measured
-    2.1e-8 p_c at p_tr = 50 p_c0, ξ = 50, in 2D: q is recomputed as μ1 sqrt((p_c − p) p̄), so it is not
-    exactly q_tr = 0; τ has no deviator at all)."""
+    q = 0 exactly (before q_static was capped at q_tr, round-off in p_c − p under the square root
+    gave q = 2.1e-8 p_c at p_tr = 50 p_c0, ξ = 50, in 2D)."""
     for xi in (0.0, 50.0):
         params = _static(beta=0.2, xi=xi)
         G, K = _moduli(params, dim)
         p_tr = jnp.asarray([120.0, 300.0, 5e3])
         out = _np(_ri(p_tr, jnp.zeros(3), jnp.zeros(3), params, DT, dim))
         np.testing.assert_allclose(out["p"], out["pc"], rtol=1e-12)
-        assert np.all(out["q"] >= 0) and np.all(out["q"] <= 1e-7 * out["pc"])
+        np.testing.assert_array_equal(out["q"], 0.0)
         assert np.all(out["deps_v_p"] < 0)
         np.testing.assert_allclose(out["pc"], 100.0 * np.exp(-xi * out["deps_v_p"]), rtol=1e-13)
         np.testing.assert_allclose(out["deps_v_p"], (out["p"] - np.asarray(p_tr)) / K, rtol=1e-12)
@@ -390,14 +389,6 @@ def _all_outputs_scalar(out):
     return sum(out[k] for k in ("p", "q", "pc", "eps_v_p", "gamma_dot", "I", "mu_I"))
 
 
-def _tip_residual_rootless(p_tr, pc_n, beta, xi, K):
-    """Whether r(ε) = p_tr + Kε + β p_c,n e^{−ξε} (the library's tension-tip residual, evaluated
-    for every lane) has no real root: its minimum K/ξ (1 − ln(K/(ξ β p_c,n))) + p_tr is > 0."""
-    if not xi * beta * pc_n > 0.0:
-        return False
-    return p_tr + K / xi * (1.0 - math.log(K / (xi * beta * pc_n))) > 0.0
-
-
 @jax.jit
 def _point_checks(p_tr, q_tr, evp, beta, xi, pc0, mu2, dt):
     """Rate-dependent (μ2) outputs and their gradients w.r.t. everything, for dim 2 and 3."""
@@ -418,9 +409,9 @@ _finite_floats = dict(allow_nan=False, allow_infinity=False)
 
 
 def _floor(x):
-    """Magnitudes below 1e-12 (stresses in units of p_c0, β, ξ, μ2 − μ1) are sent to exactly 0:
-    see test_no_nan_gradient_for_underflowing_trial_shear for what happens when a quantity such as
-    q_tr or p̄ is below ~1e-154 (hypothesis finds it at q_tr ~ 1e-184 Pa and at β = 2.2e-308)."""
+    """Trial stresses below 1e-12 p_c0 in magnitude are sent to exactly 0: at p̄ ≲ 1e-205 Pa
+    (reached from |p_tr| or q_tr ≲ 1e-100 Pa) the gradient of the inertial number overflows,
+    see test_inertial_number_gradient_at_vanishing_pressure."""
     return 0.0 if abs(x) < 1e-12 else x
 
 
@@ -428,8 +419,8 @@ def _floor(x):
 # test_far_beyond_compression_tip_converges for trial states further out.
 _p_tr = st.one_of(st.just(0.0), st.floats(-20.0, 20.0, **_finite_floats), st.floats(-300.0, 300.0, **_finite_floats)).map(_floor)
 _q_tr = st.one_of(st.just(0.0), st.floats(0.0, 20.0, **_finite_floats), st.floats(0.0, 300.0, **_finite_floats)).map(_floor)
-_beta = st.one_of(st.just(0.0), st.floats(0.0, 0.6, **_finite_floats)).map(_floor)
-_xi = st.one_of(st.just(0.0), st.floats(0.0, 50.0, **_finite_floats)).map(_floor)
+_beta = st.one_of(st.just(0.0), st.floats(0.0, 0.6, **_finite_floats))
+_xi = st.one_of(st.just(0.0), st.floats(0.0, 50.0, **_finite_floats))
 _evp = st.floats(-0.01, 0.01, **_finite_floats)
 _pc0 = st.sampled_from([1.0, 100.0, 1e4])
 # Trial stresses are capped at 4e4 Pa (a 5 % trial volume strain at K = 8.3e5 Pa): beyond
@@ -439,34 +430,27 @@ _P_CAP = 4e4
 
 @settings(max_examples=250, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(p=_p_tr, q=_q_tr, evp=_evp, beta=_beta, xi=_xi, pc0=_pc0,
-       dmu=st.one_of(st.just(0.0), st.floats(0.0, 0.5, **_finite_floats)).map(_floor),
+       dmu=st.one_of(st.just(0.0), st.floats(0.0, 0.5, **_finite_floats)),
        dt=st.sampled_from([1e-6, 1e-4, 1e-2]))
 def test_property_finite_values_and_gradients(p, q, evp, beta, xi, pc0, dmu, dt):
     """Random trial states (p_tr, q_tr in units of p_c0, from −300 to 300 p_c0, capped at
-    ±4e4 Pa, tension included, exact zeros included), ε_v^p, β ∈ [0, 0.6], ξ ∈ [0, 50], μ2 − μ1 ∈ [0, 0.5] (0
-    exactly included), dt, dim 2 and 3, magnitudes below 1e-12 sent to 0 (see _floor): every
-    output and every gradient (w.r.t. p_tr, q_tr, ε_v^p, β, ξ, p_c0, μ1, μ2, I0) is finite, except
-    where the library's tension-tip residual has no root (a known defect, tested below); q ≥ 0,
-    γ̇ ≥ 0,
+    ±4e4 Pa, tension included, exact zeros included, magnitudes below 1e-12 p_c0 sent to 0, see
+    _floor), ε_v^p, β ∈ [0, 0.6], ξ ∈ [0, 50], μ2 − μ1 ∈ [0, 0.5] (exact zeros included, and any
+    tiny or subnormal value hypothesis picks), dt, dim 2 and 3: every output and every gradient
+    (w.r.t. p_tr, q_tr, ε_v^p, β, ξ, p_c0, μ1, μ2, I0) is finite; q ≥ 0, γ̇ ≥ 0,
     μ1 ≤ μ(I) ≤ μ2, and −β p_c ≤ p ≤ p_c up to 1e-12 (p_c + |p_tr|) (p = p_tr + K Δε_v^p carries
     the round-off of p_tr; measured 1.1e-12 p_c at p_tr = 594 p_c, just outside this range, where
     12 iterations leave the compression-tip root 20× the round-off away)."""
     mu1 = jm.DEFAULTS["mu1"]
     p_tr, q_tr = float(np.clip(p * pc0, -_P_CAP, _P_CAP)), min(q * pc0, _P_CAP)
-    # The gradient check is skipped where the (unselected) tension-tip Newton of a compression
-    # lane has no root to find; see test_no_nan_gradient_when_tip_residual_has_no_root.
-    pc_n = pc0 * math.exp(-xi * evp)
-    check_grads_here = all(not _tip_residual_rootless(p_tr, pc_n, beta, xi, _moduli(_params(), dim)[1])
-                           for dim in (2, 3))
     results = _point_checks(jnp.asarray(p_tr), jnp.asarray(q_tr), jnp.asarray(evp), jnp.asarray(beta),
                             jnp.asarray(xi), jnp.asarray(pc0), jnp.asarray(mu1 + dmu), jnp.asarray(dt))
     for out, grads in results:
         out = _np(out)
         for key, v in out.items():
             assert np.isfinite(v), key
-        if check_grads_here:
-            for g in grads:
-                assert np.isfinite(np.asarray(g)), grads
+        for g in grads:
+            assert np.isfinite(np.asarray(g)), grads
         pc = out["pc"]
         tol = 1e-12 * (pc + abs(p_tr))
         assert out["q"] >= 0 and out["gamma_dot"] >= 0
@@ -503,13 +487,11 @@ def test_property_static_admissible_and_idempotent(dim, entries, log_scale, evp,
 
     Idempotent: a second return_map on the output strain with the updated ε_v^p changes p and p_c
     by ≤ δp = 1e-9 (p_c + |p|) + δ (measured 1.7e-11 Pa after a tension return from
-    p_tr = −3e5 Pa), ε_v^p by ≤ δp/K, and q by ≤ q_tol = 1e-9 (p_c + q) + 1e-14 q_tr
-    + 2 μ1 sqrt(ε_mach p_c (p_c + |p| + |p_tr|)) (q = q_tr − G dt γ̇ carries round-off of q_tr);
-    the strain by ≤ δp/K + q_tol/G and τ by ≤ δp + 2 q_tol. The
-    sqrt(ε_mach) term is the library's accuracy near a tip: it recomputes q = μ1 sqrt((p_c − p) p̄),
-    which turns a round-off p̄ ~ 1e-17 into q ~ 1e-9 p_c, larger than q_tr (see
-    test_return_never_increases_q; measured 2.2e-7 Pa = 2.2e-9 p_c at the tension tip, and a trace
-    error of 7e-9 in the strain from q/q_tr ~ 1e8 times a round-off deviator)."""
+    p_tr = −3e5 Pa), ε_v^p by ≤ δp/K, q by ≤ q_tol = 1e-9 (p_c + q) + 1e-14 q_tr (q = q_tr − G dt γ̇
+    carries the round-off of q_tr), the strain by ≤ δp/K + q_tol/G and τ by ≤ δp + 2 q_tol.
+    (Before q_static was capped at q_tr, a round-off p̄ ~ 1e-17 at a tip became q ~ 1e-9 p_c > q_tr
+    under the square root, and the second pass grew it further: see
+    test_return_never_increases_q.)"""
     a = np.zeros((dim, dim))
     idx = np.triu_indices(dim)
     a[idx] = entries[: len(idx[0])]
@@ -531,15 +513,14 @@ def test_property_static_admissible_and_idempotent(dim, entries, log_scale, evp,
 
     p1 = abs(float(o1["p"]))
     dp = 1e-9 * (pc + p1) + dp_round
-    q_tol = (1e-9 * (pc + float(o1["q"])) + 1e-14 * q_tr
-             + 2.0 * jm.DEFAULTS["mu1"] * math.sqrt(2.2e-16 * pc * (pc + p1 + abs(p_tr))))
+    q_tol = 1e-9 * (pc + float(o1["q"])) + 1e-14 * q_tr
     for key in ("p", "pc"):
         np.testing.assert_allclose(o2[key], o1[key], rtol=0, atol=dp)
     np.testing.assert_allclose(o2["eps_v_p"], o1["eps_v_p"], rtol=0, atol=dp / K)
     np.testing.assert_allclose(o2["q"], o1["q"], rtol=0, atol=q_tol)
 
-    # Tensors: a spurious q is carried by ratio = q/q_tr times a round-off-sized trial deviator,
-    # so its size (q_tol) can show up in any component, the trace included.
+    # Tensors: the deviatoric error (q_tol) is carried by ratio = q/q_tr times the trial deviator
+    # and may show up in any component.
     np.testing.assert_allclose(s2, s1, rtol=0, atol=dp / K + q_tol / G)
     np.testing.assert_allclose(t2, t1, rtol=0, atol=dp + 2.0 * q_tol)
 
@@ -749,7 +730,7 @@ def test_barely_plastic_return_is_consistent(dim):
     """Trial states just outside the static surface, q_tr = (1 + δ) q_surface(p_tr) with δ = 1e-8
     (overstress of 1e-8, as in slow steady flow): the returned state must satisfy the flow rule,
     Δγ from the p equation, −Δε_v^p/(μ1² h), equal to Δγ from the q equation, (q_tr/q − 1)/2G,
-    to 1e-6 relative. Measured now: Δε_v^p = 0 exactly (Δγ_p = 0, relative error 1)."""
+    to 1e-6 relative. Measured before the fix: Δε_v^p = 0 exactly (Δγ_p = 0, relative error 1)."""
     params = _static()
     G, K = _moduli(params, dim)
     mu1 = float(params.mu1)
@@ -765,7 +746,7 @@ def test_barely_plastic_return_is_consistent(dim):
 
 def test_barely_plastic_return_jacobian():
     """The consistent tangent is continuous along the plastic side: the Jacobian of (p, q) w.r.t.
-    (p_tr, q_tr) at overstress δ = 1e-8 equals that at δ = 1e-5 to 1e-3 (measured now: dp/dp_tr
+    (p_tr, q_tr) at overstress δ = 1e-8 equals that at δ = 1e-5 to 1e-3 (before the fix: dp/dp_tr
     = 1 instead of 0.849, dq/dq_tr = 0 instead of 0.151)."""
     params = _static()
 
@@ -785,7 +766,7 @@ def test_barely_plastic_return_jacobian():
 def test_elastic_tangent_at_zero_strain(dim):
     """At e_tr = 0 (F_e = I) with β = 0.3 the state is strictly elastic (y = −β μ1² p_c² < 0), so
     τ(e) = λ tr(e) I + 2G e in a neighbourhood and dτ/de[D] = 2G D for a shear direction D
-    (1e-12 relative); the returned strain's derivative is D. Measured now: 0 and 0."""
+    (1e-12 relative); the returned strain's derivative is D. Measured before the fix: 0 and 0."""
     params = _params(beta=0.3)
     G, _ = _moduli(params, dim)
     D = jnp.zeros((dim, dim)).at[0, 1].set(1.0).at[1, 0].set(1.0)
@@ -837,7 +818,7 @@ def test_far_beyond_compression_tip_converges(ratio, xi, pc0):
 
 def test_no_nan_gradient_for_underflowing_trial_shear():
     """At p_tr = 0, β = 0 (p̄ = 0) with q_tr = 1e-200 Pa (q_tr² underflows, so the state counts as
-    elastic), d q/d q_tr must be finite (it is 1). Measured now: NaN for q, γ̇, I and μ(I)."""
+    elastic), d q/d q_tr must be finite (it is 1). Measured before the fix: NaN for q, γ̇, I and μ(I)."""
     params = _params()
     grad = jax.jit(jax.jacrev(lambda q: return_invariants(jnp.asarray(0.0), q, jnp.asarray(0.0), params, DT, 3)))
     g = grad(jnp.asarray(1e-200))
@@ -870,7 +851,7 @@ def test_return_never_increases_q():
 def test_no_nan_gradient_when_tip_residual_has_no_root():
     """A hardened state (β = 0.3, ξ = 50, ε_v^p = −0.0921, so p_c,n ≈ 1e4 Pa) loaded to
     p_tr = 1.646 p_c,n beyond the compression tip, q_tr = 0, 3D: the value is right (p = p_c) but
-    dp/dp_tr must be finite. Measured now: NaN (about 0.2 % of p_tr in [0.5, 3] p_c,n)."""
+    dp/dp_tr must be finite. Measured before the fix: NaN (about 0.2 % of p_tr in [0.5, 3] p_c,n)."""
     params = _params(beta=0.3, xi=50.0)
     f = jax.jit(jax.grad(lambda p: return_invariants(p, jnp.asarray(0.0), jnp.asarray(-0.0921), params, DT, 3)["p"]))
     for p_tr in (16457.19897699022, 16839.633886388685):
@@ -879,8 +860,21 @@ def test_no_nan_gradient_when_tip_residual_has_no_root():
 
 def test_tension_tip_return_with_strong_softening():
     """β = 0.6, ξ = 50, p_c0 = 3e4 Pa (ξβp_c = 9e5 Pa > K = 8.3e5 Pa), p_tr = −1.01 β p_c, q_tr = 0:
-    the return must end on the tip, |p + β p_c| ≤ 1e-10 p_c. Measured now: p = p_tr,
+    the return must end on the tip, |p + β p_c| ≤ 1e-10 p_c. Measured before the fix: p = p_tr,
     Δε_v^p = 0, p̄ = −180 Pa (outside the ellipse)."""
     params = _static(beta=0.6, xi=50.0, pc0=3e4)
     out = _ri(jnp.asarray(-1.01 * 0.6 * 3e4), jnp.asarray(0.0), jnp.asarray(0.0), params, DT, 3)
     assert abs(float(out["p"]) + 0.6 * float(out["pc"])) <= 1e-10 * float(out["pc"])
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_inertial_number_gradient_at_vanishing_pressure(dim):
+    """β = 0, p_tr = 0, q_tr = 1e-112 Pa (plastic: the return moves p to ~7e-224 Pa, γ̇ = 0):
+    dI/dq_tr and dI/dp_tr must be finite (no NaN anywhere, MODEL.md §3). Measured now: NaN for
+    q_tr ≤ ~1e-112 Pa (and p_tr = −4e-197 Pa in tension), finite for q_tr ≥ 1e-100 Pa. Physically
+    irrelevant magnitudes, but the same p̄^(-3/2) makes I and its gradient round-off noise at any
+    tension-tip return (p̄ = round-off there)."""
+    params = _params(pc0=1.0)
+    grad = jax.jit(jax.grad(lambda x: return_invariants(x[0], x[1], jnp.asarray(0.0), params, DT, dim)["I"]))
+    g = np.asarray(grad(jnp.asarray([0.0, 1e-112])))
+    assert np.all(np.isfinite(g)), g

@@ -156,7 +156,9 @@ def return_invariants(p_tr, q_tr, eps_v_p, params, dt, dim, iterations=12):
     # of the bracket, whichever has the smaller residual (a barely plastic state starts at the
     # trial state and converges quadratically); bisection takes over when a step leaves the
     # bracket.
-    eps_apex = _apex_increment(p_s, pc_s, params_s, K_s, iterations)
+    # The apex solve is a monotone Newton iteration (quadratic convergence from the first step):
+    # half the iterations suffice.
+    eps_apex = _apex_increment(p_s, pc_s, params_s, K_s, max(3, iterations // 2))
     residual_s = lambda e: _surface_residual(e, p_s, q_s, pc_s, params_s, K_s, G_s)  # noqa: E731
     middle = 0.5 * eps_apex
     start = jnp.where(jnp.abs(residual_s(zero)) <= jnp.abs(residual_s(middle)), zero, middle)
@@ -185,7 +187,8 @@ def return_invariants(p_tr, q_tr, eps_v_p, params, dt, dim, iterations=12):
     q_static = jnp.minimum(params.mu1 * S, q_tr)  # a return never raises q (round-off near a tip)
 
     # --- μ(I) overstress on the static state (MODEL.md §3).
-    sqrt_p = safe_sqrt(jnp.maximum(p_bar, 0.0) / params.rho_s)
+    # sqrt(p̄/ρ_s), zero below 1e-20 m²/s² (p̄ ~ 1e-17 Pa): the derivative of I ∝ p̄^(-3/2) stays finite.
+    sqrt_p = safe_sqrt(jnp.maximum(p_bar, 0.0) / params.rho_s, eps=1e-20)
     Q = params.I0 * sqrt_p / params.d
     excess = jnp.maximum(q_tr - q_static, 0.0)
     a = G * dt
