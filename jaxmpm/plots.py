@@ -48,7 +48,7 @@ def plot_run(scene, result, path, profile=None):
     """The final deposit (particles coloured by pressure) over the initial column outline, and
     the deposit profile h(x) if given."""
     plt = _pyplot()
-    x0, x = np.asarray(scene.state.x), np.asarray(result.state.x)
+    x = np.asarray(result.state.x)
     from .materials.base import invariants
 
     p = np.asarray(invariants(result.state.tau)[0])

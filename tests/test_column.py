@@ -4,7 +4,6 @@ gradients with respect to the calibration parameters match finite differences.""
 import jax
 import jax.numpy as jnp
 import numpy as np
-import pytest
 
 import jaxmpm as jm
 
