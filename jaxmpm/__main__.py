@@ -38,9 +38,7 @@ def build_scene(name: str, dx=None, ppc=2, dim=2, width=None, t_end=None, frames
     if name == "elastic-block":
         if dim != 2 or width is not None:
             raise ValueError("elastic-block is 2D")
-        cfg, state, params = scenes.falling_block(n_particles=2_500, t_end=t_end or 0.39, frames=frames,
-                                                  dtype=dtype, **values)
-        return scenes.Scene("elastic-block", cfg, state, params, {"front0": float(np.max(state.x[:, 0]))})
+        return scenes.falling_block(n_particles=2_500, t_end=t_end or 0.39, frames=frames, dtype=dtype, **values)
     raise ValueError(f"scene must be one of {SCENES}, got {name!r}")
 
 

@@ -359,9 +359,8 @@ def stability(quick=False, plot_dir=None) -> dict:
         baseline = baseline if baseline is not None else rows[0]["runout"]
     # Without plasticity nothing caps the stress: the elastic block shows the explicit limit.
     for cfl_e in (0.5, 1.5, 3.0):
-        cfg, state, params = scenes.falling_block(n_particles=2_500, t_end=0.2)
-        scene = scenes.Scene("elastic-block", dataclasses.replace(cfg, cfl_elastic=cfl_e), state, params,
-                             {"front0": float(np.max(state.x[:, 0]))})
+        scene = scenes.falling_block(n_particles=2_500, t_end=0.2)
+        scene = dataclasses.replace(scene, config=dataclasses.replace(scene.config, cfl_elastic=cfl_e))
         rows.append(_stability_case(f"Hencky block, cfl_e = {cfl_e}", scene, None))
     return {"study": "stability", "scene": "cohesive-collapse", "t_end": t_end, "cases": rows}
 

@@ -8,6 +8,7 @@ from ..boundary import Wall
 from ..config import Config, Grid
 from ..params import Params
 from ..state import init_state, seed_box
+from .collapse import Scene
 
 __all__ = ["falling_block"]
 
@@ -58,4 +59,6 @@ def falling_block(
         frame_times=tuple(t_end * (k + 1) / frames for k in range(frames)),
     )
     x, vol = seed_box(lower, upper, dx, 2)
-    return config, init_state(config, x, vol, dtype=dtype), Params.create(dtype=dtype, **param_values)
+    state = init_state(config, x, vol, dtype=dtype)
+    meta = {"front0": float(upper[0]), "dx": dx, "ppc": 2}
+    return Scene("elastic-block", config, state, Params.create(dtype=dtype, **param_values), meta)
