@@ -8,38 +8,7 @@ import sys
 
 import numpy as np
 
-
-SCENES = ("cohesive-collapse", "gates-collapse", "slope-collapse", "aspect-ratio", "elastic-block")
-
-
-def build_scene(name: str, dx=None, ppc=2, dim=2, width=None, t_end=None, frames=0, slope=None, aspect=None,
-                dtype=None, values=None):
-    """A scene by its command-line name, with the command line's options."""
-    from . import scenes
-
-    values = dict(values or {})
-    common = dict(ppc=ppc, dim=dim, width=width, frames=frames, dtype=dtype, **values)
-    if t_end is not None:
-        common["t_end"] = t_end
-    if dx is not None:
-        common["dx"] = dx
-    if name != "slope-collapse" and slope is not None:
-        raise ValueError(f"--slope applies to slope-collapse, not {name}")
-    if name != "aspect-ratio" and aspect is not None:
-        raise ValueError(f"--aspect applies to aspect-ratio, not {name}")
-    if name == "cohesive-collapse":
-        return scenes.cohesive_collapse(**common)
-    if name == "gates-collapse":
-        return scenes.gates_collapse(**{"dx": 0.005, **common})
-    if name == "slope-collapse":
-        return scenes.slope_collapse(10.0 if slope is None else slope, **{"dx": 0.01, **common})
-    if name == "aspect-ratio":
-        return scenes.aspect_ratio_collapse(1.0 if aspect is None else aspect, **common)
-    if name == "elastic-block":
-        if dim != 2 or width is not None:
-            raise ValueError("elastic-block is 2D")
-        return scenes.falling_block(n_particles=2_500, t_end=t_end or 0.39, frames=frames, dtype=dtype, **values)
-    raise ValueError(f"scene must be one of {SCENES}, got {name!r}")
+from .scenes import add_scene_arguments, parse_set, scene_from_args
 
 
 def _run(args) -> int:
@@ -52,10 +21,8 @@ def _run(args) -> int:
     from .simulate import simulate
     from .state import describe_status
 
-    values = dict(_parse_set(item) for item in args.set)
     frames = args.frames if args.frames is not None else (40 if args.gif else 0)
-    scene = build_scene(args.scene, dx=args.dx, ppc=args.ppc, dim=args.dim, width=args.width, t_end=args.t_end,
-                        frames=frames, slope=args.slope, aspect=args.aspect, dtype=args.dtype, values=values)
+    scene = scene_from_args(args, frames=frames)
     config, state, params = scene
     result = simulate(config, state, params, throw=False, progress=not args.no_progress, timed=True)
     x = np.asarray(result.state.x)
@@ -85,8 +52,11 @@ def _run(args) -> int:
         if args.profile_csv:
             io.write_profile_csv(args.profile_csv, xs, h, {
                 "experiment": f"{scene.name} (synthetic, jaxmpm {_version()})", "time_s": config.t_end,
-                "units": "m", "source": "python -m jaxmpm run " + " ".join(sys.argv[2:]),
-                "parameters": params.to_dict(), "status": result.status,
+                "units": "m", "synthetic": True, "source": "python -m jaxmpm run " + " ".join(sys.argv[2:]),
+                # float32 leaves printed to the precision they hold (0.3, not 0.30000001192092896)
+                "parameters": {k: float(f"{v:.7g}") if args.dtype == "float32" else v
+                               for k, v in params.to_dict().items()},
+                "scene": {k: v for k, v in scene.meta.items() if v is not None}, "status": result.status,
             })
     if args.plot:
         from .plots import plot_run
@@ -113,7 +83,7 @@ def _element(args) -> int:
     from .element import element_test
     from .params import Params
 
-    params = Params.create(**dict(_parse_set(item) for item in args.set))
+    params = Params.create(**dict(parse_set(item) for item in args.set))
     history = element_test(args.test, params, rate=args.rate, pressure=args.pressure, steps=args.steps,
                            strain=args.strain, dim=args.dim)
     final = history.final()
@@ -125,32 +95,13 @@ def _element(args) -> int:
     return 0
 
 
-def _parse_set(item: str):
-    key, sep, value = item.partition("=")
-    if not sep:
-        raise SystemExit(f"--set expects key=value, got {item!r}")
-    try:
-        return key.strip(), float(value)
-    except ValueError:
-        raise SystemExit(f"--set {key}: value must be a number, got {value!r}") from None
-
-
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="python -m jaxmpm", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True)
 
     run = sub.add_parser("run", help="run a reference scene (SCENES.md)")
-    run.add_argument("scene", choices=SCENES)
-    run.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="material parameter")
-    run.add_argument("--dx", type=float, default=None, help="grid spacing, m (default: a coarse, fast value)")
-    run.add_argument("--ppc", type=int, default=2, help="particles per cell and axis (default 2)")
-    run.add_argument("--dim", type=int, default=2, choices=(2, 3))
-    run.add_argument("--width", type=float, default=None, help="channel width for --dim 3, m")
-    run.add_argument("--slope", type=float, default=None, help="bed angle for slope-collapse, degrees")
-    run.add_argument("--aspect", type=float, default=None, help="aspect ratio H0/L0 for aspect-ratio")
-    run.add_argument("--t-end", type=float, default=None, help="end time, s (default: the scene's)")
+    add_scene_arguments(run)
     run.add_argument("--frames", type=int, default=None, help="output frames (default 0, or 40 with --gif)")
-    run.add_argument("--dtype", choices=("float32", "float64"), default="float32")
     run.add_argument("--out", default=None, help="HDF5 output file")
     run.add_argument("--profile-csv", default=None, help="write the final deposit profile h(x) as CSV")
     run.add_argument("--plot", default=None, metavar="FIG.png", help="final deposit and profile")

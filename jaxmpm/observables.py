@@ -7,6 +7,11 @@ Both are smooth functions of particle positions and volumes, so they can sit ins
   volume is V_p = V0 det(F_e) exp(ε_v^p) (elastic and plastic volume change).
 - ``front_position``: a smooth maximum of the particles' x, σ_f log Σ_p w_p exp(x_p/σ_f), with
   weights w_p = A_p / Σ A_p; it tends to max x_p as σ_f -> 0 and is finite everywhere.
+- ``front_from_profile``: the front as the point where h(x) falls below a threshold,
+  x_ref + ∫_{x > x_ref} s(h(x)) dx with s a C1 step from 0 to 1 around h_thr. For a connected
+  deposit that starts at x_ref (a back wall) this is where the deposit ends; unlike the maximum
+  particle x it ignores single particles that detach ahead of the front, and it is how a
+  front is read from a measured profile (where the height drops below what can be seen).
 Gradients are finite everywhere, including where the profile is empty (h = 0 far from the flow).
 """
 
@@ -17,7 +22,7 @@ import jax.numpy as jnp
 
 from .linalg import det
 
-__all__ = ["particle_volumes", "deposit_profile", "front_position"]
+__all__ = ["deposit_profile", "front_from_profile", "front_position", "particle_volumes"]
 
 
 def particle_volumes(state):
@@ -40,3 +45,17 @@ def front_position(x, volumes, sigma):
     """Smooth maximum of particle x (m) with temperature ``sigma`` (m), volume weighted."""
     weights = volumes / jnp.sum(volumes)
     return sigma * jax.nn.logsumexp(x[:, 0] / sigma, b=weights)
+
+
+def front_from_profile(xs, h, threshold, x_ref=0.0, softness=None):
+    """Front position (m) from a profile ``h`` sampled on a uniform grid ``xs``: ``x_ref`` plus
+    the length beyond ``x_ref`` where h exceeds ``threshold`` (m). The step is the C1 smoothstep
+    3u² − 2u³ over h ∈ [threshold − softness, threshold + softness] (default softness:
+    threshold / 2): exactly 0 below, so empty ground adds nothing (and a zero gradient), and
+    exactly 1 above. Assumes the deposit is connected beyond ``x_ref``."""
+    xs = jnp.asarray(xs)
+    step = xs[1] - xs[0]
+    softness = threshold / 2.0 if softness is None else softness
+    u = jnp.clip((h - threshold + softness) / (2.0 * softness), 0.0, 1.0)
+    inside = u * u * (3.0 - 2.0 * u)
+    return x_ref + step * jnp.sum(jnp.where(xs >= x_ref, inside, 0.0))

@@ -1,0 +1,19 @@
+"""calibration: fit the μ(I) rheology's β, μ1, μ2, I0 and ξ to collapse data with jaxmpm.
+
+The data flow: ``data`` (profiles and front histories, validated) -> ``objective`` (a scene's
+residuals against them) -> ``fit`` (Levenberg–Marquardt or optax Adam, with bounds and a
+resumable history) -> ``uncertainty`` (Gauss–Newton covariance, identifiability); ``sweep``
+evaluates the loss over many parameter sets at once; ``twin`` fits data with known parameters.
+"""
+
+from .bounds import DEFAULT_BOUNDS, FIT_KEYS, Bounds
+from .data import FrontHistory, Profile, RunoutLaw, list_datasets, load_front_history, load_profile, load_scaling_law
+from .fit import FitResult, fit, read_history
+from .objective import CompositeObjective, FrontTarget, Objective, ProfileTarget
+from .uncertainty import Uncertainty, gauss_newton_uncertainty
+
+__all__ = [
+    "DEFAULT_BOUNDS", "FIT_KEYS", "Bounds", "CompositeObjective", "FitResult", "FrontHistory", "FrontTarget",
+    "Objective", "Profile", "ProfileTarget", "RunoutLaw", "Uncertainty", "fit", "gauss_newton_uncertainty",
+    "list_datasets", "load_front_history", "load_profile", "load_scaling_law", "read_history",
+]

@@ -1,0 +1,107 @@
+"""Physical bounds on the fitted parameters, kept by a smooth reparametrisation.
+
+An optimiser works on unconstrained numbers z; the physical value is
+θ = lo + (hi − lo) · sigmoid(z), which stays strictly inside (lo, hi) for every finite z and is
+smooth, so no step can leave the admissible range and no gradient is clipped. The bounds below
+are wide physical limits, not priors: a fitted value that ends near a bound is reported as such.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Mapping, Sequence
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+__all__ = ["DEFAULT_BOUNDS", "FIT_KEYS", "Bounds"]
+
+#: The calibration targets of MODEL.md §4.
+FIT_KEYS = ("beta", "mu1", "mu2", "I0", "xi")
+
+#: Physical limits (lo, hi). β: tensile/compressive strength ratio (dry 0 … strongly cohesive);
+#: μ1, μ2: friction coefficients (tan 3° … tan 63°); I0: inertial number scale; ξ: hardening rate.
+DEFAULT_BOUNDS: dict[str, tuple[float, float]] = {
+    "beta": (0.0, 1.0),
+    "mu1": (0.05, 2.0),
+    "mu2": (0.05, 2.0),
+    "I0": (1e-3, 3.0),
+    "xi": (0.0, 500.0),
+    "pc0": (1.0, 1e5),
+    "E": (1e4, 1e9),
+    "nu": (0.0, 0.49),
+    "d": (1e-5, 0.1),
+}
+
+
+@dataclasses.dataclass(frozen=True)
+class Bounds:
+    """Bounds for an ordered tuple of parameter keys, and the map between θ and z."""
+
+    keys: tuple[str, ...]
+    lower: tuple[float, ...]
+    upper: tuple[float, ...]
+
+    @classmethod
+    def create(cls, keys: Sequence[str], overrides: Mapping[str, tuple[float, float]] | None = None) -> "Bounds":
+        keys = tuple(keys)
+        if not keys:
+            raise ValueError("keys: at least one parameter must be fitted")
+        if len(set(keys)) != len(keys):
+            raise ValueError(f"keys: repeated parameter in {keys}")
+        table = {**DEFAULT_BOUNDS, **dict(overrides or {})}
+        unknown = [k for k in keys if k not in table]
+        if unknown:
+            raise ValueError(f"keys: no bounds known for {unknown}; pass bounds={{key: (lo, hi)}}")
+        lower, upper = [], []
+        for k in keys:
+            lo, hi = (float(v) for v in table[k])
+            if not (math.isfinite(lo) and math.isfinite(hi) and lo < hi):
+                raise ValueError(f"bounds[{k!r}] must be finite with lo < hi, got ({lo}, {hi})")
+            lower.append(lo)
+            upper.append(hi)
+        return cls(keys, tuple(lower), tuple(upper))
+
+    @property
+    def n(self) -> int:
+        return len(self.keys)
+
+    def _arrays(self, like):
+        dtype = jnp.result_type(like)
+        return jnp.asarray(self.lower, dtype), jnp.asarray(self.upper, dtype)
+
+    def to_physical(self, z):
+        """θ = lo + (hi − lo) sigmoid(z)."""
+        lo, hi = self._arrays(z)
+        return lo + (hi - lo) * jax.nn.sigmoid(z)
+
+    def to_unconstrained(self, theta):
+        """The inverse map; ``theta`` must lie strictly inside the bounds."""
+        theta = np.asarray(theta, float)
+        lo, hi = np.asarray(self.lower), np.asarray(self.upper)
+        self.check(theta, "theta")
+        u = (theta - lo) / (hi - lo)
+        return np.log(u) - np.log1p(-u)
+
+    def jacobian_diag(self, z):
+        """dθ/dz, elementwise."""
+        lo, hi = self._arrays(z)
+        s = jax.nn.sigmoid(z)
+        return (hi - lo) * s * (1.0 - s)
+
+    def check(self, theta, name: str = "init") -> None:
+        theta = np.asarray(theta, float)
+        for k, v, lo, hi in zip(self.keys, theta, self.lower, self.upper):
+            if not (math.isfinite(v) and lo < v < hi):
+                raise ValueError(f"{name}: {k} = {v!r} must lie strictly inside its bounds ({lo}, {hi})")
+
+    def near_bound(self, theta, rel: float = 1e-3) -> list[str]:
+        """Keys whose value sits within ``rel`` of the bound range of a bound."""
+        theta = np.asarray(theta, float)
+        out = []
+        for k, v, lo, hi in zip(self.keys, theta, self.lower, self.upper):
+            if min(v - lo, hi - v) < rel * (hi - lo):
+                out.append(k)
+        return out

@@ -1,0 +1,325 @@
+"""The calibration objective: a scene, the parameters to fit, and the data the run must match.
+
+An ``Objective`` turns a vector θ of physical parameter values (ordered as ``keys``) into a
+vector of residuals, one rollout per evaluation:
+
+- the deposit profile h(x) at the data's own x points, at the profile's time (one profile or
+  several at different times), divided by the data's peak height, so a residual of 0.01 is 1 %
+  of the peak (data may be noisy, even slightly negative; ``calibration.data`` validates
+  measured files);
+- the front position at each of the data's times, divided by the initial column length.
+
+Each block is weighted by sqrt(w / m) (m its number of points), so that the loss
+Σ r² = w_h mean(r_h²) + w_f mean(r_f²) is a weighted sum of mean squares that does not depend on
+how densely the data were sampled. A squared residual has a zero derivative at zero, so an
+exact fit has a finite (zero) gradient.
+
+The rollout records only what the residuals need (h at the data points and the front, at the
+data times), with the checkpointed blocks of ``jaxmpm.make_rollout``, so reverse-mode memory
+stays bounded. ``residuals_and_jacobian`` uses forward mode (``jax.jacfwd``): for up to five
+parameters one batched tangent pass costs little more than the run itself (see
+docs/calibration.md for the measured ratio against reverse mode).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Any, Mapping, Sequence
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxmpm import PARAM_KEYS, make_rollout
+from jaxmpm.observables import deposit_profile, front_from_profile, particle_volumes
+
+from .bounds import Bounds
+
+__all__ = ["Objective", "CompositeObjective", "ProfileTarget", "FrontTarget"]
+
+
+@dataclasses.dataclass(frozen=True)
+class ProfileTarget:
+    """A deposit profile to match: heights ``h`` (m) at points ``x`` (m) at time ``time_s``
+    (None: the end of the run)."""
+
+    x: np.ndarray
+    h: np.ndarray
+    time_s: float | None = None
+
+    @classmethod
+    def of(cls, data) -> "ProfileTarget":
+        """From a ``calibration.data.Profile`` (or anything with ``x``, ``h`` and ``time_s``)."""
+        return cls(np.asarray(data.x, float), np.asarray(data.h, float), getattr(data, "time_s", None))
+
+
+@dataclasses.dataclass(frozen=True)
+class FrontTarget:
+    """Front positions ``x_front`` (m) at times ``t`` (s)."""
+
+    t: np.ndarray
+    x_front: np.ndarray
+
+    @classmethod
+    def of(cls, data) -> "FrontTarget":
+        return cls(np.asarray(data.t, float), np.asarray(data.x_front, float))
+
+
+def _check_array(name: str, values, n: int | None = None) -> np.ndarray:
+    arr = np.asarray(values, float)
+    if arr.ndim != 1 or arr.size == 0:
+        raise ValueError(f"{name} must be a non-empty 1-D array, got shape {arr.shape}")
+    if n is not None and arr.size != n:
+        raise ValueError(f"{name} must have {n} values, got {arr.size}")
+    if not np.all(np.isfinite(arr)):
+        raise ValueError(f"{name} must be finite, got {arr[~np.isfinite(arr)][:3]}")
+    return arr
+
+
+class Objective:
+    """Residuals of one scene against a profile and/or a front history.
+
+    Parameters
+    ----------
+    scene: a ``jaxmpm.scenes.Scene`` (its params are the fixed values of the unfitted keys).
+    keys: the parameters to fit, in order (any of ``jaxmpm.PARAM_KEYS`` that has bounds).
+    profile: a ``ProfileTarget`` (or the loader's ``Profile``), or a list of them at several times.
+    front: a ``FrontTarget`` (or the loader's ``FrontHistory``).
+    weights: ``{"profile": w_h, "front": w_f}`` (default 1 each).
+    sigma: the width of the profile's smoothing kernel (m; default: the particle spacing).
+    front_threshold: the height (m) below which the deposit counts as ended, for the front
+        (default: half a particle spacing, below the height of one isolated particle).
+    x_ref: where the front is measured from (default: the back wall, x = 0).
+    bounds: overrides of ``calibration.bounds.DEFAULT_BOUNDS`` by key.
+    """
+
+    def __init__(self, scene, keys: Sequence[str], *, profile=None, front=None,
+                 weights: Mapping[str, float] | None = None, sigma: float | None = None,
+                 front_threshold: float | None = None, x_ref: float = 0.0,
+                 bounds: Mapping[str, tuple[float, float]] | None = None):
+        keys = tuple(keys)
+        bad = [k for k in keys if k not in PARAM_KEYS]
+        if bad:
+            raise ValueError(f"keys: unknown parameter(s) {bad}; valid keys are {list(PARAM_KEYS)}")
+        self.bounds = Bounds.create(keys, bounds)
+        self.keys = keys
+        if not profile and front is None:
+            raise ValueError("give profile and/or front: there is nothing to fit")
+        if profile is None:
+            profiles = ()
+        elif isinstance(profile, (list, tuple)):
+            profiles = tuple(profile)
+        else:
+            profiles = (profile,)
+        self.profiles = tuple(p if isinstance(p, ProfileTarget) else ProfileTarget.of(p) for p in profiles)
+        self.front = front if front is None or isinstance(front, FrontTarget) else FrontTarget.of(front)
+        weights = {"profile": 1.0, "front": 1.0, **dict(weights or {})}
+        if set(weights) - {"profile", "front"}:
+            raise ValueError(f"weights: keys must be 'profile' and 'front', got {sorted(weights)}")
+        for name, w in weights.items():
+            if not (math.isfinite(w) and w >= 0):
+                raise ValueError(f"weights[{name!r}] must be finite and >= 0, got {w!r}")
+        self.weights = weights
+
+        self.scene = scene
+        config = scene.config
+        meta = scene.meta
+        spacing = config.grid.dx / meta.get("ppc", 2)
+        self.sigma = float(sigma) if sigma is not None else spacing
+        self.front_threshold = float(front_threshold) if front_threshold is not None else 0.5 * spacing
+        for name, value in (("sigma", self.sigma), ("front_threshold", self.front_threshold)):
+            if not (math.isfinite(value) and value > 0):
+                raise ValueError(f"{name} must be > 0, got {value!r}")
+        self.x_ref = float(x_ref)
+        self.length = float(meta.get("L", 1.0))
+        width = meta.get("width") if meta.get("dim", 2) == 3 else None
+
+        times, blocks, scales = [], {}, []
+        m = 0
+        t_end = config.t_end
+        self._profiles = []  # (x, h, h_scale, time)
+        for i, prof in enumerate(self.profiles):
+            name = "profile" if len(self.profiles) == 1 else f"profile[{i}]"
+            xp = _check_array(f"{name}.x", prof.x)
+            hp = _check_array(f"{name}.h", prof.h, xp.size)
+            if hp.max() <= 0:
+                raise ValueError(f"{name}.h is zero everywhere: there is no deposit to fit")
+            t_prof = t_end if prof.time_s is None else float(prof.time_s)
+            if not (0 < t_prof <= t_end * (1 + 1e-9)):
+                raise ValueError(f"{name}.time_s = {t_prof} must lie in (0, t_end = {t_end}]: "
+                                 "raise the scene's t_end (--t-end)")
+            t_prof = min(t_prof, t_end)
+            times.append(t_prof)
+            self._profiles.append((xp, hp, float(hp.max()), t_prof))
+            blocks[name] = slice(m, m + xp.size)
+            scales.append(np.full(xp.size, math.sqrt(weights["profile"] / xp.size)))
+            m += xp.size
+        if self.front is not None:
+            tf = _check_array("front.t", self.front.t)
+            xf = _check_array("front.x_front", self.front.x_front, tf.size)
+            if np.any(tf <= 0) or np.any(tf > t_end * (1 + 1e-9)):
+                raise ValueError(f"front.t must lie in (0, t_end = {t_end}], got {tf.min()}..{tf.max()}")
+            if np.any(np.diff(tf) <= 0):
+                raise ValueError("front.t must be strictly increasing")
+            tf = np.minimum(tf, t_end)
+            times += list(tf)
+            self._t_front, self._xf_data = tf, xf
+            blocks["front"] = slice(m, m + tf.size)
+            scales.append(np.full(tf.size, math.sqrt(weights["front"] / tf.size)))
+            m += tf.size
+        self.times = tuple(sorted(set(float(t) for t in times)))
+        self.blocks = blocks
+        self.row_scale = np.concatenate(scales)
+        self.n_residuals = m
+        self._prof_index = [self.times.index(p[3]) for p in self._profiles]
+        self._front_index = (np.array([self.times.index(float(t)) for t in self._t_front])
+                             if self.front is not None else None)
+
+        # Uniform points for the front integral: from x_ref to the far edge of the grid.
+        upper = config.grid.origin[0] + config.grid.cells[0] * config.grid.dx
+        self._xs_front = np.arange(self.x_ref, upper, 0.5 * spacing)
+        self.config = dataclasses.replace(config, frame_times=self.times,
+                                          max_steps=config.max_steps + len(self.times))
+        # All profiles' points in one array; each profile reads its own slice of its own frame.
+        x_data = np.concatenate([p[0] for p in self._profiles]) if self._profiles else np.zeros(1)
+        offsets = np.cumsum([0] + [p[0].size for p in self._profiles])
+        self._prof_slices = [slice(int(a), int(b)) for a, b in zip(offsets[:-1], offsets[1:])]
+        sigma_, thr, x_ref_, xs_front = self.sigma, self.front_threshold, self.x_ref, self._xs_front
+
+        def observer(state, params):
+            vol = particle_volumes(state)
+            dtype = state.x.dtype
+            h = deposit_profile(state.x, vol, jnp.asarray(x_data, dtype), sigma_, width=width)
+            h_front = deposit_profile(state.x, vol, jnp.asarray(xs_front, dtype), sigma_, width=width)
+            return {"h": h, "front": front_from_profile(jnp.asarray(xs_front, dtype), h_front, thr, x_ref_)}
+
+        self._rollout = make_rollout(self.config, observer)
+        self._state = scene.state
+        self._base = scene.params
+        self.dtype = jnp.result_type(scene.params.E)
+
+        self._residuals = jax.jit(self._residual_fn)
+        self._jacobian = jax.jit(jax.jacfwd(lambda th, s, b: (lambda r, aux: (r, (r, aux)))(
+            *self._residual_fn(th, s, b)), has_aux=True))
+        self._value_and_grad = jax.jit(jax.value_and_grad(self._loss_fn, has_aux=True))
+
+    # ---- pure functions of (theta, state, base params) ------------------------------------
+    def params_of(self, theta, base=None):
+        """The full ``Params`` with the fitted keys set from θ (physical values)."""
+        base = self._base if base is None else base
+        theta = jnp.asarray(theta, self.dtype)
+        return base.replace(**{k: theta[i] for i, k in enumerate(self.keys)})
+
+    def _predict_fn(self, theta, state, base):
+        final, frames = self._rollout(state, self.params_of(theta, base))
+        out = {"status": final.status}
+        if self._profiles:
+            out["h"] = jnp.concatenate([frames["h"][i, sl] for i, sl in zip(self._prof_index, self._prof_slices)])
+        if self.front is not None:
+            out["front"] = frames["front"][jnp.asarray(self._front_index)]
+        return out
+
+    def _residual_fn(self, theta, state, base):
+        pred = self._predict_fn(theta, state, base)
+        parts = []
+        if self._profiles:
+            h_data = np.concatenate([p[1] for p in self._profiles])
+            h_scale = np.concatenate([np.full(p[0].size, p[2]) for p in self._profiles])
+            parts.append((pred["h"] - jnp.asarray(h_data, self.dtype)) / jnp.asarray(h_scale, self.dtype))
+        if self.front is not None:
+            parts.append((pred["front"] - jnp.asarray(self._xf_data, self.dtype)) / self.length)
+        r = jnp.concatenate(parts) * jnp.asarray(self.row_scale, self.dtype)
+        return r, pred
+
+    def _loss_fn(self, theta, state, base):
+        r, pred = self._residual_fn(theta, state, base)
+        return jnp.sum(r * r), pred
+
+    # ---- the public calls (jitted once per objective; new θ never recompiles) --------------
+    def residual_fn(self, theta):
+        """Pure, unjitted θ -> (r, prediction): for ``jax.vmap`` and sweeps."""
+        return self._residual_fn(theta, self._state, self._base)
+
+    def residuals(self, theta):
+        """(r, prediction) at θ. ``prediction`` holds ``status`` and the modelled ``h``/``front``."""
+        return self._residuals(self._theta(theta), self._state, self._base)
+
+    def residuals_and_jacobian(self, theta):
+        """(r, J, prediction) at θ, with J = dr/dθ from forward mode (m × n)."""
+        J, (r, pred) = self._jacobian(self._theta(theta), self._state, self._base)
+        return r, J, pred
+
+    def value_and_grad(self, theta):
+        """((loss, prediction), dloss/dθ) from reverse mode through the checkpointed rollout."""
+        return self._value_and_grad(self._theta(theta), self._state, self._base)
+
+    def loss(self, theta) -> float:
+        r, _ = self.residuals(theta)
+        return float(jnp.sum(r * r))
+
+    def _theta(self, theta):
+        theta = jnp.asarray(theta, self.dtype)
+        if theta.shape != (len(self.keys),):
+            raise ValueError(f"theta must have shape ({len(self.keys)},) for keys {self.keys}, got {theta.shape}")
+        return theta
+
+    def initial(self) -> dict[str, float]:
+        """The scene's values of the fitted keys."""
+        return {k: float(getattr(self._base, k)) for k in self.keys}
+
+    def describe(self) -> dict[str, Any]:
+        """A JSON-able description (scene, data sizes, weights), for history files."""
+        return {"scene": self.scene.name, "keys": list(self.keys), "times": list(self.times),
+                "n_profile": [int(p[0].size) for p in self._profiles],
+                "n_front": int(self._t_front.size) if self.front is not None else 0,
+                "weights": self.weights, "sigma": self.sigma, "front_threshold": self.front_threshold,
+                "dx": self.config.grid.dx, "n_particles": int(self._state.x.shape[0]),
+                "fixed": {k: float(v) for k, v in self._base.to_dict().items() if k not in self.keys}}
+
+
+class CompositeObjective:
+    """Several objectives fitted together (e.g. one scene per aspect ratio): the residuals are
+    concatenated, so the loss is the sum of the members' losses. Members must fit the same keys."""
+
+    def __init__(self, members: Sequence[Objective]):
+        members = tuple(members)
+        if not members:
+            raise ValueError("members: at least one objective is needed")
+        keys = members[0].keys
+        for i, m in enumerate(members):
+            if m.keys != keys:
+                raise ValueError(f"members[{i}] fits {m.keys}, members[0] fits {keys}")
+        self.members, self.keys, self.bounds = members, keys, members[0].bounds
+        self.dtype = members[0].dtype
+        offsets = np.cumsum([0] + [m.n_residuals for m in members])
+        self.n_residuals = int(offsets[-1])
+        self.blocks = {f"{i}/{name}": slice(offsets[i] + s.start, offsets[i] + s.stop)
+                       for i, m in enumerate(members) for name, s in m.blocks.items()}
+        self.row_scale = np.concatenate([m.row_scale for m in members])
+
+    def residuals(self, theta):
+        outs = [m.residuals(theta) for m in self.members]
+        status = jnp.bitwise_or.reduce(jnp.stack([o[1]["status"] for o in outs]))
+        return jnp.concatenate([o[0] for o in outs]), {"status": status, "members": [o[1] for o in outs]}
+
+    def residuals_and_jacobian(self, theta):
+        outs = [m.residuals_and_jacobian(theta) for m in self.members]
+        status = jnp.bitwise_or.reduce(jnp.stack([o[2]["status"] for o in outs]))
+        return (jnp.concatenate([o[0] for o in outs]), jnp.concatenate([o[1] for o in outs]),
+                {"status": status, "members": [o[2] for o in outs]})
+
+    def value_and_grad(self, theta):
+        outs = [m.value_and_grad(theta) for m in self.members]
+        loss = sum(o[0][0] for o in outs)
+        status = jnp.bitwise_or.reduce(jnp.stack([o[0][1]["status"] for o in outs]))
+        return (loss, {"status": status}), sum(o[1] for o in outs)
+
+    def loss(self, theta) -> float:
+        return sum(m.loss(theta) for m in self.members)
+
+    def initial(self) -> dict[str, float]:
+        return self.members[0].initial()
+
+    def describe(self) -> dict[str, Any]:
+        return {"members": [m.describe() for m in self.members], "keys": list(self.keys)}

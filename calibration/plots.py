@@ -1,0 +1,136 @@
+"""Figures of a calibration: the fit against the data, the optimiser's history, a loss landscape.
+
+matplotlib is an optional dependency (the ``plot`` extra); it is imported only here.
+"""
+
+from __future__ import annotations
+
+import pathlib
+
+import numpy as np
+
+__all__ = ["plot_fit", "plot_history", "plot_landscape"]
+
+
+def _plt():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def plot_fit(objective, result, path, *, initial_prediction=None, truth_label: str = "data", title: str | None = None):
+    """Modelled against measured profiles (one panel per profile time) and the front history."""
+    plt = _plt()
+    members = getattr(objective, "members", (objective,))
+    preds = result.prediction.get("members", [result.prediction]) if isinstance(result.prediction, dict) else [
+        result.prediction]
+    inits = None
+    if initial_prediction is not None:
+        inits = initial_prediction.get("members", [initial_prediction])
+    panels = []
+    for i, (obj, pred) in enumerate(zip(members, preds)):
+        offset = 0
+        for j, (x, h, _, t) in enumerate(obj._profiles):
+            sl = slice(offset, offset + x.size)
+            offset += x.size
+            init = None if inits is None else np.asarray(inits[i]["h"])[sl]
+            panels.append(("profile", i, x, h, np.asarray(pred["h"])[sl], init, t))
+        if obj.front is not None:
+            init = None if inits is None else np.asarray(inits[i]["front"])
+            panels.append(("front", i, obj._t_front, obj._xf_data, np.asarray(pred["front"]), init, None))
+    n = len(panels)
+    cols = min(n, 4)
+    rows = -(-n // cols)
+    fig, axes = plt.subplots(rows, cols, figsize=(3.6 * cols, 2.9 * rows), squeeze=False)
+    for ax, (kind, i, x, data, model, init, t) in zip(axes.flat, panels):
+        scale = 100.0  # cm
+        if kind == "profile":
+            ax.plot(x * scale, data * scale, "o", ms=3, color="0.3", label=truth_label)
+            if init is not None:
+                ax.plot(x * scale, init * scale, ":", color="tab:gray", label="start")
+            ax.plot(x * scale, model * scale, "-", color="tab:red", label="fit")
+            ax.set_xlabel("x (cm)")
+            ax.set_ylabel("h (cm)")
+            ax.set_title(f"profile at t = {t:.3g} s" + (f" [{i}]" if len(members) > 1 else ""), fontsize=9)
+        else:
+            ax.plot(x, data * scale, "o", ms=3, color="0.3", label=truth_label)
+            if init is not None:
+                ax.plot(x, init * scale, ":", color="tab:gray", label="start")
+            ax.plot(x, model * scale, "-", color="tab:red", label="fit")
+            ax.set_xlabel("t (s)")
+            ax.set_ylabel("front x_f (cm)")
+            ax.set_title("front position" + (f" [{i}]" if len(members) > 1 else ""), fontsize=9)
+        ax.grid(alpha=0.3)
+    for ax in list(axes.flat)[n:]:
+        ax.axis("off")
+    axes.flat[0].legend(fontsize=8)
+    params = ", ".join(f"{k} = {v:.4g}" for k, v in result.theta.items())
+    fig.suptitle(title or f"fit: {params}", fontsize=10)
+    fig.tight_layout()
+    path = pathlib.Path(path)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def plot_history(history, keys, path, *, truth=None, title: str | None = None):
+    """Loss (log scale) and each parameter against iteration; rejected LM trials hollow."""
+    plt = _plt()
+    loss = np.asarray(history["loss"])
+    theta = np.asarray(history["theta"])
+    accepted = np.asarray(history["accepted"], bool)
+    it = np.arange(loss.size)
+    n = len(keys)
+    fig, axes = plt.subplots(1, n + 1, figsize=(3.2 * (n + 1), 2.8))
+    ax = axes[0]
+    ax.semilogy(it[accepted], loss[accepted], "o-", ms=3, color="tab:blue", label="accepted")
+    if (~accepted).any():
+        ax.semilogy(it[~accepted], loss[~accepted], "o", ms=4, mfc="none", color="tab:gray", label="rejected")
+        ax.legend(fontsize=8)
+    ax.set_xlabel("iteration")
+    ax.set_ylabel("loss")
+    ax.grid(alpha=0.3)
+    for j, key in enumerate(keys):
+        ax = axes[j + 1]
+        ax.plot(it[accepted], theta[accepted, j], "o-", ms=3, color="tab:red")
+        if truth is not None and key in truth:
+            ax.axhline(truth[key], color="k", ls="--", lw=1, label="true")
+            ax.legend(fontsize=8)
+        ax.set_xlabel("iteration")
+        ax.set_title(key, fontsize=10)
+        ax.grid(alpha=0.3)
+    if title:
+        fig.suptitle(title, fontsize=10)
+    fig.tight_layout()
+    path = pathlib.Path(path)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def plot_landscape(xs, ys, loss, key_x, key_y, path, *, marks=None, failed=None, title: str | None = None):
+    """log10 loss over a grid of two parameters (``loss[j, i]`` at ``(xs[i], ys[j])``, as
+    ``SweepResult.landscape`` returns it); ``marks``: {label: (x, y)} points to draw;
+    ``failed``: (x, y) arrays of members whose runs failed (drawn as crosses)."""
+    plt = _plt()
+    fig, ax = plt.subplots(figsize=(5.0, 4.0))
+    z = np.log10(np.asarray(loss, float))
+    cs = ax.contourf(xs, ys, z, levels=20, cmap="viridis")
+    fig.colorbar(cs, ax=ax, label="log10 loss")
+    for (label, (mx, my)), style in zip((marks or {}).items(), ("r*", "w^", "wo", "ms")):
+        ax.plot(mx, my, style, ms=10, label=label, mec="k")
+    if failed is not None and len(failed[0]):
+        ax.plot(failed[0], failed[1], "kx", ms=6, label="failed run")
+    if marks or (failed is not None and len(failed[0])):
+        ax.legend(fontsize=8)
+    ax.set_xlabel(key_x)
+    ax.set_ylabel(key_y)
+    ax.set_title(title or f"loss landscape over ({key_x}, {key_y})", fontsize=10)
+    fig.tight_layout()
+    path = pathlib.Path(path)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path

@@ -1,0 +1,159 @@
+"""Regenerate the computed files of experiments_data/ (run from the repository root).
+
+    python experiments_data/generate.py tables    # scaling_laws/*.csv, bagnold/*.csv, examples/wpd_example.csv
+    python experiments_data/generate.py profiles  # synthetic/S4_beta0.25.csv, S4_beta0.csv, S3_10deg.csv (~20 s)
+    python experiments_data/generate.py front     # synthetic/S3_10deg_front.csv (one ~10 s run)
+
+``tables`` only evaluates formulas (and reads synthetic/S4_beta0.25.csv for the WebPlotDigitizer
+format example, so run ``profiles`` first on a fresh checkout). ``profiles`` runs exactly the
+command lines recorded in each profile's ``source`` header. Nothing here is a measurement.
+"""
+
+from __future__ import annotations
+
+import json
+import pathlib
+import subprocess
+import sys
+
+import numpy as np
+
+HERE = pathlib.Path(__file__).resolve().parent
+ROOT = HERE.parent
+A_VALUES = (0.5, 0.7, 1.0, 1.5, 2.0, 2.3, 3.0, 4.0, 6.0, 8.0)
+SLOPES = (22.0, 24.0, 26.0, 28.0)
+DEPTH = 0.038
+KUMAR = "K. Kumar's PhD thesis (CC-BY-4.0), cited in SCENES.md S5; secondary: not read in the primary paper"
+PROFILE_COMMANDS = (
+    ("python -m jaxmpm run cohesive-collapse --set beta=0.25 --profile-csv experiments_data/synthetic/S4_beta0.25.csv"
+    " --no-progress --json"),
+    ("python -m jaxmpm run cohesive-collapse --set beta=0 --profile-csv experiments_data/synthetic/S4_beta0.csv"
+    " --no-progress --json"),
+    ("python -m jaxmpm run slope-collapse --slope 10 --profile-csv experiments_data/synthetic/S3_10deg.csv"
+    " --no-progress --json"),
+)
+
+
+def _write(path: pathlib.Path, header: dict, names: tuple[str, ...], rows) -> None:
+    lines = [f"# {k}: {v if isinstance(v, str) else json.dumps(v)}" for k, v in header.items()]
+    lines.append(",".join(names))
+    lines += [",".join(f"{v:.10g}" for v in row) for row in rows]
+    path.write_text("\n".join(lines) + "\n")
+    print(f"wrote {path.relative_to(ROOT)}")
+
+
+def scaling_laws() -> None:
+    from jaxmpm.scenes import height_law, runout_law
+
+    a = np.array(A_VALUES)
+    _write(HERE / "scaling_laws" / "runout_glass_beads.csv", {
+        "experiment": "quasi-2D granular column collapse on a horizontal floor, glass beads (Lajeunesse et al. 2005)",
+        "secondary": True,
+        "source": f"Lajeunesse et al. 2005, as quoted in {KUMAR}",
+        "formula_runout": "dL/L0 = (L_f - L0)/L0 = 1.2 a for a <= 2.3; 1.9 a^(2/3) for a > 2.3",
+        "formula_height": "H_f/L0 = a for a <= 0.7; a^(1/3) for a > 0.7",
+        "note": "approximate laws; the quoted branches do not meet at the crossovers (2.76 vs 3.31 at a = 2.3, "
+                "0.70 vs 0.89 at a = 0.7); samples at a crossover take the lower branch",
+        "columns": {"a": "aspect ratio H0/L0", "dL_over_L0": "normalised runout", "Hf_over_L0": "normalised final "
+                    "height"},
+        "units": "dimensionless",
+        "generated_by": "python experiments_data/generate.py tables (jaxmpm.scenes.runout_law, height_law)",
+    }, ("a", "dL_over_L0", "Hf_over_L0"), zip(a, runout_law(a), height_law(a)))
+    _write(HERE / "scaling_laws" / "runout_sand_lube2005.csv", {
+        "experiment": "quasi-2D granular column collapse on a horizontal floor, rough sand (Lube et al. 2005)",
+        "secondary": True,
+        "source": f"Lube et al. 2005, as quoted in {KUMAR}",
+        "formula_runout": "dL/L0 = (L_f - L0)/L0 = 1.6 a for a <= 2.3; 2.2 a^(2/3) for a > 2.3",
+        "note": "approximate law; the crossover a = 2.3 is the glass-bead one (SCENES.md quotes no other); no "
+                "final-height law is quoted for sand",
+        "columns": {"a": "aspect ratio H0/L0", "dL_over_L0": "normalised runout"},
+        "units": "dimensionless",
+        "generated_by": "python experiments_data/generate.py tables (jaxmpm.scenes.runout_law(a, sand=True))",
+    }, ("a", "dL_over_L0"), zip(a, runout_law(a, sand=True)))
+
+
+def bagnold() -> None:
+    from jaxmpm.params import DEFAULTS
+    from jaxmpm.scenes import S1_PARAMS, bagnold_velocity
+
+    params = {**DEFAULTS, **S1_PARAMS}
+    used = {k: params[k] for k in ("rho", "rho_s", "d", "mu1", "mu2", "I0")}
+    z = np.linspace(0.0, DEPTH, 21)
+    rows, surface = [], {}
+    for slope in SLOPES:
+        v = bagnold_velocity(z, DEPTH, slope, params)
+        surface[f"{slope:g}"] = round(float(v[-1]), 6)
+        rows += [(slope, zi, vi) for zi, vi in zip(z, v)]
+    _write(HERE / "bagnold" / "bagnold_profiles.csv", {
+        "experiment": "S1 steady uniform flow down an inclined plane: Bagnold velocity profile (analytic)",
+        "analytic": True,
+        "synthetic": False,
+        "source": "MODEL.md section 6, evaluated with jaxmpm.scenes.incline.bagnold_velocity",
+        "formula": "v(z) = (2/3) I_theta sqrt(rho g cos(theta) / rho_s) / d * (h^(3/2) - (h - z)^(3/2)), "
+                   "I_theta = I0 (tan(theta) - mu1) / (mu2 - tan(theta))",
+        "parameters": {**used, "g": 9.81, "h_m": DEPTH},
+        "parameter_sources": "SCENES.md S1 (rho, rho_s, d, mu1 = tan 20.9 deg, mu2 = tan 32.76 deg, I0, h)",
+        "surface_velocity_m_per_s": surface,
+        "columns": {"slope_deg": "bed angle theta, degrees", "z_m": "height above the bed, m",
+                    "v_m_per_s": "downslope velocity, m/s"},
+        "generated_by": "python experiments_data/generate.py tables",
+    }, ("slope_deg", "z_m", "v_m_per_s"), rows)
+
+
+def wpd_example() -> None:
+    sys.path.insert(0, str(ROOT))
+    from calibration.data import load_profile
+
+    profile = load_profile(HERE / "synthetic" / "S4_beta0.25.csv")
+    x_mm = np.array([10.0, 20.0, 40.0, 60.0, 80.0, 100.0, 120.0, 140.0, 160.0])
+    h_mm = np.round(np.interp(x_mm * 1e-3, profile.x, profile.h) * 1e3, 1)
+    path = HERE / "examples" / "wpd_example.csv"
+    path.write_text("".join(f"{x:.1f},{h:.1f}\n" for x, h in zip(x_mm, h_mm)))
+    print(f"wrote {path.relative_to(ROOT)}")
+
+
+def profiles() -> None:
+    for command in PROFILE_COMMANDS:
+        argv = [sys.executable, *command.split()[1:]]
+        print(command)
+        subprocess.run(argv, cwd=ROOT, check=True)
+
+
+def front() -> None:
+    """Front position of the synthetic S3 run at 10 degrees (the CLI's slope-collapse: dx = 0.01 m,
+    float32), as the largest particle x at 20 frames, plus the initial front at t = 0."""
+    import jax.numpy as jnp
+
+    from jaxmpm import __version__, scenes, simulate
+
+    sys.path.insert(0, str(ROOT))
+    from calibration.data import FrontHistory
+
+    scene = scenes.slope_collapse(10.0, dx=0.01, frames=20)
+    config, state, params = scene
+    result = simulate(config, state, params, observer=lambda s, p: {"front": jnp.max(s.x[:, 0])}, throw=False)
+    t = np.concatenate([[0.0], np.asarray(result.frame_times, float)])
+    xf = np.concatenate([[scene.meta["front0"]], np.asarray(result.frames["front"], float)])
+    FrontHistory(
+        t=t, x_front=xf, experiment=f"slope-collapse 10 deg front position (synthetic, jaxmpm {__version__})",
+        source="python experiments_data/generate.py front", synthetic=True,
+        meta={"front_definition": "largest particle x (along the bed, from the back wall) at each frame",
+              "parameters": params.to_dict(), "scene": {k: v for k, v in scene.meta.items() if v is not None},
+              "status": int(result.status)},
+    ).to_csv(HERE / "synthetic" / "S3_10deg_front.csv")
+    print("wrote experiments_data/synthetic/S3_10deg_front.csv")
+
+
+if __name__ == "__main__":
+    what = sys.argv[1:] or ["tables"]
+    for item in what:
+        if item == "tables":
+            scaling_laws()
+            bagnold()
+            wpd_example()
+        elif item == "profiles":
+            profiles()
+        elif item == "front":
+            front()
+        else:
+            raise SystemExit(f"unknown target {item!r}; use tables, profiles or front")

@@ -1,0 +1,294 @@
+"""Calibration: bounds, objective, gradients against finite differences, LM/Adam fits, resume,
+uncertainty. Tiny S4 scenes (dx = L/6, 144 particles) keep each run well under a second."""
+
+import json
+import os
+import pathlib
+import signal
+import subprocess
+import sys
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from calibration import (
+    Bounds, CompositeObjective, FrontTarget, Objective, ProfileTarget, fit, gauss_newton_uncertainty, read_history,
+)
+from jaxmpm import scenes
+from jaxmpm.observables import deposit_profile, front_from_profile
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+KEYS = ("beta", "mu1")
+
+
+def tiny_scene(t_end=0.1, **values):
+    return scenes.cohesive_collapse(dx=0.089 / 6, t_end=t_end, **{"beta": 0.25, **values})
+
+
+def synthetic(scene, keys, theta, xs=np.linspace(0.0, 0.16, 17), times=(0.05, 0.1)):
+    """Data made by the model itself at ``theta``."""
+    gen = Objective(scene, keys, profile=ProfileTarget(xs, np.ones_like(xs)),
+                    front=FrontTarget(np.asarray(times), np.ones(len(times))))
+    _, pred = gen.residuals(theta)
+    assert int(pred["status"]) == 0
+    return ProfileTarget(xs, np.asarray(pred["h"])), FrontTarget(np.asarray(times), np.asarray(pred["front"]))
+
+
+@pytest.fixture(scope="module")
+def problem():
+    scene = tiny_scene()
+    truth = np.array([0.25, float(scene.params.mu1)])
+    profile, front = synthetic(scene, KEYS, truth)
+    return scene, truth, Objective(scene, KEYS, profile=profile, front=front)
+
+
+# ---- bounds ------------------------------------------------------------------------------
+
+def test_bounds_round_trip_and_stay_inside():
+    b = Bounds.create(("beta", "mu1", "xi"))
+    theta = np.array([0.25, 0.38, 50.0])
+    np.testing.assert_allclose(np.asarray(b.to_physical(jnp.asarray(b.to_unconstrained(theta)))), theta, rtol=1e-12)
+    z = jnp.array([-40.0, 0.0, 40.0])
+    th = np.asarray(b.to_physical(z))
+    assert np.all(th >= np.asarray(b.lower)) and np.all(th <= np.asarray(b.upper))
+    jac = jax.jacfwd(b.to_physical)(jnp.asarray(b.to_unconstrained(theta)))
+    np.testing.assert_allclose(np.diag(np.asarray(jac)),
+                               np.asarray(b.jacobian_diag(jnp.asarray(b.to_unconstrained(theta)))), rtol=1e-12)
+
+
+@pytest.mark.parametrize("keys, overrides, match", [
+    ((), None, "at least one"),
+    (("beta", "beta"), None, "repeated"),
+    (("nope",), None, "no bounds known"),
+    (("beta",), {"beta": (1.0, 0.0)}, "lo < hi"),
+])
+def test_bounds_reject_bad_input(keys, overrides, match):
+    with pytest.raises(ValueError, match=match):
+        Bounds.create(keys, overrides)
+
+
+def test_init_outside_bounds_is_an_error_naming_the_key(problem):
+    _, _, objective = problem
+    with pytest.raises(ValueError, match="init: beta"):
+        fit(objective, {"beta": 1.5}, steps=1)
+    with pytest.raises(ValueError, match="not fitted keys"):
+        fit(objective, {"xi": 3.0}, steps=1)
+
+
+# ---- objective -----------------------------------------------------------------------------
+
+def test_objective_rejects_bad_input():
+    scene = tiny_scene()
+    xs = np.linspace(0, 0.1, 5)
+    with pytest.raises(ValueError, match="nothing to fit"):
+        Objective(scene, KEYS)
+    with pytest.raises(ValueError, match="keys: unknown"):
+        Objective(scene, ("friction",), profile=ProfileTarget(xs, xs))
+    with pytest.raises(ValueError, match="time_s"):
+        Objective(scene, KEYS, profile=ProfileTarget(xs, xs, time_s=0.5))
+    with pytest.raises(ValueError, match="finite"):
+        Objective(scene, KEYS, profile=ProfileTarget(xs, xs * np.nan))
+    with pytest.raises(ValueError, match="front.t must lie"):
+        Objective(scene, KEYS, front=FrontTarget(np.array([0.05, 0.2]), np.array([0.1, 0.1])))
+    with pytest.raises(ValueError, match="weights"):
+        Objective(scene, KEYS, profile=ProfileTarget(xs, xs), weights={"profile": -1.0})
+
+
+def test_exact_data_give_zero_residual_and_finite_gradient(problem):
+    _, truth, objective = problem
+    r, pred = objective.residuals(truth)
+    assert int(pred["status"]) == 0
+    np.testing.assert_array_equal(np.asarray(r), 0.0)
+    (loss, _), g = objective.value_and_grad(truth)
+    assert float(loss) == 0.0
+    assert np.all(np.isfinite(np.asarray(g)))  # the square has a zero, finite derivative at zero
+
+
+def test_jacobian_matches_central_differences(problem):
+    """Forward-mode residual Jacobian through the whole rollout against float64 central
+    differences, at a point away from the data (so the residuals are not zero).
+
+    The run is piecewise smooth in θ: MODEL.md §2 sends a trial state beyond the tension tip
+    (p_tr < −β p_c) to the tip even when q_tr > 0, a jump away from the ellipse return. At this
+    θ one particle switches branch 4e-7 (relative) above θ_β (docs/calibration.md), so the
+    differences use steps of 1e-7 and 3e-8 that stay on one branch, and must agree with each
+    other and with autodiff."""
+    _, truth, objective = problem
+    theta = truth * np.array([0.9, 1.05])
+    r, J, _ = objective.residuals_and_jacobian(theta)
+    J = np.asarray(J)
+    assert np.all(np.isfinite(J))
+    for j in range(len(theta)):
+        for rel in (1e-7, 3e-8):
+            h = rel * abs(theta[j])
+            e = np.zeros_like(theta)
+            e[j] = h
+            fd = (np.asarray(objective.residuals(theta + e)[0])
+                  - np.asarray(objective.residuals(theta - e)[0])) / (2 * h)
+            scale = np.max(np.abs(fd))
+            assert scale > 0, "the data must depend on every fitted parameter"
+            np.testing.assert_allclose(J[:, j], fd, atol=1e-5 * scale, rtol=0)
+
+
+def test_reverse_mode_gradient_equals_forward_mode(problem):
+    _, truth, objective = problem
+    theta = truth * np.array([1.1, 0.95])
+    r, J, _ = objective.residuals_and_jacobian(theta)
+    (loss, _), g = objective.value_and_grad(theta)
+    np.testing.assert_allclose(float(loss), float(np.sum(np.asarray(r) ** 2)), rtol=1e-12)
+    np.testing.assert_allclose(np.asarray(g), 2 * np.asarray(J).T @ np.asarray(r), rtol=1e-8)
+
+
+def test_front_from_profile_and_empty_profile_gradients():
+    xs = jnp.linspace(0.0, 1.0, 201)
+    h = jnp.where(xs < 0.4, 0.1, 0.0)
+    assert abs(float(front_from_profile(xs, h, 0.01)) - 0.4) < 0.01
+    # A profile sampled far from every particle is exactly zero there; its gradient is finite.
+    x = jnp.array([[0.1, 0.05], [0.12, 0.02]])
+    vol = jnp.array([1e-4, 1e-4])
+
+    def far(x):
+        h = deposit_profile(x, vol, jnp.linspace(5.0, 6.0, 11), 0.005)
+        return jnp.sum(h**2) + front_from_profile(jnp.linspace(5.0, 6.0, 11), h, 0.01, x_ref=5.0)
+
+    g = jax.grad(far)(x)
+    assert np.all(np.isfinite(np.asarray(g)))
+
+
+def test_several_profiles_and_composite_objective(problem):
+    scene, truth, _ = problem
+    xs = np.linspace(0.0, 0.16, 9)
+    p1, _ = synthetic(scene, KEYS, truth, xs=xs, times=(0.05,))
+    gen = Objective(scene, KEYS, profile=ProfileTarget(xs, np.ones_like(xs), 0.05))
+    _, pred = gen.residuals(truth)
+    early = ProfileTarget(xs, np.asarray(pred["h"]), 0.05)
+    both = Objective(scene, KEYS, profile=[early, p1])
+    r, _ = both.residuals(truth)
+    np.testing.assert_array_equal(np.asarray(r), 0.0)
+    assert set(both.blocks) == {"profile[0]", "profile[1]"}
+    comp = CompositeObjective([both, Objective(scene, KEYS, profile=p1)])
+    r, J, pred = comp.residuals_and_jacobian(truth * 1.1)
+    assert r.shape == (27,) and J.shape == (27, 2) and int(pred["status"]) == 0
+    assert comp.loss(truth * 1.1) == pytest.approx(both.loss(truth * 1.1) + comp.members[1].loss(truth * 1.1))
+
+
+# ---- fitting ---------------------------------------------------------------------------
+
+def test_lm_recovers_the_truth(problem):
+    _, truth, objective = problem
+    result = fit(objective, {"beta": 0.18, "mu1": 0.45}, method="lm", steps=30)
+    got = np.array([result.theta[k] for k in KEYS])
+    # The issue asks for 2 %. On this very coarse grid (144 particles) the tension-tip branch
+    # switches of MODEL.md §2 leave jumps of ~1e-9 in the loss near the truth, which the
+    # Jacobian cannot see: LM stops 3e-3 from the truth (1e-4 on the S4 twin at 256 particles).
+    np.testing.assert_allclose(got, truth, rtol=1e-2)
+    assert result.loss < 1e-4 * result.history["loss"][0]
+    assert result.uncertainty is not None and result.uncertainty.stderr.shape == (2,)
+    assert np.all(result.history["status"] == 0)
+
+
+def test_adam_lowers_the_loss(problem):
+    _, truth, objective = problem
+    for mode in ("fwd", "rev"):
+        result = fit(objective, {"beta": 0.18, "mu1": 0.45}, method="adam", steps=8, learning_rate=0.1,
+                     grad_mode=mode)
+        loss = result.history["loss"]
+        assert loss[-1] < 0.5 * loss[0], (mode, loss)
+        assert np.all(np.isfinite(result.history["grad_norm"]))
+
+
+@pytest.mark.parametrize("method", ["lm", "adam"])
+def test_interrupted_fit_resumes_without_losing_iterations(problem, tmp_path, method):
+    _, _, objective = problem
+    init = {"beta": 0.18, "mu1": 0.45}
+    kw = dict(method=method, steps=5, learning_rate=0.1, uncertainty=False, stat_tol=0.0, ftol=0.0, xtol=0.0)
+    full = fit(objective, init, out=tmp_path / "full.h5", **kw)
+
+    class Killed(Exception):
+        pass
+
+    def kill_after_two(k, record):
+        if k == 1:
+            raise Killed
+
+    with pytest.raises(Killed):
+        fit(objective, init, out=tmp_path / "cut.h5", callback=kill_after_two, **kw)
+    saved = read_history(tmp_path / "cut.h5")["history"]
+    assert saved["loss"].size == 2
+    resumed = fit(objective, init, out=tmp_path / "cut.h5", resume=True, **kw)
+    for field in ("theta", "loss", "accepted", "status"):
+        np.testing.assert_array_equal(resumed.history[field], full.history[field], err_msg=field)
+    np.testing.assert_array_equal(read_history(tmp_path / "cut.h5")["history"]["loss"], full.history["loss"])
+
+
+def test_resume_refuses_a_different_fit(problem, tmp_path):
+    _, _, objective = problem
+    fit(objective, {"beta": 0.2}, steps=1, out=tmp_path / "f.h5", uncertainty=False)
+    with pytest.raises(ValueError, match="holds a lm fit"):
+        fit(objective, {"beta": 0.2}, method="adam", steps=2, out=tmp_path / "f.h5", resume=True)
+
+
+def test_killed_command_line_fit_resumes(tmp_path):
+    """SIGKILL a running ``python -m calibration fit`` once its file holds two iterations; the
+    resumed run keeps them and finishes with the same history as an uninterrupted one."""
+    data = ROOT / "experiments_data" / "synthetic" / "S4_beta0.25.csv"
+    args = [sys.executable, "-m", "calibration", "fit", "--scene", "cohesive-collapse", "--data", str(data),
+            "--fit", "beta,mu1", "--init", "beta=0.15", "--dx", str(0.089 / 6),
+            "--steps", "4", "--no-progress", "--json"]
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    out = tmp_path / "fit.h5"
+    proc = subprocess.Popen(args + ["--out", str(out)], cwd=tmp_path, env=env, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE)
+    deadline = time.time() + 120
+    n_before = 0
+    while time.time() < deadline and proc.poll() is None:
+        if out.exists():
+            try:
+                n_before = read_history(out)["history"]["loss"].size
+            except (OSError, KeyError):
+                n_before = 0
+            if n_before >= 2:
+                proc.send_signal(signal.SIGKILL)
+                break
+        time.sleep(0.05)
+    proc.wait(timeout=30)
+    assert n_before >= 2, proc.stderr.read().decode()[-2000:]
+    before = read_history(out)["history"]
+    if before["loss"].size >= 4:
+        pytest.skip("the fit finished before it could be killed")
+    done = subprocess.run(args + ["--out", str(out), "--resume"], cwd=tmp_path, env=env, capture_output=True,
+                          text=True, timeout=180)
+    assert done.returncode == 0, done.stderr[-2000:]
+    after = read_history(out)["history"]
+    np.testing.assert_array_equal(after["loss"][: before["loss"].size], before["loss"])
+    assert after["loss"].size == 4
+    ref = subprocess.run(args + ["--out", str(tmp_path / "ref.h5")], cwd=tmp_path, env=env, capture_output=True,
+                         text=True, timeout=180)
+    assert ref.returncode == 0, ref.stderr[-2000:]
+    np.testing.assert_array_equal(read_history(tmp_path / "ref.h5")["history"]["theta"], after["theta"])
+    assert json.loads(done.stdout)["iterations"] == 4
+
+
+# ---- uncertainty -------------------------------------------------------------------------
+
+def test_gauss_newton_covariance_of_a_linear_model():
+    rng = np.random.default_rng(0)
+    m, sigma = 400, 0.02
+    J = np.column_stack([np.ones(m), np.linspace(0, 1, m), np.zeros(m)])
+    wiggle = np.cos(np.linspace(0, 7 * np.pi, m))
+    q, _ = np.linalg.qr(np.column_stack([J[:, :2], wiggle]))
+    J[:, 2] = 1e-9 * q[:, 2]  # a parameter the data barely see (orthogonal to the others)
+    r = sigma * rng.standard_normal(m)
+    blocks = {"profile": slice(0, m)}
+    u = gauss_newton_uncertainty(J, r, ("a", "b", "c"), np.array([1.0, 1.0, 1.0]), blocks, np.ones(m), noise=sigma)
+    expected = sigma**2 * np.linalg.inv(J[:, :2].T @ J[:, :2])
+    np.testing.assert_allclose(u.cov[:2, :2], expected, rtol=1e-6)
+    assert u.stderr[2] > 1e3  # unidentifiable: a huge (finite) standard error, not zero
+    assert u.constrained == ("a", "b")
+    assert "do not constrain c" in u.statement
+    # estimated noise ~ sigma
+    u2 = gauss_newton_uncertainty(J, r, ("a", "b", "c"), np.ones(3), blocks, np.ones(m))
+    assert abs(u2.noise["profile"] / sigma - 1) < 0.1
