@@ -4,6 +4,7 @@
     python -m calibration sweep --scene cohesive-collapse --data deposit.csv --over beta=0.05:0.5:8 \\
         --over mu1=0.3:0.5:8 --plot figs
     python -m calibration twin --quick --noise 0.02 --json
+    python -m calibration bench --json
 
 ``fit``, ``sweep`` and ``twin`` take the scene options of ``python -m jaxmpm run`` (--dx, --ppc,
 --t-end, --set key=value, ...). Invalid input exits with status 2 and a message naming the
@@ -70,7 +71,7 @@ def _scene_and_objective(args, keys):
     scene = scene_from_args(args)
     objective = Objective(scene, keys, profile=profiles or None, front=front,
                           weights={"profile": args.weight_profile, "front": args.weight_front},
-                          front_threshold=args.front_threshold)
+                          front_threshold=args.front_threshold, jacobian=getattr(args, "jacobian", "ad"))
     return scene, objective
 
 
@@ -197,7 +198,81 @@ def _twin(args) -> int:
     result, objective = out.pop("_fit"), out.pop("_objective")
     if args.plot:
         out["figures"] = _plots(args.plot, objective, result, prefix="twin", truth=out["true"])
+    if args.landscape:
+        out["landscape"] = _twin_landscape(args, objective, out)
     print(_write_json(out) if args.json else json.dumps(json.loads(_write_json(out)), indent=2))
+    return 0
+
+
+def _twin_landscape(args, objective, out) -> dict:
+    """Sweep the twin's loss over its first two keys (±40 % around the truth, the others at
+    their true values) and draw it with the truth, the start and the fit marked."""
+    import numpy as np
+
+    from .sweep import grid_points, sweep
+
+    if len(objective.keys) < 2:
+        raise ValueError("--landscape needs at least two fitted keys")
+    kx, ky = objective.keys[:2]
+    ranges = {k: (0.6 * out["true"][k], 1.4 * out["true"][k]) for k in (kx, ky)}
+    _, grid = grid_points(ranges, args.landscape, keys=(kx, ky))
+    thetas = np.tile([out["true"][k] for k in objective.keys], (grid.shape[0], 1))
+    thetas[:, :2] = grid
+    result = sweep(objective, thetas, progress=not args.no_progress)
+    xs, ys, loss = result.landscape(kx, ky)
+    summary = {"keys": [kx, ky], "n": int(grid.shape[0]), "failed": len(result.failed), "wall_s": result.wall_s,
+               "mode": result.mode}
+    if args.plot:
+        from .plots import plot_landscape
+
+        marks = {"true": (out["true"][kx], out["true"][ky]), "start": (out["start"][kx], out["start"][ky]),
+                 "fit": (out["params"][kx], out["params"][ky])}
+        summary["figure"] = str(plot_landscape(xs, ys, loss, kx, ky, pathlib.Path(args.plot) / "twin_landscape.png",
+                                               marks=marks, title=f"twin loss over ({kx}, {ky}), others at truth"))
+    return summary
+
+
+def _floats(text: str, option: str) -> list[float]:
+    try:
+        return [float(v) for v in text.split(",") if v.strip()]
+    except ValueError:
+        raise ValueError(f"{option} expects comma-separated numbers, got {text!r}") from None
+
+
+def _law(args) -> int:
+    import functools
+
+    from jaxmpm.scenes import runout_law
+
+    from .scaling import fit_runout_law
+
+    law = functools.partial(runout_law, sand=True) if args.sand else runout_law
+    out = fit_runout_law(_floats(args.train, "--train"), _floats(args.test, "--test"), _keys(args.fit), law=law,
+                         dx=args.dx, ppc=args.ppc, values=_pairs(args.set, "--set"), steps=args.steps, out=args.out,
+                         progress=not args.no_progress, jacobian=args.jacobian, fd_step=args.fd_step)
+    result = out.pop("_fit")
+    out["law"] = "sand (Lube et al. 2005, secondary)" if args.sand else "glass beads (Lajeunesse et al. 2005, secondary)"
+    if args.plot:
+        from .plots import plot_history, plot_runout_law
+
+        d = pathlib.Path(args.plot)
+        d.mkdir(parents=True, exist_ok=True)
+        out["figures"] = [str(plot_runout_law(out["cases"], d / "law_runout.png", law=law, title=out["law"])),
+                          str(plot_history(result.history, result.keys, d / "law_history.png"))]
+    print(_write_json(out) if args.json else json.dumps(json.loads(_write_json(out)), indent=2))
+    return 0
+
+
+def _bench(args) -> int:
+    import jax
+
+    from .bench import bench
+
+    if args.dtype == "float64":
+        jax.config.update("jax_enable_x64", True)
+    kw = {"dx": 0.089 / 8, "t_end": 0.2} if args.quick else {"dx": args.dx}
+    out = bench(_keys(args.fit), repeat=args.repeat, dtype=args.dtype, **kw)
+    print(json.dumps(out) if args.json else json.dumps(out, indent=2))
     return 0
 
 
@@ -245,6 +320,8 @@ def build_parser() -> argparse.ArgumentParser:
     _fit_options(fit, None)
     fit.add_argument("--init", action="append", default=[], metavar="KEY=VALUE", help="starting value")
     fit.add_argument("--lr", type=float, default=0.05, help="Adam learning rate (in the unconstrained variables)")
+    fit.add_argument("--jacobian", choices=("ad", "fd"), default="ad",
+                     help="LM Jacobian: forward-mode autodiff, or central differences for long violent runs")
     fit.add_argument("--noise", type=float, default=None,
                      help="known noise of the data (fraction of the peak height); default: estimated")
 
@@ -258,12 +335,38 @@ def build_parser() -> argparse.ArgumentParser:
     sweep.add_argument("--out", default=None, metavar="FILE.h5")
     sweep.add_argument("--plot", default=None, metavar="DIR", help="the loss landscape of the first two keys")
 
+    be = sub.add_parser("bench", help="time a forward run, the forward-mode Jacobian and the reverse-mode gradient")
+    be.add_argument("--fit", default="beta,mu1,mu2,I0,xi", metavar="KEYS", help="parameters (default all five)")
+    be.add_argument("--dx", type=float, default=0.089 / 16, help="grid spacing of the S4 scene, m")
+    be.add_argument("--quick", action="store_true", help="dx = L/8 and 0.2 s")
+    be.add_argument("--repeat", type=int, default=2)
+    be.add_argument("--dtype", choices=("float32", "float64"), default="float32")
+    be.add_argument("--json", action="store_true", help="print one line of JSON")
+
+    law = sub.add_parser("law", help="fit the S5 runout-against-aspect-ratio law and predict unused aspect ratios")
+    law.add_argument("--fit", default="mu1,mu2", metavar="KEYS", help="parameters to fit (default mu1,mu2)")
+    law.add_argument("--train", default="0.5,1,4", help="aspect ratios used in the fit")
+    law.add_argument("--test", default="2,8", help="aspect ratios only predicted")
+    law.add_argument("--sand", action="store_true", help="the sand law of Lube et al. 2005 instead of glass beads")
+    law.add_argument("--dx", type=float, default=None, help="grid spacing, m (default L0/10)")
+    law.add_argument("--ppc", type=int, default=2)
+    law.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="material parameter")
+    law.add_argument("--steps", type=int, default=15)
+    law.add_argument("--jacobian", choices=("ad", "fd"), default="fd")
+    law.add_argument("--fd-step", type=float, default=0.05, help="relative step of the central differences")
+    law.add_argument("--out", default=None, metavar="FILE.h5")
+    law.add_argument("--plot", default=None, metavar="DIR")
+    law.add_argument("--no-progress", action="store_true")
+    law.add_argument("--json", action="store_true")
+
     tw = sub.add_parser("twin", help="fit synthetic S4 data made with known parameters")
     _common(tw, data=False)
     _fit_options(tw, "beta,mu1,xi")
     tw.add_argument("--quick", action="store_true", help="a coarse grid (dx = L/8): about a minute")
     tw.add_argument("--noise", type=float, default=0.0, help="Gaussian noise, fraction of the peak height")
     tw.add_argument("--seed", type=int, default=0, help="seed of the noise")
+    tw.add_argument("--landscape", type=int, default=None, metavar="N",
+                    help="also sweep the loss on an N × N grid over the first two keys (figure with --plot)")
     return parser
 
 
@@ -281,7 +384,8 @@ def main(argv=None) -> int:
                 raise ValueError(f"--{name.replace('_', '-')} must be >= 0, got {value}")
         if getattr(args, "resume", False) and not args.out:
             raise ValueError("--resume needs --out (the history file to continue)")
-        return {"fit": _fit, "sweep": _sweep, "twin": _twin}[args.command](args)
+        commands = {"fit": _fit, "sweep": _sweep, "twin": _twin, "bench": _bench, "law": _law}
+        return commands[args.command](args)
     except ValueError as err:
         parser.exit(2, f"python -m calibration {args.command}: error: {err}\n")
 

@@ -95,7 +95,7 @@ class Bounds:
         theta = np.asarray(theta, float)
         for k, v, lo, hi in zip(self.keys, theta, self.lower, self.upper):
             if not (math.isfinite(v) and lo < v < hi):
-                raise ValueError(f"{name}: {k} = {v!r} must lie strictly inside its bounds ({lo}, {hi})")
+                raise ValueError(f"{name}: {k} = {float(v)!r} must lie strictly inside its bounds ({lo}, {hi})")
 
     def near_bound(self, theta, rel: float = 1e-3) -> list[str]:
         """Keys whose value sits within ``rel`` of the bound range of a bound."""

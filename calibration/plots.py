@@ -9,7 +9,7 @@ import pathlib
 
 import numpy as np
 
-__all__ = ["plot_fit", "plot_history", "plot_landscape"]
+__all__ = ["plot_fit", "plot_history", "plot_landscape", "plot_runout_law"]
 
 
 def _plt():
@@ -129,6 +129,33 @@ def plot_landscape(xs, ys, loss, key_x, key_y, path, *, marks=None, failed=None,
     ax.set_xlabel(key_x)
     ax.set_ylabel(key_y)
     ax.set_title(title or f"loss landscape over ({key_x}, {key_y})", fontsize=10)
+    fig.tight_layout()
+    path = pathlib.Path(path)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def plot_runout_law(cases, path, *, law, title: str | None = None):
+    """Normalised runout ΔL/L0 against aspect ratio: the law, the model before and after the fit;
+    filled markers for the aspect ratios used in the fit, hollow for the predicted ones."""
+    plt = _plt()
+    fig, ax = plt.subplots(figsize=(5.0, 3.8))
+    a = np.array([c["a"] for c in cases])
+    grid = np.geomspace(a.min() * 0.8, a.max() * 1.2, 200)
+    ax.loglog(grid, law(grid), "k-", lw=1, label="scaling law (secondary)")
+    used = np.array([c["used_in_fit"] for c in cases])
+    start = np.array([c["model_start"] for c in cases])
+    fitted = np.array([c["model_fit"] for c in cases])
+    ax.loglog(a, start, "s", color="tab:gray", mfc="none", label="model, start")
+    ax.loglog(a[used], fitted[used], "o", color="tab:red", label="model, fitted (used in fit)")
+    if (~used).any():
+        ax.loglog(a[~used], fitted[~used], "o", color="tab:red", mfc="none", ms=8, label="model, fitted (predicted)")
+    ax.set_xlabel("aspect ratio a = H0/L0")
+    ax.set_ylabel("ΔL/L0")
+    ax.grid(alpha=0.3, which="both")
+    ax.legend(fontsize=8)
+    ax.set_title(title or "runout against aspect ratio", fontsize=10)
     fig.tight_layout()
     path = pathlib.Path(path)
     fig.savefig(path, dpi=110)

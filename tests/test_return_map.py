@@ -878,3 +878,25 @@ def test_inertial_number_gradient_at_vanishing_pressure(dim):
     grad = jax.jit(jax.grad(lambda x: return_invariants(x[0], x[1], jnp.asarray(0.0), params, DT, dim)["I"]))
     g = np.asarray(grad(jnp.asarray([0.0, 1e-112])))
     assert np.all(np.isfinite(g)), g
+
+
+def test_tension_tip_rule_is_a_jump_and_the_regular_return_is_continuous():
+    """MODEL.md §2 sends a trial beyond the tension tip to the tip even with q_tr > 0: a jump in
+    the returned state across p_tr = -β p_c. ``tension_tip=False`` keeps the regular return,
+    which is continuous there and reaches the tip itself when q_tr = 0."""
+    params = jm.Params.create(beta=0.25, pc0=500.0, xi=50.0)
+    tip = -0.25 * 500.0
+    q_tr = jnp.asarray(80.0)
+    below, above = jnp.asarray(tip - 1e-6), jnp.asarray(tip + 1e-6)
+    eps0 = jnp.asarray(0.0)
+
+    def ret(p_tr, q, rule):
+        return return_invariants(p_tr, q, eps0, params, 1e-4, 2, tension_tip=rule)
+
+    jump = abs(float(ret(below, q_tr, True)["p"] - ret(above, q_tr, True)["p"]))
+    assert jump > 10.0  # Pa: the rule's discontinuity
+    smooth = abs(float(ret(below, q_tr, False)["p"] - ret(above, q_tr, False)["p"]))
+    assert smooth < 1e-3
+    at_tip = ret(jnp.asarray(tip - 50.0), jnp.asarray(0.0), False)
+    np.testing.assert_allclose(float(at_tip["p"]), -0.25 * float(at_tip["pc"]), rtol=1e-9)
+    assert float(at_tip["q"]) == 0.0

@@ -136,15 +136,20 @@ def _implicit_step(fn, eps_star, width):
 # The return map
 
 
-def return_invariants(p_tr, q_tr, eps_v_p, params, dt, dim, iterations=12):
+def return_invariants(p_tr, q_tr, eps_v_p, params, dt, dim, iterations=12, tension_tip=True):
     """Return map in invariants. Returns a dict with p, q, pc, eps_v_p (accumulated), deps_v_p
-    (this step), gamma_dot, I, mu_I and plastic (1.0 where the trial state was inadmissible)."""
+    (this step), gamma_dot, I, mu_I and plastic (1.0 where the trial state was inadmissible).
+    ``tension_tip``: send trial states beyond the tension tip to the tip (MODEL.md §2); False
+    uses the regular associative return there too, which is continuous in the trial state (the
+    tip is its limit as q_tr -> 0)."""
     G, K = bulk_modulus(params, dim)
     sg = jax.lax.stop_gradient
     pc_n = params.pc0 * jnp.exp(-params.xi * eps_v_p)
     y_tr = yield_function(p_tr, q_tr, pc_n, params)
     plastic = y_tr > 0
     tension = p_tr < -params.beta * pc_n
+    if not tension_tip:
+        tension = jnp.zeros_like(plastic)
 
     # The loops run on stop-gradient copies of the inputs (their derivatives are never needed);
     # the final implicit step uses the live ones.
@@ -213,7 +218,7 @@ def return_invariants(p_tr, q_tr, eps_v_p, params, dt, dim, iterations=12):
     }
 
 
-def return_map(strain_trial, eps_v_p, params, dt, iterations=12):
+def return_map(strain_trial, eps_v_p, params, dt, iterations=12, tension_tip=True):
     """The constitutive update for trial Hencky strains (..., d, d).
 
     Returns ``(strain, tau, out)``: the new Hencky strain, the Kirchhoff stress
@@ -226,7 +231,7 @@ def return_map(strain_trial, eps_v_p, params, dt, iterations=12):
     dev = strain_trial - (e_v / dim)[..., None, None] * eye
     q_tr = 2.0 * G * safe_sqrt(0.5 * jnp.sum(dev * dev, axis=(-2, -1)))
     p_tr = -K * e_v
-    out = return_invariants(p_tr, q_tr, eps_v_p, params, dt, dim, iterations)
+    out = return_invariants(p_tr, q_tr, eps_v_p, params, dt, dim, iterations, tension_tip)
     # Elastic lanes keep their deviator exactly (ratio 1, so dτ/de = 2G even at e = 0).
     ratio = jnp.where(out["plastic"] > 0, safe_div(out["q"], q_tr), 1.0)[..., None, None]
     strain = (-out["p"] / (K * dim))[..., None, None] * eye + ratio * dev
@@ -236,9 +241,13 @@ def return_map(strain_trial, eps_v_p, params, dt, iterations=12):
 
 @dataclasses.dataclass(frozen=True)
 class CriticalState(Material):
-    """The critical-state μ(I) material. ``iterations``: Newton steps of each scalar solve."""
+    """The critical-state μ(I) material. ``iterations``: Newton steps of each scalar solve.
+    ``tension_tip``: MODEL.md §2's rule that a trial state beyond the tension tip returns to the
+    tip (True, the default); False keeps the regular return there, which makes the update
+    continuous in the parameters (see docs/calibration.md: the rule is a jump when q_tr > 0)."""
 
     iterations: int = 12
+    tension_tip: bool = True
 
     def __post_init__(self):
         if int(self.iterations) != self.iterations or self.iterations < 1:
@@ -250,7 +259,8 @@ class CriticalState(Material):
 
     def update(self, F_trial, internal, params, dt):
         strain_trial = hencky_strain(F_trial)
-        strain, tau, out = return_map(strain_trial, internal["eps_v_p"], params, dt, self.iterations)
+        strain, tau, out = return_map(strain_trial, internal["eps_v_p"], params, dt, self.iterations,
+                                      self.tension_tip)
         # e_new and e_trial are coaxial, so F_e = exp(e_new - e_trial) F_trial keeps the rotation.
         F = mm(sym_exp(strain - strain_trial), F_trial)
         return F, tau, {key: out[key] for key in INTERNAL_KEYS}

@@ -1,0 +1,93 @@
+"""``python -m calibration fit|sweep|twin`` end to end on tiny settings."""
+
+import json
+import pathlib
+
+import numpy as np
+import pytest
+
+from calibration.__main__ import main
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+S4 = str(ROOT / "experiments_data" / "synthetic" / "S4_beta0.25.csv")
+WPD = str(ROOT / "experiments_data" / "examples" / "wpd_example.csv")
+TINY = ["--dx", str(0.089 / 6), "--no-progress", "--json"]
+
+
+def run(capsys, *argv):
+    code = main(list(argv))
+    out = capsys.readouterr().out
+    return code, json.loads(out)
+
+
+def test_fit_prints_the_documented_json_and_writes_history_and_figures(capsys, tmp_path):
+    code, out = run(capsys, "fit", "--scene", "cohesive-collapse", "--data", S4, "--fit", "beta,mu1",
+                    "--init", "beta=0.2", "--steps", "2", "--out", str(tmp_path / "fit.h5"), "--plot",
+                    str(tmp_path / "figs"), *TINY)
+    assert code == 0
+    for key in ("params", "stderr", "loss", "iterations", "wall_s"):
+        assert key in out, key
+    assert set(out["params"]) == {"beta", "mu1"} and set(out["stderr"]) == {"beta", "mu1"}
+    assert out["iterations"] == 2 and np.isfinite(out["loss"])
+    assert (tmp_path / "fit.h5").exists()
+    for fig in out["figures"]:
+        assert pathlib.Path(fig).stat().st_size > 5_000
+
+
+def test_fit_reads_a_webplotdigitizer_export_with_units(capsys):
+    code, out = run(capsys, "fit", "--scene", "cohesive-collapse", "--data", WPD, "--units", "mm", "--t-end",
+                    "0.5", "--fit", "mu1", "--steps", "1", *TINY)
+    assert code == 0 and set(out["params"]) == {"mu1"}
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--fit", "beta,friction"], "keys: unknown parameter"),
+    (["--fit", "beta", "--init", "beta=2"], "init: beta = 2.0 must lie strictly inside"),
+    (["--fit", "beta", "--resume"], "--resume needs --out"),
+    (["--fit", "beta", "--steps", "0"], "--steps must be >= 1"),
+    (["--fit", "beta", "--init", "beta"], "--init expects key=value"),
+])
+def test_fit_input_errors_name_the_argument(capsys, argv, message):
+    with pytest.raises(SystemExit) as exc:
+        main(["fit", "--scene", "cohesive-collapse", "--data", S4, *argv, *TINY])
+    assert exc.value.code == 2
+    assert message in capsys.readouterr().err
+
+
+def test_fit_without_data_is_an_error(capsys):
+    with pytest.raises(SystemExit):
+        main(["fit", "--scene", "cohesive-collapse", "--fit", "beta", *TINY])
+    assert "--data" in capsys.readouterr().err
+
+
+def test_fit_rejects_a_file_without_units(capsys):
+    with pytest.raises(SystemExit):
+        main(["fit", "--scene", "cohesive-collapse", "--data", WPD, "--fit", "beta", *TINY])
+    assert "units" in capsys.readouterr().err
+
+
+def test_sweep_grid_json_and_landscape(capsys, tmp_path):
+    code, out = run(capsys, "sweep", "--scene", "cohesive-collapse", "--data", S4, "--over", "beta=0.1:0.3:2",
+                    "--over", "mu1=0.35:0.45:2", "--plot", str(tmp_path), "--out", str(tmp_path / "s.h5"), *TINY)
+    assert code == 0
+    assert len(out["loss"]) == 4 and out["failed"] == []
+    assert pathlib.Path(out["figures"][0]).stat().st_size > 5_000
+
+
+def test_twin_recovers_the_constrained_parameters(capsys):
+    """A tiny twin (dx = L/6): the parameters the analysis calls constrained come back within
+    2 % (the issue's criterion; in fact all of them, to ~1e-3)."""
+    code, out = run(capsys, "twin", "--fit", "beta,mu1", "--steps", "12", *TINY)
+    assert code == 0
+    for key in ("params", "stderr", "loss", "iterations", "wall_s", "true", "rel_error", "constrained"):
+        assert key in out, key
+    for key in out["constrained"]:
+        assert abs(out["rel_error"][key]) < 0.02, (key, out["rel_error"])
+    assert max(abs(v) for v in out["rel_error"].values()) < 0.02
+
+
+@pytest.mark.slow
+def test_twin_quick_with_noise_intervals_contain_the_truth(capsys):
+    code, out = run(capsys, "twin", "--quick", "--noise", "0.02", "--no-progress", "--json")
+    assert code == 0
+    assert all(out["in_ci95"].values()), out["ci95"]
