@@ -246,12 +246,23 @@ def _law(args) -> int:
 
     from .scaling import fit_runout_law
 
-    law = functools.partial(runout_law, sand=True) if args.sand else runout_law
+    if args.law:
+        from .data import load_scaling_law
+        from .scaling import law_from_table
+
+        table = load_scaling_law(args.law)
+        law = law_from_table(table)
+        label = f"{table.experiment} ({'secondary' if table.secondary else 'primary'}: {table.source})"
+    else:
+        law = functools.partial(runout_law, sand=True) if args.sand else runout_law
+        label = ("sand (Lube et al. 2005" if args.sand else "glass beads (Lajeunesse et al. 2005") + ", secondary)"
+    for a in _floats(args.train, "--train") + _floats(args.test, "--test"):
+        law(a)  # an aspect ratio the law file does not tabulate fails here, before any run
     out = fit_runout_law(_floats(args.train, "--train"), _floats(args.test, "--test"), _keys(args.fit), law=law,
                          dx=args.dx, ppc=args.ppc, values=_pairs(args.set, "--set"), steps=args.steps, out=args.out,
                          progress=not args.no_progress, jacobian=args.jacobian, fd_step=args.fd_step)
     result = out.pop("_fit")
-    out["law"] = "sand (Lube et al. 2005, secondary)" if args.sand else "glass beads (Lajeunesse et al. 2005, secondary)"
+    out["law"] = label
     if args.plot:
         from .plots import plot_history, plot_runout_law
 
@@ -348,6 +359,8 @@ def build_parser() -> argparse.ArgumentParser:
     law.add_argument("--train", default="0.5,1,4", help="aspect ratios used in the fit")
     law.add_argument("--test", default="2,8", help="aspect ratios only predicted")
     law.add_argument("--sand", action="store_true", help="the sand law of Lube et al. 2005 instead of glass beads")
+    law.add_argument("--law", default=None, metavar="FILE.csv",
+                     help="a scaling-law table (a,dL_over_L0), e.g. experiments_data/scaling_laws/runout_glass_beads.csv")
     law.add_argument("--dx", type=float, default=None, help="grid spacing, m (default L0/10)")
     law.add_argument("--ppc", type=int, default=2)
     law.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="material parameter")

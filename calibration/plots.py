@@ -120,11 +120,19 @@ def plot_landscape(xs, ys, loss, key_x, key_y, path, *, marks=None, failed=None,
     z = np.log10(np.asarray(loss, float))
     cs = ax.contourf(xs, ys, z, levels=20, cmap="viridis")
     fig.colorbar(cs, ax=ax, label="log10 loss")
-    for (label, (mx, my)), style in zip((marks or {}).items(), ("r*", "w^", "wo", "ms")):
-        ax.plot(mx, my, style, ms=10, label=label, mec="k")
+    styles = ({"marker": "*", "color": "r", "ms": 12}, {"marker": "^", "color": "w", "ms": 9},
+              {"marker": "o", "color": "w", "mfc": "none", "ms": 14, "mew": 2}, {"marker": "s", "color": "m", "ms": 8})
+    items = list(zip((marks or {}).items(), styles))
+    for (label, (mx, my)), style in reversed(items):  # the first mark (the truth) on top
+        ax.plot(mx, my, ls="none", label=label, mec=style.pop("mec", "k") if "mfc" not in style else style["color"],
+                **style)
+    if items:
+        handles, labels = ax.get_legend_handles_labels()
+        order = [labels.index(label) for (label, _), _ in items]
+        ax.legend([handles[i] for i in order], [labels[i] for i in order], fontsize=8)
     if failed is not None and len(failed[0]):
         ax.plot(failed[0], failed[1], "kx", ms=6, label="failed run")
-    if marks or (failed is not None and len(failed[0])):
+    if failed is not None and len(failed[0]) and not items:
         ax.legend(fontsize=8)
     ax.set_xlabel(key_x)
     ax.set_ylabel(key_y)
@@ -143,7 +151,11 @@ def plot_runout_law(cases, path, *, law, title: str | None = None):
     fig, ax = plt.subplots(figsize=(5.0, 3.8))
     a = np.array([c["a"] for c in cases])
     grid = np.geomspace(a.min() * 0.8, a.max() * 1.2, 200)
-    ax.loglog(grid, law(grid), "k-", lw=1, label="scaling law (secondary)")
+    try:
+        ax.loglog(grid, law(grid), "k-", lw=1, label="scaling law (secondary)")
+    except ValueError:  # a tabulated law: only its points
+        order = np.argsort(a)
+        ax.loglog(a[order], np.array([c["law"] for c in cases])[order], "k+--", lw=1, label="scaling law (table)")
     used = np.array([c["used_in_fit"] for c in cases])
     start = np.array([c["model_start"] for c in cases])
     fitted = np.array([c["model_fit"] for c in cases])

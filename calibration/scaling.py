@@ -21,7 +21,25 @@ from jaxmpm.scenes import aspect_ratio_collapse, runout_law
 from .fit import fit
 from .objective import CompositeObjective, FrontTarget, Objective
 
-__all__ = ["runout_objective", "fit_runout_law"]
+__all__ = ["runout_objective", "fit_runout_law", "law_from_table"]
+
+
+def law_from_table(table) -> Callable:
+    """A law a -> ΔL/L0 from a loaded scaling-law file (``calibration.data.load_scaling_law``):
+    it answers only at the tabulated aspect ratios (no interpolation between quoted values)."""
+    values = {float(a): float(r) for a, r in zip(table.a, table.runout)}
+
+    def law(a):
+        a_arr = np.atleast_1d(np.asarray(a, float))
+        missing = [float(v) for v in a_arr if float(v) not in values]
+        if missing:
+            raise ValueError(f"aspect ratios {missing} are not in {table.path or 'the law table'}; "
+                             f"tabulated: {sorted(values)}")
+        out = np.array([values[float(v)] for v in a_arr])
+        return out if np.ndim(a) else out[0]
+
+    law.__name__ = f"table:{table.experiment}"
+    return law
 
 
 def runout_objective(a: float, keys: Sequence[str], law: Callable = runout_law, L0: float = 0.05,
@@ -74,6 +92,11 @@ def fit_runout_law(a_fit: Sequence[float] = (0.5, 1.0, 4.0), a_test: Sequence[fl
                      "rel_error_start": before / target - 1.0, "rel_error_fit": after / target - 1.0,
                      "status": st0 | st1, "n_particles": int(obj.scene.state.x.shape[0])})
     out_json = result.to_json()
+    at_bound = composite.bounds.near_bound(theta)
+    if at_bound:
+        out_json["warning"] = (f"{at_bound} ended at a bound of {dict(zip(keys, zip(composite.bounds.lower, composite.bounds.upper)))}:"
+                               " the law asks for values outside the physical range (a sign of missing physics or "
+                               "resolution, not a measurement of them)")
     out_json.update({"start": start, "cases": rows, "wall_s": round(time.perf_counter() - t0, 3),
                      "law": getattr(law, "__name__", str(law)), "L0": L0, "dx": members[0].config.grid.dx,
                      "_fit": result})
