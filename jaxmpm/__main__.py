@@ -126,6 +126,7 @@ def build_parser() -> argparse.ArgumentParser:
     validate.add_argument("--quick", action="store_true", help="a reduced, faster version")
     validate.add_argument("--json", action="store_true", help="print one JSON object")
     validate.add_argument("--plot", default=None, metavar="DIR", help="write the study's figure into DIR")
+    validate.add_argument("--alpha", type=float, default=None, help="AFLIP blend for the bagnold study (default 0.95)")
 
     bench = sub.add_parser("bench", help="time the engine and print JSON")
     bench.add_argument("--scene", choices=("block", "column"), default="block",
@@ -152,7 +153,7 @@ def main(argv=None) -> int:
         if args.command == "validate":
             from .validate import run_study
 
-            out = run_study(args.study, quick=args.quick, plot_dir=args.plot)
+            out = run_study(args.study, quick=args.quick, plot_dir=args.plot, alpha=args.alpha)
             print(json.dumps(out) if args.json else json.dumps(out, indent=2))
             return 0
         from . import bench

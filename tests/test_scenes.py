@@ -86,3 +86,18 @@ def test_observables_integrate_and_have_finite_gradients():
     assert np.all(np.isfinite(far))
     state = jm.scenes.cohesive_collapse(0.0, dx=0.03, t_end=0.01).state
     np.testing.assert_allclose(particle_volumes(state), state.vol0)
+
+
+def test_incline_critical_start_sets_pc_to_twice_the_lithostatic_pressure():
+    """The critical start puts every particle on the apex of its ellipse at the lithostatic
+    pressure (p_c = 2p for β = 0), through ε_v^p and the hardening law."""
+    import math
+
+    scene = jm.scenes.incline(24.0, dx=0.038 / 8, critical_start=True)
+    params = scene.params
+    y = np.asarray(scene.state.x[:, 1])
+    p = float(params.rho) * 9.81 * math.cos(math.radians(24.0)) * (0.038 - y)
+    pc = float(params.pc0) * np.exp(-float(params.xi) * np.asarray(scene.state.internal["eps_v_p"]))
+    np.testing.assert_allclose(pc, 2.0 * p, rtol=1e-10)
+    with pytest.raises(ValueError, match="xi > 0"):
+        jm.scenes.incline(24.0, dx=0.038 / 8, critical_start=True, xi=0.0)

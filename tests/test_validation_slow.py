@@ -25,10 +25,24 @@ def test_convergence_runout_difference_halves_from_10mm_down():
     assert base[-2]["runout_diff"] <= 0.5 * base[-3]["runout_diff"]
 
 
-@pytest.mark.xfail(strict=True, reason="docs/validation.md section 1: the surface velocity is 1-10 % off "
-                   "and the particle layer collapses geometrically in rapid shear; open problem")
-def test_bagnold_surface_velocity_within_3_percent():
-    cases = run_study("bagnold")["cases"]
-    for case in cases:
+@pytest.fixture(scope="module")
+def bagnold():
+    return run_study("bagnold")
+
+
+def test_bagnold_surface_velocity_within_3_percent_and_better_than_coarse(bagnold):
+    """The issue's criterion on the surface velocity at 22°, 24° and 26° (docs/validation.md
+    section 1): within 3 % at the finest dx, and smaller there than at the coarsest."""
+    for slope in (22.0, 24.0, 26.0):
+        rows = sorted((c for c in bagnold["all_cases"] if c["slope_deg"] == slope), key=lambda c: -c["dx"])
+        assert all(c["status"] == 0 for c in rows)
+        assert abs(rows[-1]["rel_error"]) < 0.03, rows[-1]
+        assert abs(rows[-1]["rel_error"]) < abs(rows[0]["rel_error"]), rows
+
+
+@pytest.mark.xfail(strict=True, reason="docs/validation.md section 1: with AFLIP 0.95 the particles cluster in "
+                   "fast steady shear (24-28°): the top row sinks to 0.5-0.85 h0 and the profile is off by 7-20 %")
+def test_bagnold_velocity_profile_within_3_percent(bagnold):
+    for case in bagnold["cases"]:
         if case["slope_deg"] in (22.0, 24.0, 26.0):
-            assert abs(case["rel_error"]) < 0.03, case
+            assert case["profile_rel_error"] < 0.03, case

@@ -42,15 +42,22 @@ def bagnold_velocity(z, depth, slope_deg, params):
 
 def incline(slope_deg: float = 24.0, dx: float | None = None, ppc: int = 2, depth: float = 0.038,
             length_cells: int = 4, t_end: float = 2.0, frames: int = 0, max_steps: int | None = None,
-            start_from_analytic: bool = True, transfer: str = "aflip", alpha: float = 0.95, dtype=None,
-            **param_values) -> Scene:
+            start_from_analytic: bool = True, critical_start: bool = False, transfer: str = "aflip",
+            alpha: float = 0.95, dtype=None, **param_values) -> Scene:
     """S1 at ``slope_deg`` with layer ``depth`` (default 0.038 m) and grid spacing ``dx``
     (default depth/16), periodic over ``length_cells`` cells along the slope.
 
     The approach to the steady state from rest is slow: near it the relaxation time is
     v/(g cos θ μ'(I) I), 2 s at 22° and 11 s at 28°. With ``start_from_analytic`` (default) the
     layer starts with the Bagnold velocity profile of MODEL.md §6 and the run shows whether the
-    scheme holds it, which is the question the validation asks."""
+    scheme holds it, which is the question the validation asks.
+
+    ``critical_start``: start every particle at the critical state of the steady flow (p_c = 2p
+    at the lithostatic pressure, the state MODEL.md §6's solution assumes). Without it p_c = p_c0
+    everywhere, and near the free surface, where p ≪ p_c0, the material is overconsolidated:
+    it is stronger than μ(I) p there and shears only as dilation softens it. The offset lives in
+    ε_v^p, so ``particle_volumes`` counts it as a plastic volume change: divide by
+    exp(ε_v^p(t = 0)) for volumes relative to the start."""
     dx = dx if dx is not None else depth / 16
     for name, value in (("dx", dx), ("depth", depth), ("t_end", t_end)):
         if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
@@ -76,5 +83,25 @@ def incline(slope_deg: float = 24.0, dx: float | None = None, ppc: int = 2, dept
     if start_from_analytic:
         v = [[vx, 0.0] for vx in bagnold_velocity(x[:, 1], depth, slope_deg, params)]
     meta = {"slope_deg": slope_deg, "depth": depth, "dx": dx, "ppc": ppc, "length": length_cells * dx,
-            "front0": float(length_cells * dx)}
-    return Scene("incline", config, init_state(config, x, vol, v=v, dtype=dtype), params, meta)
+            "front0": float(length_cells * dx), "critical_start": bool(critical_start)}
+    state = init_state(config, x, vol, v=v, dtype=dtype)
+    if critical_start:
+        state = _at_critical_state(state, x[:, 1], depth, theta, params)
+    return Scene("incline", config, state, params, meta)
+
+
+def _at_critical_state(state, y, depth, theta, params):
+    """Set each particle's p_c to the critical state of the steady flow: the apex of the ellipse
+    at the lithostatic pressure p(y) = ρ g cos θ (h − y), p_c = 2 p / (1 − β), through the
+    plastic volumetric strain ε_v^p = −ln(p_c / p_c0) / ξ (MODEL.md §2's hardening law)."""
+    import numpy as np
+
+    get = lambda k: float(getattr(params, k))  # noqa: E731
+    if get("xi") <= 0:
+        raise ValueError("critical_start needs xi > 0 (p_c is set through the hardening law)")
+    p = get("rho") * G * math.cos(theta) * np.maximum(depth - np.asarray(y, float), 0.0)
+    pc = np.maximum(2.0 * p / (1.0 - get("beta")), 1e-6 * get("pc0"))
+    eps = -np.log(pc / get("pc0")) / get("xi")
+    internal = dict(state.internal)
+    internal["eps_v_p"] = internal["eps_v_p"] + np.asarray(eps, internal["eps_v_p"].dtype)
+    return state.replace(internal=internal)
