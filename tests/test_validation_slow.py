@@ -40,9 +40,9 @@ def test_bagnold_surface_velocity_within_3_percent_and_better_than_coarse(bagnol
         assert abs(rows[-1]["rel_error"]) < abs(rows[0]["rel_error"]), rows
 
 
-@pytest.mark.xfail(strict=True, reason="docs/validation.md section 1: with AFLIP 0.95 the particles cluster in "
-                   "fast steady shear (24-28°): the top row sinks to 0.5-0.85 h0 and the profile is off by 7-20 %")
 def test_bagnold_velocity_profile_within_3_percent(bagnold):
+    """Holds in float64 (as the tests run): 0.8, 1.1 and 1.9 %. In float32 (the CLI default) the
+    particles cluster in fast shear at 24-26° and the profile is off by 7-13 % (docs/validation.md)."""
     for case in bagnold["cases"]:
         if case["slope_deg"] in (22.0, 24.0, 26.0):
             assert case["profile_rel_error"] < 0.03, case
