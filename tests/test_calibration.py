@@ -111,10 +111,9 @@ def test_jacobian_matches_central_differences(problem):
     """Forward-mode residual Jacobian through the whole rollout against float64 central
     differences, at a point away from the data (so the residuals are not zero).
 
-    The run is piecewise smooth in θ: MODEL.md §2 sends a trial state beyond the tension tip
-    (p_tr < −β p_c) to the tip even when q_tr > 0, a jump away from the ellipse return. At this
-    θ one particle switches branch 4e-7 (relative) above θ_β (docs/calibration.md), so the
-    differences use steps of 1e-7 and 3e-8 that stay on one branch, and must agree with each
+    The run is piecewise smooth in θ: a particle that switches between elastic and plastic
+    steps makes a kink (the return map itself is continuous, with no tip rule since MODEL.md §2
+    was corrected), so the differences use steps of 1e-7 and 3e-8, which must agree with each
     other and with autodiff."""
     _, truth, objective = problem
     theta = truth * np.array([0.9, 1.05])

@@ -17,8 +17,10 @@ the flow rule p = p_tr - K Δγ μ1² h, h = 2p + (β-1) p_c, gives Δγ = -ε/(
 return q = q_tr/(1 + 2GΔγ) = q_tr μ1² h / (μ1² h - 2Gε). The root of g(ε) = y(p, q, p_c) lies
 between the trial state (ε = 0, g > 0) and the apex of the updated ellipse (h = 0, g < 0); it is
 found by a fixed number of safeguarded Newton steps (bisection when a step leaves the bracket).
-A trial state in tension beyond the tip (p_tr < -β p_c,n) returns to the tip: p = -β p_c(ε),
-q = 0 (MODEL.md §2). The iterations run on stop-gradient values; one final Newton step on live
+There is no tip rule (MODEL.md §2, as corrected): a trial state in tension beyond the tip
+(p_tr < -β p_c,n) takes the same return, which is continuous in the trial state and reaches the
+tension tip p = -β p_c, q = 0 only as q_tr -> 0 (as the reference code's one Newton solve does).
+The iterations run on stop-gradient values; one final Newton step on live
 values gives the exact implicit-function derivative, so no derivative flows through the loop
 and the forward cost of a gradient is that of the forward pass plus one step.
 """
@@ -91,11 +93,6 @@ def _surface_residual(eps, p_tr, q_tr, pc_n, params, K, G):
     return yield_function(p, q, pc, params)
 
 
-def _tip_residual(eps, p_tr, pc_n, params, K):
-    """r(ε) = p(ε) + β p_c(ε): zero at the tension tip."""
-    return p_tr + K * eps + params.beta * pc_n * jnp.exp(-params.xi * eps)
-
-
 def _newton_value_and_slope(fn, eps):
     return jax.jvp(fn, (eps,), (jnp.ones_like(eps),))
 
@@ -136,20 +133,16 @@ def _implicit_step(fn, eps_star, width):
 # The return map
 
 
-def return_invariants(p_tr, q_tr, eps_v_p, params, dt, dim, iterations=12, tension_tip=True):
+def return_invariants(p_tr, q_tr, eps_v_p, params, dt, dim, iterations=12):
     """Return map in invariants. Returns a dict with p, q, pc, eps_v_p (accumulated), deps_v_p
     (this step), gamma_dot, I, mu_I and plastic (1.0 where the trial state was inadmissible).
-    ``tension_tip``: send trial states beyond the tension tip to the tip (MODEL.md §2); False
-    uses the regular associative return there too, which is continuous in the trial state (the
-    tip is its limit as q_tr -> 0)."""
+    Every inadmissible trial state, in tension beyond -β p_c included, takes the one associative
+    return (MODEL.md §2)."""
     G, K = bulk_modulus(params, dim)
     sg = jax.lax.stop_gradient
     pc_n = params.pc0 * jnp.exp(-params.xi * eps_v_p)
     y_tr = yield_function(p_tr, q_tr, pc_n, params)
     plastic = y_tr > 0
-    tension = p_tr < -params.beta * pc_n
-    if not tension_tip:
-        tension = jnp.zeros_like(plastic)
 
     # The loops run on stop-gradient copies of the inputs (their derivatives are never needed);
     # the final implicit step uses the live ones.
@@ -172,23 +165,11 @@ def return_invariants(p_tr, q_tr, eps_v_p, params, dt, dim, iterations=12, tensi
         lambda e: _surface_residual(e, p_tr, q_tr, pc_n, params, K, G), eps_root, jnp.abs(eps_apex)
     )
 
-    # --- tension tip: p = -β p_c(ε), q = 0. r(0) = p_tr + β p_c,n < 0 and r(-p_tr/K) > 0 bracket
-    # the root (r need not be monotone when ξ β p_c > K). Lanes not in tension get a harmless
-    # stand-in trial pressure, so that their (discarded) solve stays finite.
-    p_tip = jnp.where(tension, p_s, -params_s.beta * pc_s - 1.0)
-    hi = -p_tip / K_s
-    eps_tip = _safeguarded_newton(
-        lambda e: _tip_residual(e, p_tip, pc_s, params_s, K_s), zero, hi, zero, iterations
-    )
-    p_tip_live = jnp.where(tension, p_tr, p_tip)
-    eps_tip = _implicit_step(lambda e: _tip_residual(e, p_tip_live, pc_n, params, K), eps_tip, hi)
-
-    eps = jnp.where(plastic, jnp.where(tension, eps_tip, eps_reg), 0.0)
+    eps = jnp.where(plastic, eps_reg, 0.0)
     p = p_tr + K * eps
     pc = pc_n * jnp.exp(-params.xi * eps)
     p_bar = p + params.beta * pc
     S = safe_sqrt(jnp.maximum(pc - p, 0.0) * jnp.maximum(p_bar, 0.0))
-    S = jnp.where(tension, 0.0, S)  # exactly at the tip (p̄ = 0 up to round-off)
     q_static = jnp.minimum(params.mu1 * S, q_tr)  # a return never raises q (round-off near a tip)
 
     # --- μ(I) overstress on the static state (MODEL.md §3).
@@ -218,7 +199,7 @@ def return_invariants(p_tr, q_tr, eps_v_p, params, dt, dim, iterations=12, tensi
     }
 
 
-def return_map(strain_trial, eps_v_p, params, dt, iterations=12, tension_tip=True):
+def return_map(strain_trial, eps_v_p, params, dt, iterations=12):
     """The constitutive update for trial Hencky strains (..., d, d).
 
     Returns ``(strain, tau, out)``: the new Hencky strain, the Kirchhoff stress
@@ -231,7 +212,7 @@ def return_map(strain_trial, eps_v_p, params, dt, iterations=12, tension_tip=Tru
     dev = strain_trial - (e_v / dim)[..., None, None] * eye
     q_tr = 2.0 * G * safe_sqrt(0.5 * jnp.sum(dev * dev, axis=(-2, -1)))
     p_tr = -K * e_v
-    out = return_invariants(p_tr, q_tr, eps_v_p, params, dt, dim, iterations, tension_tip)
+    out = return_invariants(p_tr, q_tr, eps_v_p, params, dt, dim, iterations)
     # Elastic lanes keep their deviator exactly (ratio 1, so dτ/de = 2G even at e = 0).
     ratio = jnp.where(out["plastic"] > 0, safe_div(out["q"], q_tr), 1.0)[..., None, None]
     strain = (-out["p"] / (K * dim))[..., None, None] * eye + ratio * dev
@@ -241,13 +222,9 @@ def return_map(strain_trial, eps_v_p, params, dt, iterations=12, tension_tip=Tru
 
 @dataclasses.dataclass(frozen=True)
 class CriticalState(Material):
-    """The critical-state μ(I) material. ``iterations``: Newton steps of each scalar solve.
-    ``tension_tip``: MODEL.md §2's rule that a trial state beyond the tension tip returns to the
-    tip (True, the default); False keeps the regular return there, which makes the update
-    continuous in the parameters (see docs/calibration.md: the rule is a jump when q_tr > 0)."""
+    """The critical-state μ(I) material. ``iterations``: Newton steps of each scalar solve."""
 
     iterations: int = 12
-    tension_tip: bool = True
 
     def __post_init__(self):
         if int(self.iterations) != self.iterations or self.iterations < 1:
@@ -259,8 +236,7 @@ class CriticalState(Material):
 
     def update(self, F_trial, internal, params, dt):
         strain_trial = hencky_strain(F_trial)
-        strain, tau, out = return_map(strain_trial, internal["eps_v_p"], params, dt, self.iterations,
-                                      self.tension_tip)
+        strain, tau, out = return_map(strain_trial, internal["eps_v_p"], params, dt, self.iterations)
         # e_new and e_trial are coaxial, so F_e = exp(e_new - e_trial) F_trial keeps the rotation.
         F = mm(sym_exp(strain - strain_trial), F_trial)
         return F, tau, {key: out[key] for key in INTERNAL_KEYS}
