@@ -4,23 +4,26 @@ A ``Wall`` is static configuration (hashable). Its surface passes through ``poin
 with unit ``normal`` pointing from the wall into the material. A grid node is in contact when
 its predicted position x_i + dt v_i lies on or behind the surface, within ``thickness`` of it,
 and, for a plate with a lower ``edge``, on the plate's side of that edge. In contact, the node
-velocity relative to the wall, v_rel = v - v_wall = v_n n + v_t, becomes
+velocity relative to the wall, v_rel = v - v_wall = v_n n + v_t (v_n < 0: moving into the wall),
+becomes, by the wall's ``kind`` (the reference code's three types):
 
-- ``"no-slip"``:    0;
-- ``"slip-stick"``: if v_n < 0 (moving into the wall), the normal part is removed and
-  |v_t| <- max(0, |v_t| - mu_w |v_n|) (Coulomb friction); otherwise unchanged;
-- ``"slip-free"``:  v_t if v_n < 0 (moving into the wall) else unchanged, so material separates.
+- ``"no-slip"``: 0, the node takes the wall's velocity;
+- ``"non-separable"`` (the reference code's *slip-stick*): on every contact node the normal part
+  is removed and the tangential part gets Coulomb friction, |v_t| <- max(0, |v_t| - μ_w |v_n|).
+  Material slides along the wall but never leaves it. Friction is charged on every contact
+  node, whatever the sign of v_n, as the reference code does on its plates (its general objects
+  charge it only where v_n < 0);
+- ``"separable"`` (the reference code's *slip-free*): only where v_n < 0 (pressed against the
+  wall), the normal part is removed and the same Coulomb friction applies with the wall's own
+  μ_w (0 by default: a frictionless gate); elsewhere the node is left alone, so material can
+  separate from the wall.
 
-Slip-stick acts only on nodes moving into the wall. MODEL.md §5 (and the reference code) remove
-the normal part and charge friction on every node in contact; with APIC/AFLIP, nodes behind the
-wall carry outward velocity extrapolated by the affine field, and charging friction on it made
-a block on a 30° slope with mu_w = 0.3 slide at 0.73 m/s² instead of g(sin θ - mu_w cos θ) =
-2.36 m/s² (PIC was exact either way). With the separable rule AFLIP is within 0.1 %
-(tests/test_physics.py).
+``friction`` is μ_w. The reference code's names ``"slip-stick"`` and ``"slip-free"`` are
+accepted and stored as ``"non-separable"`` and ``"separable"``.
 
-A gate lifted at speed U is ``Wall(point=(x_g, floor), normal=(-1, 0), velocity=(0, U),
-edge=(0, 1), thickness=...)``: it extends upwards from its lower edge, which starts on the floor
-and rises with it, so material escapes beneath it.
+A gate lifted at speed U is ``Wall(point=(x_g, floor), normal=(-1, 0), kind="separable",
+velocity=(0, U), edge=(0, 1), thickness=...)``: it extends upwards from its lower edge, which
+starts on the floor and rises with it, so material escapes beneath it.
 """
 
 from __future__ import annotations
@@ -32,9 +35,11 @@ import jax.numpy as jnp
 
 from .linalg import safe_div, safe_sqrt
 
-__all__ = ["Wall", "KINDS", "apply_walls"]
+__all__ = ["Wall", "KINDS", "KIND_ALIASES", "apply_walls"]
 
-KINDS = ("no-slip", "slip-stick", "slip-free")
+KINDS = ("no-slip", "non-separable", "separable")
+#: The reference code's names for the same types.
+KIND_ALIASES = {"slip-stick": "non-separable", "slip-free": "separable"}
 
 
 def _as_vector(name, value, dim=None):
@@ -80,8 +85,11 @@ class Wall:
         setter("velocity", _as_vector("Wall.velocity", velocity, dim))
         if self.edge is not None:
             setter("edge", _unit("Wall.edge", self.edge, dim))
-        if self.kind not in KINDS:
-            raise ValueError(f"Wall.kind must be one of {KINDS}, got {self.kind!r}")
+        kind = KIND_ALIASES.get(self.kind, self.kind)
+        if kind not in KINDS:
+            raise ValueError(f"Wall.kind must be one of {KINDS} (or the reference code's "
+                             f"{tuple(KIND_ALIASES)}), got {self.kind!r}")
+        setter("kind", kind)
         if not (math.isfinite(self.friction) and self.friction >= 0):
             raise ValueError(f"Wall.friction must be finite and >= 0, got {self.friction!r}")
         if not self.thickness > 0:
@@ -96,19 +104,23 @@ class Wall:
         return any(c != 0.0 for c in self.velocity)
 
 
+def _coulomb(vt, vn, friction):
+    """|v_t| <- max(0, |v_t| - μ_w |v_n|) along v_t's own direction."""
+    if friction == 0.0:
+        return vt
+    vt_norm = safe_sqrt(jnp.sum(vt * vt, axis=0, keepdims=True))
+    return vt * jnp.maximum(0.0, 1.0 - safe_div(friction * jnp.abs(vn), vt_norm, fill=1.0))
+
+
 def _contact_velocity(wall: Wall, v_rel, normal):
     """Relative velocity (dim, n_nodes) after the contact rule, for nodes in contact."""
     if wall.kind == "no-slip":
         return jnp.zeros_like(v_rel)
     vn = jnp.sum(v_rel * normal, axis=0, keepdims=True)
-    vt = v_rel - vn * normal
-    if wall.kind == "slip-free":
-        return jnp.where(vn < 0, vt, v_rel)
-    # slip-stick: when moving into the wall, normal part removed and Coulomb friction on the rest.
-    if wall.friction != 0.0:
-        vt_norm = safe_sqrt(jnp.sum(vt * vt, axis=0, keepdims=True))
-        vt = vt * jnp.maximum(0.0, 1.0 - safe_div(wall.friction * jnp.abs(vn), vt_norm, fill=1.0))
-    return jnp.where(vn < 0, vt, v_rel)
+    vt = _coulomb(v_rel - vn * normal, vn, wall.friction)
+    if wall.kind == "non-separable":
+        return vt
+    return jnp.where(vn < 0, vt, v_rel)  # separable
 
 
 def apply_walls(walls, v, node_x, t, dt):

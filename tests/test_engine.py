@@ -160,3 +160,26 @@ def test_simulate_validates_before_tracing():
         jm.simulate(cfg, s0, batch)
     with pytest.raises(ValueError, match="outside the grid"):
         jm.simulate(cfg, s0.replace(x=s0.x.at[3, 0].set(-1.0)), params)
+
+
+def test_wall_rules_of_the_three_types():
+    """MODEL.md §5 on single nodes of a floor (normal +y, μ_w = 0.5, dt = 0), with relative
+    velocity v = (v_t, v_n): no-slip gives 0 everywhere; non-separable removes v_n on every
+    contact node and charges |v_t| <- max(0, |v_t| − μ_w |v_n|) whatever the sign of v_n;
+    separable does the same only where v_n < 0 (pressed) and leaves a separating node alone.
+    Nodes above the floor are never touched. The reference code's names map to these."""
+    from jaxmpm.boundary import apply_walls
+
+    node_x = jnp.asarray([[0.0, 0.0, 0.0, 0.0, 0.0], [0.0, 0.0, 0.0, 0.0, 1.0]])  # (dim, nodes)
+    v = jnp.asarray([[1.0, 1.0, 0.2, -1.0, 1.0], [-1.0, 1.0, -1.0, 0.4, -1.0]])
+    expect = {
+        "no-slip": [[0, 0, 0, 0, 1.0], [0, 0, 0, 0, -1.0]],
+        "non-separable": [[0.5, 0.5, 0.0, -0.8, 1.0], [0, 0, 0, 0, -1.0]],
+        "separable": [[0.5, 1.0, 0.0, -1.0, 1.0], [0, 1.0, 0, 0.4, -1.0]],
+    }
+    for kind, want in expect.items():
+        wall = jm.Wall((0.0, 0.0), (0.0, 1.0), kind=kind, friction=0.5)
+        got = apply_walls((wall,), v, node_x, 0.0, 0.0)
+        np.testing.assert_allclose(np.asarray(got), np.asarray(want), atol=1e-15, err_msg=kind)
+    assert jm.Wall((0, 0), (0, 1), kind="slip-stick").kind == "non-separable"
+    assert jm.Wall((0, 0), (0, 1), kind="slip-free").kind == "separable"

@@ -64,7 +64,7 @@ def test_hencky_stress_gradients(dim):
 def _small_scene(t_end=0.08, frames=()):
     dx = 0.05
     cfg = jm.Config(grid=jm.Grid((20, 16), dx), t_end=t_end, max_steps=400,
-                    walls=(jm.Wall((0, 0.1), (0, 1)), jm.Wall((0.1, 0), (1, 0), "slip-stick", 0.3)),
+                    walls=(jm.Wall((0, 0.1), (0, 1)), jm.Wall((0.1, 0), (1, 0), "non-separable", 0.3)),
                     frame_times=frames)
     x, vol = jm.seed_box((0.1, 0.1), (0.45, 0.4), dx, 2)
     rng = np.random.default_rng(5)

@@ -135,7 +135,7 @@ def test_periodic_axis_wraps_stencil_and_positions():
     out = g2p(st, v_old, v_new, v, grid.dx, "apic", 0.0)
     np.testing.assert_allclose(out.v, v, atol=1e-13)
 
-    cfg = jm.Config(grid=grid, t_end=0.2, max_steps=100, walls=(jm.Wall((0.0, 0.0), (0.0, 1.0), "slip-free"),),
+    cfg = jm.Config(grid=grid, t_end=0.2, max_steps=100, walls=(jm.Wall((0.0, 0.0), (0.0, 1.0), "separable"),),
                     gravity=(2.0, -9.81))
     xs, vol = jm.seed_box((0.6, 0.0), (0.8, 0.2), 0.1, 2)
     result = jm.simulate(cfg, jm.init_state(cfg, xs, vol, v=(1.0, 0.0)), jm.Params.create(E=1e5))
