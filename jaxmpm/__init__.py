@@ -1,7 +1,7 @@
 """jaxmpm: a differentiable Material Point Method in JAX for granular flows.
 
 The public surface: static configuration (``Grid``, ``Config``, ``Wall``, materials), the
-parameter pytree (``Params``), the state (``State``, ``init_state``, ``seed_box``), the pure
+parameter pytree (``Params``), the state (``State``, ``init_state``), particle sampling (``seed_box``), the pure
 step and rollout factories, the public ``simulate`` call and HDF5 output.
 """
 
@@ -23,8 +23,8 @@ from .state import (
     State,
     describe_status,
     init_state,
-    seed_box,
 )
+from .sampling import SAMPLINGS, seed_box
 from .step import make_step
 
 try:
@@ -34,7 +34,7 @@ except _metadata.PackageNotFoundError:  # running from a source tree
 
 __all__ = [
     "BUDGET", "Config", "CriticalState", "EDGE", "DEFAULTS", "Grid", "Hencky", "J_NONPOSITIVE", "LEFT_GRID", "Material",
-    "NONFINITE", "PARAM_KEYS", "Params", "Result", "SimulationError", "State", "Wall",
+    "NONFINITE", "PARAM_KEYS", "Params", "Result", "SAMPLINGS", "SimulationError", "State", "Wall",
     "compiled_rollout", "describe_status", "frame_observer", "hencky_stress", "init_state",
     "invariants", "io", "make_rollout", "make_step", "scenes", "seed_box", "simulate", "validate_params",
 ]

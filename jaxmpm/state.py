@@ -16,6 +16,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .config import Config
+from .sampling import seed_box  # noqa: F401 (re-exported: the public name predates sampling.py)
 
 __all__ = [
     "State",
@@ -71,32 +72,6 @@ class State:
 
     def replace(self, **values) -> "State":
         return dataclasses.replace(self, **values)
-
-
-def seed_box(lower, upper, dx: float, ppc: int | tuple[int, ...] = 2):
-    """Particles on a regular lattice filling the box [lower, upper] (MODEL.md §5).
-
-    ``ppc`` is the number of particles per cell along each axis (2 gives 2×2 in 2D). Returns
-    positions (N, dim) and volumes V0 = dx^dim / ppc_total as numpy float64 arrays.
-    """
-    lower = np.asarray(lower, dtype=float)
-    upper = np.asarray(upper, dtype=float)
-    dim = lower.size
-    if upper.shape != lower.shape or dim not in (2, 3):
-        raise ValueError(f"lower and upper must both have 2 or 3 entries, got {lower} and {upper}")
-    if not np.all(upper > lower):
-        raise ValueError(f"upper must exceed lower on every axis, got lower={lower}, upper={upper}")
-    if not dx > 0:
-        raise ValueError(f"dx must be > 0, got {dx!r}")
-    per_axis = (ppc,) * dim if np.isscalar(ppc) else tuple(ppc)
-    if len(per_axis) != dim or any(int(n) != n or n < 1 for n in per_axis):
-        raise ValueError(f"ppc must be a positive integer or {dim} of them, got {ppc!r}")
-    spacing = dx / np.asarray(per_axis, dtype=float)
-    counts = np.maximum(np.round((upper - lower) / spacing).astype(int), 1)
-    axes = [lower[a] + spacing[a] * (np.arange(counts[a]) + 0.5) for a in range(dim)]
-    x = np.stack([m.reshape(-1) for m in np.meshgrid(*axes, indexing="ij")], axis=-1)
-    vol = np.full(len(x), float(np.prod(spacing)))
-    return x, vol
 
 
 def init_state(config: Config, x, vol0, v=None, dtype=None) -> State:

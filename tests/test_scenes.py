@@ -24,15 +24,45 @@ from jaxmpm.observables import deposit_profile, front_position, particle_volumes
     ],
 )
 def test_scene_builds_and_runs(build):
+    """Every builder runs without status bits. The column is the body [0, L] × [g, H + g] above
+    the floor at y = 0 (g = wall_gap = dx/2), and no particle's stencil reaches a node behind
+    any wall at t = 0 (MODEL.md §5; the scenes' placement convention)."""
     scene = build()
     config, state, params = scene
     x = np.asarray(state.x)
-    # The column occupies [0, L] x [0, H] (x along the bed), floor at y = 0.
-    assert x[:, 1].min() > 0 and x[:, 0].min() > 0
+    gap = scene.meta["wall_gap"]
+    assert gap == 0.5 * scene.meta["dx"]
+    assert x[:, 1].min() > gap
     if "L" in scene.meta:
-        assert x[:, 0].max() < scene.meta["L"] and x[:, 1].max() < scene.meta["H"]
+        assert x[:, 0].min() > 0 and x[:, 0].max() < scene.meta["L"] and x[:, 1].max() < scene.meta["H"] + gap
+    assert _stencil_nodes_behind_walls(config, state) == 0
     result = jm.simulate(config, state, params)
     assert result.status == 0 and float(result.state.t) == config.t_end
+
+
+def _stencil_nodes_behind_walls(config, state):
+    """How many (particle, stencil node) pairs have the node strictly behind a wall (within the
+    wall's thickness and above a plate's lower edge) at t = 0."""
+    from jaxmpm.kernels import make_stencil
+
+    nodes = config.grid.node_positions()[np.asarray(make_stencil(state.x, config.grid).index)]  # (S, N, dim)
+    count = 0
+    for wall in config.walls:
+        signed = (nodes - np.asarray(wall.point)) @ np.asarray(wall.normal)
+        behind = (signed < -1e-12) & (signed > -wall.thickness)
+        if wall.edge is not None:
+            behind &= (nodes - np.asarray(wall.point)) @ np.asarray(wall.edge) >= 0
+        count += int(behind.sum())
+    return count
+
+
+def test_flush_bodies_weight_nodes_behind_the_floor():
+    """wall_gap = 0 puts the body flush with the floor: its bottom row weights the nodes behind
+    it, which the default half-cell gap avoids (the check above can fail)."""
+    flush = scenes.cohesive_collapse(0.0, dx=0.03, t_end=0.02, wall_gap=0.0)
+    assert _stencil_nodes_behind_walls(flush.config, flush.state) > 0
+    with pytest.raises(ValueError, match="wall_gap"):
+        scenes.cohesive_collapse(0.0, dx=0.03, wall_gap=-0.01)
 
 
 def test_scene_parameters_follow_scenes_md():
@@ -41,7 +71,7 @@ def test_scene_parameters_follow_scenes_md():
     s3 = scenes.slope_collapse(22.0, dx=0.04, t_end=0.01)
     g = np.asarray(s3.config.gravity)
     assert math.isclose(math.degrees(math.atan2(g[0], -g[1])), 22.0, abs_tol=1e-9)
-    assert any(w.kind == "slip-free" and w.normal == (1.0, 0.0) for w in s3.config.walls)  # back wall
+    assert any(w.kind == "separable" and w.normal == (1.0, 0.0) for w in s3.config.walls)  # back wall
     with pytest.raises(ValueError, match="width"):
         scenes.cohesive_collapse(0.0, dim=3)
     with pytest.raises(ValueError, match="dx must be > 0"):
@@ -58,8 +88,8 @@ def test_flow_reaching_the_grid_edge_sets_the_edge_bit():
 
 def test_incline_starts_on_the_bagnold_profile():
     scene = scenes.incline(24.0, dx=0.038 / 8)
-    y, v = np.asarray(scene.state.x[:, 1]), np.asarray(scene.state.v[:, 0])
-    np.testing.assert_allclose(v, scenes.bagnold_velocity(y, 0.038, 24.0, scene.params), rtol=1e-6)
+    z, v = np.asarray(scene.state.x[:, 1]) - scene.meta["wall_gap"], np.asarray(scene.state.v[:, 0])
+    np.testing.assert_allclose(v, scenes.bagnold_velocity(z, 0.038, 24.0, scene.params), rtol=1e-6)
     # MODEL.md §6 worked example: v_max = 1.483 m/s at 24° for h = 0.038 m.
     assert abs(scenes.bagnold_velocity(0.038, 0.038, 24.0, scene.params) - 1.483) < 2e-3
     assert abs(scenes.bagnold_velocity(0.038, 0.038, 22.0, scene.params) - 0.433) < 2e-3
@@ -95,8 +125,8 @@ def test_incline_critical_start_sets_pc_to_twice_the_lithostatic_pressure():
 
     scene = jm.scenes.incline(24.0, dx=0.038 / 8, critical_start=True)
     params = scene.params
-    y = np.asarray(scene.state.x[:, 1])
-    p = float(params.rho) * 9.81 * math.cos(math.radians(24.0)) * (0.038 - y)
+    z = np.asarray(scene.state.x[:, 1]) - scene.meta["wall_gap"]
+    p = float(params.rho) * 9.81 * math.cos(math.radians(24.0)) * (0.038 - z)
     pc = float(params.pc0) * np.exp(-float(params.xi) * np.asarray(scene.state.internal["eps_v_p"]))
     np.testing.assert_allclose(pc, 2.0 * p, rtol=1e-10)
     with pytest.raises(ValueError, match="xi > 0"):

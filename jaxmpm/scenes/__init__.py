@@ -18,11 +18,11 @@ SCENE_NAMES = ("cohesive-collapse", "gates-collapse", "slope-collapse", "aspect-
 
 
 def build_scene(name: str, dx=None, ppc=2, dim=2, width=None, t_end=None, frames=0, slope=None, aspect=None,
-                dtype=None, values=None):
+                dtype=None, values=None, sampling="lattice", seed=0):
     """A scene by its command-line name (``SCENE_NAMES``) with the command line's options:
     ``dx``/``t_end`` None take the scene's coarse defaults, ``values`` are material parameters."""
     values = dict(values or {})
-    common = dict(ppc=ppc, dim=dim, width=width, frames=frames, dtype=dtype, **values)
+    common = dict(ppc=ppc, dim=dim, width=width, frames=frames, dtype=dtype, sampling=sampling, seed=seed, **values)
     if t_end is not None:
         common["t_end"] = t_end
     if dx is not None:
@@ -42,19 +42,25 @@ def build_scene(name: str, dx=None, ppc=2, dim=2, width=None, t_end=None, frames
     if name == "elastic-block":
         if dim != 2 or width is not None:
             raise ValueError("elastic-block is 2D")
+        if sampling != "lattice" or ppc != 2:
+            raise ValueError("elastic-block is sampled on a 2 x 2 lattice (--ppc and --sampling do not apply)")
         return falling_block(n_particles=2_500, t_end=t_end or 0.39, frames=frames, dtype=dtype, **values)
     raise ValueError(f"scene must be one of {SCENE_NAMES}, got {name!r}")
 
 
 def add_scene_arguments(parser, scene_choices: bool = True) -> None:
     """The scene options shared by ``python -m jaxmpm run`` and ``python -m calibration``:
-    SCENE (positional, optional), --set, --dx, --ppc, --dim, --width, --slope, --aspect,
-    --t-end, --dtype."""
+    SCENE (positional, optional), --set, --dx, --ppc, --sampling, --seed, --dim, --width, --slope,
+    --aspect, --t-end, --dtype."""
     if scene_choices:
         parser.add_argument("scene", choices=SCENE_NAMES)
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="material parameter")
     parser.add_argument("--dx", type=float, default=None, help="grid spacing, m (default: a coarse, fast value)")
-    parser.add_argument("--ppc", type=int, default=2, help="particles per cell and axis (default 2)")
+    parser.add_argument("--ppc", type=float, default=2, help="particles per cell and axis (default 2; an integer "
+                        "for lattice and jitter sampling)")
+    parser.add_argument("--sampling", choices=("lattice", "jitter", "poisson"), default="lattice",
+                        help="particle sampling (jaxmpm.sampling; poisson needs scipy)")
+    parser.add_argument("--seed", type=int, default=0, help="random seed of jitter and poisson sampling")
     parser.add_argument("--dim", type=int, default=2, choices=(2, 3))
     parser.add_argument("--width", type=float, default=None, help="channel width for --dim 3, m")
     parser.add_argument("--slope", type=float, default=None, help="bed angle for slope-collapse, degrees")
@@ -79,4 +85,4 @@ def scene_from_args(args, name: str | None = None, frames: int = 0):
     values = dict(parse_set(item) for item in args.set)
     return build_scene(name or args.scene, dx=args.dx, ppc=args.ppc, dim=args.dim, width=args.width,
                        t_end=args.t_end, frames=frames, slope=args.slope, aspect=args.aspect, dtype=args.dtype,
-                       values=values)
+                       values=values, sampling=args.sampling, seed=args.seed)

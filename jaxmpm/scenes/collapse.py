@@ -3,7 +3,7 @@ S5 (aspect ratio). All share one builder.
 
 Coordinates: the column initially occupies [0, L] × [0, H] with the floor (bed) at y = 0 and the
 back wall at x = 0; on a slope x runs along the bed and gravity is rotated,
-g = 9.81 (sin θ, -cos θ). In 3D the channel spans z ∈ [0, W] between slip-free side walls. The
+g = 9.81 (sin θ, -cos θ). In 3D the channel spans z ∈ [0, W] between separable (slip-free) side walls. The
 grid covers only where the flow can go (an estimate of the runout times a safety factor, plus
 three cells of wall margin); a flow that reaches its edge sets the ``EDGE`` status bit.
 """
@@ -18,7 +18,8 @@ from ..boundary import Wall
 from ..config import Config, Grid
 from ..materials.critical_state import CriticalState
 from ..params import Params
-from ..state import State, init_state, seed_box
+from ..sampling import SAMPLINGS, particles_per_cell, seed_box
+from ..state import State, init_state
 
 __all__ = [
     "Scene", "S2_PARAMS", "S3_PARAMS", "S4_PARAMS", "S5_PARAMS",
@@ -60,13 +61,25 @@ def _check_positive(**values):
             raise ValueError(f"{name} must be > 0, got {value!r}")
 
 
+def _side_gap(extent: float, gap: float, dx: float) -> float:
+    """The gap on each side of a body of ``extent`` between two walls, at least ``gap``, such that
+    both walls lie on node rows (the body is centred between them); 0 stays 0 (flush)."""
+    if gap == 0.0:
+        return 0.0
+    cells = math.ceil((extent + 2.0 * gap) / dx - 1e-9)
+    return 0.5 * (cells * dx - extent)
+
+
 def collapse(
     name: str,
     length: float,
     height: float,
     *,
     dx: float,
-    ppc: int = 2,
+    ppc: float = 2,
+    sampling: str = "lattice",
+    seed: int = 0,
+    wall_gap: float | None = None,
     dim: int = 2,
     width: float | None = None,
     slope_deg: float = 0.0,
@@ -87,17 +100,30 @@ def collapse(
 ) -> Scene:
     """The common builder: a column [0, L] × [0, H] on a no-slip bed inclined at ``slope_deg``.
 
-    ``back_wall``: a slip-free wall at x = 0. ``front_gate_speed``/``back_gate_speed``: slip-free
-    gates at x = L / x = 0 lifted at that speed (their lower edge starts on the bed). ``runout``
-    and ``backward_runout``: how far beyond x = L and before x = 0 the grid reaches.
+    ``back_wall``: a separable (slip-free) wall behind x = 0. ``front_gate_speed`` /
+    ``back_gate_speed``: separable gates in front of x = L / behind x = 0 lifted at that speed
+    (their lower edge starts on the bed). ``runout`` and ``backward_runout``: how far beyond x = L
+    and before x = 0 the grid reaches. ``ppc``, ``sampling``, ``seed``: particles per cell along
+    each axis, the sampler (``jaxmpm.sampling``) and its seed. ``wall_gap``: the gap between the
+    body and its walls at t = 0 (default dx/2; see the module docstring).
     """
     _check_positive(dx=dx, length=length, height=height, runout=runout, t_end=t_end, width=width)
     if dim not in (2, 3):
         raise ValueError(f"dim must be 2 or 3, got {dim!r}")
     if dim == 3 and width is None:
         raise ValueError("width (the channel width, m) is required when dim=3")
-    if int(ppc) != ppc or ppc < 1:
-        raise ValueError(f"ppc must be a positive integer, got {ppc!r}")
+    if sampling not in SAMPLINGS:
+        raise ValueError(f"sampling must be one of {SAMPLINGS}, got {sampling!r}")
+    if sampling == "poisson":
+        if not (isinstance(ppc, (int, float)) and math.isfinite(ppc) and ppc >= 1):
+            raise ValueError(f"ppc must be a number >= 1, got {ppc!r}")
+    elif not (isinstance(ppc, (int, float)) and int(ppc) == ppc and ppc >= 1):
+        raise ValueError(f"ppc must be a positive integer for {sampling} sampling, got {ppc!r}")
+    if sampling != "poisson":
+        ppc = int(ppc)
+    gap = 0.5 * dx if wall_gap is None else wall_gap
+    if not (isinstance(gap, (int, float)) and math.isfinite(gap) and 0.0 <= gap <= 2.0 * dx):
+        raise ValueError(f"wall_gap must be in [0, 2 dx] (m), got {wall_gap!r}")
     if not (math.isfinite(slope_deg) and -60.0 < slope_deg < 60.0):
         raise ValueError(f"slope_deg must be in (-60, 60) degrees, got {slope_deg!r}")
     if not (isinstance(frames, int) and frames >= 0):
@@ -107,15 +133,23 @@ def collapse(
     margin = 3 * dx
     theta = math.radians(slope_deg)
     gravity = (G * math.sin(theta), -G * math.cos(theta)) + ((0.0,) if dim == 3 else ())
-    x0 = -(backward_runout + margin)
-    span_x = backward_runout + length + runout + 2 * margin
+    # The grid's node rows lie on the floor (y = 0) and on the wall behind the body; with walls
+    # on both sides (gates, a 3D channel) the gap is widened so that both lie on node rows.
+    has_back = back_wall or back_gate_speed is not None
+    gap_x = _side_gap(length, gap, dx) if (has_back and front_gate_speed is not None) else gap
+    x_back = -gap_x
+    x0 = x_back - math.ceil((backward_runout + margin) / dx) * dx
+    span_x = (length + gap_x + runout + margin) - x0
     # Height: the column plus room for a splash (material rarely rises above its start).
-    span_y = height * 1.15 + 2 * margin
+    span_y = height * 1.15 + gap + 2 * margin
     cells = [math.ceil(span_x / dx), math.ceil(span_y / dx)]
     origin = [x0, -margin]
+    channel = None
+    gap_z = _side_gap(width, gap, dx) if dim == 3 else 0.0
     if dim == 3:
-        cells.append(math.ceil((width + 2 * margin) / dx))
-        origin.append(-margin)
+        channel = width + 2.0 * gap_z
+        cells.append(math.ceil((channel + 2 * margin) / dx))
+        origin.append(-gap_z - margin)
     grid = Grid(tuple(cells), dx, origin=tuple(origin))
 
     def vec(*c):
@@ -123,16 +157,16 @@ def collapse(
 
     walls = [Wall(vec(0.0, 0.0), vec(0.0, 1.0), "no-slip")]
     if back_gate_speed is not None:
-        walls.append(Wall(vec(0.0, 0.0), vec(1.0, 0.0), "slip-free", velocity=vec(0.0, back_gate_speed),
+        walls.append(Wall(vec(x_back, 0.0), vec(1.0, 0.0), "separable", velocity=vec(0.0, back_gate_speed),
                           edge=vec(0.0, 1.0), thickness=2 * dx))
     elif back_wall:
-        walls.append(Wall(vec(0.0, 0.0), vec(1.0, 0.0), "slip-free"))
+        walls.append(Wall(vec(x_back, 0.0), vec(1.0, 0.0), "separable"))
     if front_gate_speed is not None:
-        walls.append(Wall(vec(length, 0.0), vec(-1.0, 0.0), "slip-free", velocity=vec(0.0, front_gate_speed),
-                          edge=vec(0.0, 1.0), thickness=2 * dx))
+        walls.append(Wall(vec(length + gap_x, 0.0), vec(-1.0, 0.0), "separable",
+                          velocity=vec(0.0, front_gate_speed), edge=vec(0.0, 1.0), thickness=2 * dx))
     if dim == 3:
-        walls.append(Wall((0.0, 0.0, 0.0), (0.0, 0.0, 1.0), "slip-free"))
-        walls.append(Wall((0.0, 0.0, width), (0.0, 0.0, -1.0), "slip-free"))
+        walls.append(Wall((0.0, 0.0, -gap_z), (0.0, 0.0, 1.0), "separable"))
+        walls.append(Wall((0.0, 0.0, width + gap_z), (0.0, 0.0, -1.0), "separable"))
 
     if max_steps is None:
         # The elastic bound sets dt (flow speeds stay far below sqrt(E/ρ)); 25 % margin.
@@ -143,10 +177,12 @@ def collapse(
         gravity=gravity, transfer=transfer, alpha=alpha, cfl=cfl,
         frame_times=tuple(t_end * (k + 1) / frames for k in range(frames)),
     )
-    upper = (length, height) + ((width,) if dim == 3 else ())
-    x, vol = seed_box((0.0,) * dim, upper, dx, ppc)
+    lower = (0.0, gap) + ((0.0,) if dim == 3 else ())
+    upper = (length, height + gap) + ((width,) if dim == 3 else ())
+    x, vol = seed_box(lower, upper, dx, ppc, sampling=sampling, seed=seed)
     meta = {"L": length, "H": height, "slope_deg": slope_deg, "front0": length, "dim": dim, "dx": dx,
-            "ppc": ppc, "width": width}
+            "ppc": ppc, "sampling": sampling, "seed": seed, "wall_gap": gap, "side_gap": gap_x, "width": channel,
+            "particles_per_cell": particles_per_cell(len(x), lower, upper, dx)}
     return Scene(name, config, init_state(config, x, vol, dtype=dtype), params, meta)
 
 

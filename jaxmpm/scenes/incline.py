@@ -2,7 +2,10 @@
 
 A layer of depth h on a rough (no-slip) bed at y = 0, periodic along the slope (x), with gravity
 rotated to g = 9.81 (sin θ, -cos θ). The periodic length is a few cells: the steady state is
-uniform in x, so nothing is gained by a longer domain.
+uniform in x, so nothing is gained by a longer domain. As in the collapses (``collapse.py``),
+the layer starts half a cell above the bed (``wall_gap``, default dx/2), so that no particle's
+stencil reaches a node below it; z = y - wall_gap is the height in the layer
+(``meta["wall_gap"]``).
 """
 
 from __future__ import annotations
@@ -13,7 +16,8 @@ from ..boundary import Wall
 from ..config import Config, Grid
 from ..materials.critical_state import CriticalState
 from ..params import Params
-from ..state import init_state, seed_box
+from ..sampling import seed_box
+from ..state import init_state
 from .collapse import G, Scene
 
 __all__ = ["incline", "S1_PARAMS", "bagnold_velocity"]
@@ -43,7 +47,8 @@ def bagnold_velocity(z, depth, slope_deg, params):
 def incline(slope_deg: float = 24.0, dx: float | None = None, ppc: int = 2, depth: float = 0.038,
             length_cells: int = 4, t_end: float = 2.0, frames: int = 0, max_steps: int | None = None,
             start_from_analytic: bool = True, critical_start: bool = False, transfer: str = "aflip",
-            alpha: float = 0.95, dtype=None, **param_values) -> Scene:
+            alpha: float = 0.95, dtype=None, sampling: str = "lattice", seed: int = 0,
+            wall_gap: float | None = None, **param_values) -> Scene:
     """S1 at ``slope_deg`` with layer ``depth`` (default 0.038 m) and grid spacing ``dx``
     (default depth/16), periodic over ``length_cells`` cells along the slope.
 
@@ -57,8 +62,12 @@ def incline(slope_deg: float = 24.0, dx: float | None = None, ppc: int = 2, dept
     everywhere, and near the free surface, where p ≪ p_c0, the material is overconsolidated:
     it is stronger than μ(I) p there and shears only as dilation softens it. The offset lives in
     ε_v^p, so ``particle_volumes`` counts it as a plastic volume change: divide by
-    exp(ε_v^p(t = 0)) for volumes relative to the start."""
+    exp(ε_v^p(t = 0)) for volumes relative to the start. ``start_from_analytic=False`` starts
+    from rest (the approach to the steady state, ``validate bagnold --from-rest``)."""
     dx = dx if dx is not None else depth / 16
+    gap = 0.5 * dx if wall_gap is None else wall_gap
+    if not (isinstance(gap, (int, float)) and math.isfinite(gap) and 0.0 <= gap <= 2.0 * dx):
+        raise ValueError(f"wall_gap must be in [0, 2 dx] (m), got {wall_gap!r}")
     for name, value in (("dx", dx), ("depth", depth), ("t_end", t_end)):
         if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
             raise ValueError(f"{name} must be > 0, got {value!r}")
@@ -67,7 +76,7 @@ def incline(slope_deg: float = 24.0, dx: float | None = None, ppc: int = 2, dept
     params = Params.create(dtype=dtype, **{**S1_PARAMS, **param_values})
     theta = math.radians(slope_deg)
     margin = 3 * dx
-    grid = Grid((length_cells, math.ceil((1.3 * depth + 2 * margin) / dx)), dx, origin=(0.0, -margin),
+    grid = Grid((length_cells, math.ceil((1.3 * depth + gap + 2 * margin) / dx)), dx, origin=(0.0, -margin),
                 periodic=(True, False))
     if max_steps is None:
         dt = 0.5 * dx / math.sqrt(float(params.E) / float(params.rho))
@@ -78,15 +87,17 @@ def incline(slope_deg: float = 24.0, dx: float | None = None, ppc: int = 2, dept
         transfer=transfer, alpha=alpha,
         frame_times=tuple(t_end * (k + 1) / frames for k in range(frames)),
     )
-    x, vol = seed_box((0.0, 0.0), (length_cells * dx, depth), dx, ppc)
+    x, vol = seed_box((0.0, gap), (length_cells * dx, depth + gap), dx, ppc, sampling=sampling, seed=seed)
+    z = x[:, 1] - gap
     v = None
     if start_from_analytic:
-        v = [[vx, 0.0] for vx in bagnold_velocity(x[:, 1], depth, slope_deg, params)]
+        v = [[vx, 0.0] for vx in bagnold_velocity(z, depth, slope_deg, params)]
     meta = {"slope_deg": slope_deg, "depth": depth, "dx": dx, "ppc": ppc, "length": length_cells * dx,
-            "front0": float(length_cells * dx), "critical_start": bool(critical_start)}
+            "front0": float(length_cells * dx), "critical_start": bool(critical_start), "wall_gap": gap,
+            "sampling": sampling, "seed": seed}
     state = init_state(config, x, vol, v=v, dtype=dtype)
     if critical_start:
-        state = _at_critical_state(state, x[:, 1], depth, theta, params)
+        state = _at_critical_state(state, z, depth, theta, params)
     return Scene("incline", config, state, params, meta)
 
 
