@@ -121,12 +121,14 @@ def build_parser() -> argparse.ArgumentParser:
     element.add_argument("--plot", default=None, metavar="FILE.png", help="stress path against the yield surface")
 
     validate = sub.add_parser("validate", help="run a validation study (docs/validation.md)")
-    validate.add_argument("study", choices=("bagnold", "convergence", "aspect-ratio", "cohesion", "speed-accuracy",
-                                            "stability"))
+    validate.add_argument("study", choices=("bagnold", "bagnold-from-rest", "convergence", "aspect-ratio", "cohesion",
+                                            "speed-accuracy", "stability", "resolution", "cross-code"))
     validate.add_argument("--quick", action="store_true", help="a reduced, faster version")
     validate.add_argument("--json", action="store_true", help="print one JSON object")
     validate.add_argument("--plot", default=None, metavar="DIR", help="write the study's figure into DIR")
-    validate.add_argument("--alpha", type=float, default=None, help="AFLIP blend for the bagnold study (default 0.95)")
+    validate.add_argument("--alpha", type=float, default=None, help="AFLIP blend for the bagnold studies (default 0.95)")
+    validate.add_argument("--dtype", choices=("float32", "float64"), default="float32",
+                          help="precision of the study's runs (default float32, the run command's default)")
 
     bench = sub.add_parser("bench", help="time the engine and print JSON")
     bench.add_argument("--scene", choices=("block", "column"), default="block",
@@ -151,6 +153,10 @@ def main(argv=None) -> int:
         if args.command == "element":
             return _element(args)
         if args.command == "validate":
+            if args.dtype == "float64":
+                import jax
+
+                jax.config.update("jax_enable_x64", True)
             from .validate import run_study
 
             out = run_study(args.study, quick=args.quick, plot_dir=args.plot, alpha=args.alpha)

@@ -1,6 +1,9 @@
 """Validation studies: ``python -m jaxmpm validate NAME [--quick] [--json] [--plot DIR]``.
 
 - ``bagnold``: S1 at 22°, 24°, 26°, 28° against the steady Bagnold profile (MODEL.md §6);
+- ``bagnold-from-rest``: S1 at 24° from rest, the velocity profile converging towards it;
+- ``resolution``, ``cross-code``: convergence over dx × ppc × sampling on S2 and S4, and S2
+  against the reference code (``fidelity.py``);
 - ``convergence``: S3 at 10° over dx (and ppc), runout and deposit profile against the finest;
 - ``aspect-ratio``: S5 runout and final height against the glass-bead scaling laws (secondary);
 - ``cohesion``: S4 with β = 0 and β = 0.25 side by side;
@@ -21,7 +24,7 @@ import time
 import jax
 import numpy as np
 
-from . import scenes
+from . import fidelity, scenes
 from .materials.base import invariants
 from .observables import deposit_profile, particle_volumes
 from .simulate import simulate
@@ -49,7 +52,8 @@ def _timed(scene, observer=None):
     return result, time.perf_counter() - clock
 
 
-def bagnold(quick=False, plot_dir=None, alpha=0.95) -> dict:
+def bagnold(quick=False, plot_dir=None, alpha=0.95, slopes=(22.0, 24.0, 26.0, 28.0), divisions=None,
+            t_end=None) -> dict:
     """S1: start from the analytic profile, at the critical state (p_c = 2p, the state the
     analytic solution assumes), and measure how well the scheme holds it.
 
@@ -58,14 +62,15 @@ def bagnold(quick=False, plot_dir=None, alpha=0.95) -> dict:
     analytic surface velocity v_max for the initial depth h0 = 0.038 m (``rel_error``), and with
     the analytic profile at the particles' own heights for the depth measured from the particle
     volumes (``rel_error_local``); the profile error is the RMS difference over all particles
-    divided by v_max."""
-    slopes = (22.0, 24.0, 26.0, 28.0)
-    divisions = (8, 16) if quick else (8, 16, 32)
-    t_end = 0.5 if quick else 3.0
+    divided by v_max. Heights are measured from the bed: z = y − wall_gap (the layer starts half
+    a cell above it). The precision is the session's (float32 unless jax_enable_x64 is on)."""
+    divisions = divisions or ((8, 16) if quick else (8, 16, 32))
+    t_end = t_end or (0.5 if quick else 3.0)
     cases, profiles = [], {}
     for slope in slopes:
         for div in divisions:
             scene = scenes.incline(slope, dx=0.038 / div, t_end=t_end, frames=16, alpha=alpha, critical_start=True)
+            gap = scene.meta["wall_gap"]
             result, wall = _timed(scene, _profile_observer)
             frames = {k: np.asarray(v) for k, v in result.frames.items()}
             # The critical start sets ε_v^p at t = 0; the volume change is counted from there.
@@ -75,10 +80,10 @@ def bagnold(quick=False, plot_dir=None, alpha=0.95) -> dict:
             row = scene.config.grid.cells[0] * scene.meta["ppc"]
             v_max = float(scenes.bagnold_velocity(0.038, 0.038, slope, scene.params))
             for k in late:
-                vx, y, vol = frames["vx"][k], frames["y"][k], frames["vol"][k]
+                vx, z, vol = frames["vx"][k], frames["y"][k] - gap, frames["vol"][k]
                 h = vol.sum() / scene.meta["length"]
-                analytic = scenes.bagnold_velocity(y, h, slope, scene.params)
-                top = np.argsort(y)[-row:]
+                analytic = scenes.bagnold_velocity(z, h, slope, scene.params)
+                top = np.argsort(z)[-row:]
                 v_s.append(vx[top].mean())
                 v_a.append(analytic[top].mean())
                 prof.append(np.sqrt(np.mean((vx - analytic) ** 2)) / v_max)
@@ -87,17 +92,84 @@ def bagnold(quick=False, plot_dir=None, alpha=0.95) -> dict:
                 "v_surface": float(np.mean(v_s)), "v_surface_analytic": v_max,
                 "rel_error": float(np.mean(v_s) / v_max - 1.0),
                 "rel_error_local": float(np.mean(v_s) / np.mean(v_a) - 1.0), "profile_rel_error": float(np.mean(prof)),
-                "depth_from_volumes": float(h), "depth_from_positions": float(np.sort(y)[-row:].mean()),
+                "depth_from_volumes": float(h), "depth_from_positions": float(np.sort(z)[-row:].mean()),
                 "status": result.status, "wall_s": round(wall, 2),
             }
             cases.append(case)
-            profiles[(slope, div)] = (frames["vx"][15], frames["y"][15], h)
+            profiles[(slope, div)] = (frames["vx"][15], frames["y"][15] - gap, h)
     finest = [c for c in cases if c["dx"] == min(c2["dx"] for c2 in cases)]
-    out = {"study": "bagnold", "t_end": t_end, "alpha": alpha, "cases": finest, "all_cases": cases}
+    out = {"study": "bagnold", "t_end": t_end, "alpha": alpha, "dtype": str(jax.numpy.zeros(()).dtype),
+           "cases": finest, "all_cases": cases}
     if plot_dir:
-        _plot_bagnold(profiles, slopes, divisions, cases, plot_dir,
-                      "bagnold.png" if alpha == 0.95 else f"bagnold_alpha{alpha:g}.png")
+        suffix = "" if alpha == 0.95 else f"_alpha{alpha:g}"
+        suffix += "" if out["dtype"] == "float32" else "_" + out["dtype"]
+        _plot_bagnold(profiles, slopes, divisions, cases, plot_dir, f"bagnold{suffix}.png")
     return out
+
+
+def bagnold_from_rest(quick=False, plot_dir=None, alpha=0.95, slope=24.0, division=16, t_end=None) -> dict:
+    """S1 at 24° from rest: the layer starts at rest at the critical state and accelerates
+    towards the steady Bagnold profile. The velocity profile (binned in height) is recorded at
+    a series of times, with its RMS distance to the analytic profile over v_max, and the
+    surface velocity against v_max. Near the steady state the flow relaxes on the time scale
+    v/(g cos θ μ'(I) I) (about 4 s at 24°), so the run lasts several of them."""
+    t_end = t_end or (2.0 if quick else 12.0)
+    frames = 24 if not quick else 8
+    scene = scenes.incline(slope, dx=0.038 / division, t_end=t_end, frames=frames, alpha=alpha,
+                           critical_start=True, start_from_analytic=False)
+    gap = scene.meta["wall_gap"]
+    result, wall = _timed(scene, _profile_observer)
+    fr = {k: np.asarray(v) for k, v in result.frames.items()}
+    v_max = float(scenes.bagnold_velocity(0.038, 0.038, slope, scene.params))
+    edges = np.linspace(0.0, 0.038, 20)
+    mid = 0.5 * (edges[1:] + edges[:-1])
+    analytic_mid = scenes.bagnold_velocity(mid, 0.038, slope, scene.params)
+    row = scene.config.grid.cells[0] * scene.meta["ppc"]
+    snapshots = []
+    for k, t in enumerate(result.frame_times):
+        vx, z = fr["vx"][k], fr["y"][k] - gap
+        which = np.digitize(z, edges) - 1
+        prof = np.array([vx[which == b].mean() if np.any(which == b) else np.nan for b in range(len(mid))])
+        analytic = scenes.bagnold_velocity(z, 0.038, slope, scene.params)
+        top = np.argsort(z)[-row:]
+        snapshots.append({"t": float(t), "v_surface": float(vx[top].mean()),
+                          "surface_rel": float(vx[top].mean() / v_max),
+                          "profile_rel_error": float(np.sqrt(np.mean((vx - analytic) ** 2)) / v_max),
+                          "profile": [None if not np.isfinite(v) else float(v) for v in prof]})
+    out = {"study": "bagnold-from-rest", "slope_deg": slope, "dx": scene.meta["dx"], "alpha": alpha,
+           "dtype": str(jax.numpy.zeros(()).dtype), "t_end": t_end, "v_max_analytic": v_max,
+           "z_bins": mid.tolist(), "analytic": analytic_mid.tolist(), "snapshots": snapshots,
+           "status": result.status, "wall_s": round(wall, 1)}
+    if plot_dir:
+        _plot_from_rest(out, plot_dir)
+    return out
+
+
+def _plot_from_rest(out, plot_dir):
+    from .plots import _pyplot
+
+    plt = _pyplot()
+    fig, (a1, a2) = plt.subplots(1, 2, figsize=(10, 4))
+    z = np.asarray(out["z_bins"]) * 1e3
+    shown = [s for s in out["snapshots"]][:: max(1, len(out["snapshots"]) // 6)]
+    cmap = plt.get_cmap("viridis")
+    for i, snap in enumerate(shown):
+        prof = np.array([np.nan if v is None else v for v in snap["profile"]])
+        a1.plot(prof, z, "-", color=cmap(i / max(1, len(shown) - 1)), label=f"t = {snap['t']:.1f} s")
+    a1.plot(out["analytic"], z, "k--", lw=1.5, label="Bagnold (MODEL §6)")
+    a1.set_xlabel("v (m/s)")
+    a1.set_ylabel("height above bed (mm)")
+    a1.set_title(f"S1, θ = {out['slope_deg']:g}° from rest, dx = h/{round(0.038 / out['dx'])}, {out['dtype']}")
+    a1.legend(fontsize=7)
+    t = [s["t"] for s in out["snapshots"]]
+    a2.plot(t, [s["surface_rel"] for s in out["snapshots"]], "o-", label="surface velocity / v_max")
+    a2.plot(t, [s["profile_rel_error"] for s in out["snapshots"]], "s-", label="profile RMS error / v_max")
+    a2.axhline(1.0, color="k", lw=0.6)
+    a2.axhline(0.03, color="k", lw=0.6, ls=":")
+    a2.set_xlabel("t (s)")
+    a2.legend(fontsize=7)
+    suffix = "" if out["alpha"] == 0.95 else f"_alpha{out['alpha']:g}"
+    _save(fig, plot_dir, f"bagnold_from_rest{suffix}.png", 100)
 
 
 def _plot_bagnold(profiles, slopes, divisions, cases, plot_dir, name="bagnold.png"):
@@ -369,16 +441,17 @@ def stability(quick=False, plot_dir=None) -> dict:
     return {"study": "stability", "scene": "cohesive-collapse", "t_end": t_end, "cases": rows}
 
 
-STUDIES = {"bagnold": bagnold, "convergence": convergence, "aspect-ratio": aspect_ratio, "cohesion": cohesion,
-           "speed-accuracy": speed_accuracy, "stability": stability}
+STUDIES = {"bagnold": bagnold, "bagnold-from-rest": bagnold_from_rest, "convergence": convergence,
+           "aspect-ratio": aspect_ratio, "cohesion": cohesion, "speed-accuracy": speed_accuracy, "stability": stability,
+           "resolution": fidelity.resolution, "cross-code": fidelity.cross_code}
 
 
 def run_study(name: str, quick: bool = False, plot_dir=None, alpha: float | None = None) -> dict:
-    """Run one study; ``alpha`` (the AFLIP blend) applies to ``bagnold`` only."""
+    """Run one study; ``alpha`` (the AFLIP blend) applies to the bagnold studies only."""
     if name not in STUDIES:
         raise ValueError(f"study must be one of {sorted(STUDIES)}, got {name!r}")
-    if alpha is not None and name != "bagnold":
-        raise ValueError(f"--alpha applies to the bagnold study, not {name}")
+    if alpha is not None and not name.startswith("bagnold"):
+        raise ValueError(f"--alpha applies to the bagnold studies, not {name}")
     if alpha is not None and not (0.0 <= alpha <= 1.0):
         raise ValueError(f"alpha must be in [0, 1], got {alpha!r}")
     if plot_dir is not None:

@@ -1,0 +1,228 @@
+"""Fidelity studies: convergence over dx × particles per cell × sampling, and the cross-code
+comparison with the model's reference implementation.
+
+- ``resolution``: S2 (gates collapse) and S4 (cohesive collapse, β = 0.25) over a matrix of
+  settings, each observable against the finest run of the matrix (the "converged" answer),
+  with the wall time of each run; the cheapest settings that reach 1 %, 2 % and 5 %.
+- ``cross-code``: S2 against the reference code's observables (``REFERENCE_S2``) at the
+  defaults and at converged settings.
+
+Observables (all from the final state at the scene's end time):
+
+- S2: left runout −x_min, right runout x_max − L, top y_max (above the floor), as the
+  cross-code run defines them, and the deposit profile h(x);
+- S4: runout x_max − L, the front of the deposit profile (where h falls below 2 mm: robust to
+  single particles ahead of the front), top y_max, and h(x).
+
+The deposit profile of every run is evaluated with the same kernel width (``SIGMA``), so that
+profiles at different resolutions are compared as the same observable; its error is the L2
+difference relative to the converged profile's L2 norm.
+"""
+
+from __future__ import annotations
+
+import pathlib
+
+import numpy as np
+
+from . import scenes
+from .observables import deposit_profile, front_from_profile, particle_volumes
+from .simulate import simulate
+
+__all__ = ["REFERENCE_S2", "REFERENCE_SOURCE", "SIGMA", "observe", "run_case", "resolution", "cross_code"]
+
+#: The reference code's S2 observables at t = 0.4198 s (m): Matter (Blatny & Gaume, Geosci.
+#: Model Dev. 2025), 2D, float64, Poisson-disk sampling with about 6 particles per cell, the body
+#: half a cell above the floor; run by a project session on a 2-core machine and reported in
+#: the project's issue 9 (also in experiments_data/reference_code/S2_matter.csv).
+REFERENCE_S2 = {
+    2.98e-3: {"left": 0.0731, "right": 0.0718, "top": 0.0354},
+    1.50e-3: {"left": 0.0736, "right": 0.0736, "top": 0.0355},
+}
+REFERENCE_SOURCE = ("Matter (Blatny & Gaume 2025), C++, 2D, float64, Poisson-disk ~6 per cell; "
+                    "run reported in jaxmpm issue 9 (not a measurement)")
+
+#: Kernel width of the deposit profile in these studies (m): one width for every resolution.
+SIGMA = 2e-3
+#: Height below which the deposit has ended, for the S4 profile front (m).
+FRONT_THRESHOLD = 2e-3
+
+_SCALARS = {"gates-collapse": ("left", "right", "top"), "cohesive-collapse": ("runout", "front", "top")}
+
+
+def _build(scene_name, dx, ppc, sampling, seed, **kw):
+    if scene_name == "gates-collapse":
+        return scenes.gates_collapse(dx=dx, ppc=ppc, sampling=sampling, seed=seed, **kw)
+    if scene_name == "cohesive-collapse":
+        return scenes.cohesive_collapse(kw.pop("beta", 0.25), dx=dx, ppc=ppc, sampling=sampling, seed=seed, **kw)
+    raise ValueError(f"scene must be one of {tuple(_SCALARS)}, got {scene_name!r}")
+
+
+def _xs(scene_name):
+    return np.linspace(-0.12, 0.20, 641) if scene_name == "gates-collapse" else np.linspace(-0.02, 0.30, 641)
+
+
+def observe(scene_name, scene, state) -> dict:
+    """The study's observables of a final ``state`` (see the module docstring)."""
+    x = np.asarray(state.x)
+    xs = _xs(scene_name)
+    h = np.asarray(deposit_profile(state.x, particle_volumes(state), xs, SIGMA, width=scene.meta.get("width")))
+    L = scene.meta["L"]
+    out = {"top": float(x[:, 1].max()), "profile": h}
+    if scene_name == "gates-collapse":
+        out.update(left=float(-x[:, 0].min()), right=float(x[:, 0].max() - L))
+    else:
+        out.update(runout=float(x[:, 0].max() - L),
+                   front=float(front_from_profile(xs, h, FRONT_THRESHOLD, x_ref=0.0)) - L)
+    return out
+
+
+def run_case(scene_name, dx, ppc=2, sampling="lattice", seed=0, **kw) -> dict:
+    """One run: the observables, the particle count, steps and wall time (compilation apart)."""
+    scene = _build(scene_name, dx, ppc, sampling, seed, **kw)
+    result = simulate(*scene, throw=False, timed=True)  # compiled before the clock starts
+    obs = observe(scene_name, scene, result.state)
+    return {"scene": scene_name, "dx": dx, "ppc": ppc, "sampling": sampling, "seed": seed,
+            "n_particles": scene.state.n_particles, "particles_per_cell": round(scene.meta["particles_per_cell"], 3),
+            "n_steps": int(result.state.steps), "particle_steps": int(result.state.steps) * scene.state.n_particles,
+            "run_s": round(result.run_s, 2), "status": result.status, **obs}
+
+
+def _errors(row, ref, scalars):
+    err = {k: row[k] / ref[k] - 1.0 for k in scalars}
+    err["profile"] = float(np.linalg.norm(row["profile"] - ref["profile"]) / np.linalg.norm(ref["profile"]))
+    return err
+
+
+def _cheapest(rows, level, scalars):
+    ok = [r for r in rows if r.get("error") and max(abs(r["error"][k]) for k in scalars) <= level
+          and r["error"]["profile"] <= level]
+    return min(ok, key=lambda r: r["run_s"]) if ok else None
+
+
+#: The matrix: (dx, ppc, sampling) per scene; the last entry is the converged reference.
+MATRIX = {
+    "gates-collapse": {
+        "quick": [(0.003, 2, "lattice"), (0.003, 3, "lattice"), (0.002, 2, "lattice")],
+        "full": ([(dx, ppc, "lattice") for dx in (0.004, 0.003, 0.002, 0.0015) for ppc in (2, 3, 4)]
+                 + [(dx, ppc, "jitter") for dx in (0.003, 0.002) for ppc in (2, 3, 4)]
+                 + [(dx, ppc, "poisson") for dx in (0.003, 0.002) for ppc in (2.0, 2.45, 3.0)]
+                 + [(0.001, 3, "lattice"), (0.001, 4, "lattice")]),
+    },
+    "cohesive-collapse": {
+        "quick": [(0.089 / 12, 2, "lattice"), (0.089 / 16, 2, "lattice"), (0.089 / 16, 3, "lattice")],
+        "full": ([(0.089 / n, ppc, "lattice") for n in (12, 16, 24, 32) for ppc in (2, 3, 4)]
+                 + [(0.089 / n, ppc, "jitter") for n in (16, 24) for ppc in (2, 3, 4)]
+                 + [(0.089 / n, ppc, "poisson") for n in (16, 24) for ppc in (2.0, 2.45, 3.0)]
+                 + [(0.089 / 48, 3, "lattice"), (0.089 / 48, 4, "lattice")]),
+    },
+}
+
+
+def resolution(quick=False, plot_dir=None, scenes_run=("gates-collapse", "cohesive-collapse"), log=None) -> dict:
+    """Run the matrix for each scene; errors against its last (finest) entry; the cheapest
+    settings within 1 %, 2 % and 5 % on every scalar observable and on the profile."""
+    out = {"study": "resolution", "sigma_m": SIGMA, "front_threshold_m": FRONT_THRESHOLD, "scenes": {}}
+    for name in scenes_run:
+        scalars = _SCALARS[name]
+        rows = []
+        for dx, ppc, sampling in MATRIX[name]["quick" if quick else "full"]:
+            row = run_case(name, dx, ppc, sampling)
+            rows.append(row)
+            if log is not None:
+                log({k: v for k, v in row.items() if k != "profile"})
+        ref = rows[-1]
+        for row in rows[:-1]:
+            row["error"] = _errors(row, ref, scalars)
+        # The converged answer's own uncertainty: its distance to the next-finest run at the same dx.
+        same_dx = [r for r in rows[:-1] if r["dx"] == ref["dx"]]
+        uncertainty = same_dx[-1]["error"] if same_dx else rows[-2]["error"]
+        levels = {f"{int(100 * lv)}%": _summary(_cheapest(rows, lv, scalars)) for lv in (0.01, 0.02, 0.05)}
+        out["scenes"][name] = {
+            "scalars": list(scalars), "reference": _summary(ref), "reference_uncertainty": uncertainty,
+            "cheapest": levels, "xs": _xs(name).tolist(),
+            "runs": [{k: (v.tolist() if isinstance(v, np.ndarray) else v) for k, v in r.items()} for r in rows],
+        }
+    if plot_dir:
+        _plot_resolution(out, plot_dir)
+    return out
+
+
+def _summary(row):
+    if row is None:
+        return None
+    return {k: row[k] for k in ("dx", "ppc", "sampling", "n_particles", "run_s", "error") if k in row}
+
+
+def _plot_resolution(out, plot_dir):
+    from .plots import _pyplot
+
+    plt = _pyplot()
+    names = list(out["scenes"])
+    fig, axes = plt.subplots(2, len(names), figsize=(6.5 * len(names), 8), squeeze=False)
+    markers = {"lattice": "o", "jitter": "s", "poisson": "^"}
+    for col, name in enumerate(names):
+        data = out["scenes"][name]
+        ax = axes[0, col]
+        for r in data["runs"][:-1]:
+            worst = max(abs(r["error"][k]) for k in data["scalars"])
+            color = {2: "C0", 2.0: "C0", 2.45: "C1", 3: "C2", 3.0: "C2", 4: "C3"}.get(r["ppc"], "C4")
+            ax.loglog(r["run_s"], max(worst, 1e-4), markers[r["sampling"]], color=color, ms=7)
+            ax.annotate(f"{r['dx'] * 1e3:.2g}", (r["run_s"], max(worst, 1e-4)), fontsize=6, xytext=(3, 2),
+                        textcoords="offset points")
+        for level in (0.01, 0.02, 0.05):
+            ax.axhline(level, color="k", lw=0.6, ls=":")
+        ax.set_xlabel("run time on 2 CPU cores (s), compilation apart")
+        ax.set_ylabel("worst scalar error vs the finest run (" + ", ".join(data["scalars"]) + ")")
+        ax.set_title(f"{name}: o lattice, s jitter, ^ Poisson; colour = ppc (2, 2.45, 3, 4); label dx (mm)",
+                     fontsize=8)
+        ax = axes[1, col]
+        xs = np.asarray(data["xs"])
+        for r in data["runs"]:
+            if r["sampling"] == "lattice" and r["ppc"] in (2, 4) or r is data["runs"][-1]:
+                ax.plot(xs, np.asarray(r["profile"]) * 1e3, lw=1.5 if r is data["runs"][-1] else 0.8,
+                        label=f"dx {r['dx'] * 1e3:.2g} mm, {r['sampling']} ppc {r['ppc']}")
+        ax.set_xlabel("x (m)")
+        ax.set_ylabel(f"h (mm), kernel σ = {SIGMA * 1e3:g} mm")
+        ax.legend(fontsize=6)
+    fig.tight_layout()
+    fig.savefig(pathlib.Path(plot_dir) / "resolution.png", dpi=100)
+    plt.close(fig)
+
+
+def cross_code(quick=False, plot_dir=None, converged=None) -> dict:
+    """S2 against the reference code: jaxmpm at the command line's defaults with --dx 0.003 and
+    0.0015, and at ``converged`` settings (dx, ppc, sampling) at both resolutions."""
+    converged = converged or {"ppc": 4, "sampling": "lattice"}
+    defaults = scenes.build_scene("gates-collapse", dx=0.003).meta
+    cases = [("defaults", {"ppc": defaults["ppc"], "sampling": defaults["sampling"]})]
+    if converged != cases[0][1]:
+        cases.append(("converged", converged))
+    rows = []
+    for label, opts in cases:
+        for dx, ref_dx in ((0.003, 2.98e-3), (0.0015, 1.5e-3)):
+            if quick and dx < 0.002:
+                continue
+            row = run_case("gates-collapse", dx, opts["ppc"], opts["sampling"])
+            ref = REFERENCE_S2[ref_dx]
+            rows.append({"settings": label, **{k: v for k, v in row.items() if k != "profile"},
+                         "reference_dx": ref_dx, "reference": ref,
+                         "rel_error": {k: row[k] / ref[k] - 1.0 for k in ("left", "right", "top")}})
+    return {"study": "cross-code", "scene": "gates-collapse", "reference_source": REFERENCE_SOURCE, "runs": rows}
+
+
+def _dump(row):
+    import json
+
+    print(json.dumps(row), flush=True)
+
+
+if __name__ == "__main__":  # python -m jaxmpm.fidelity [quick]: log each run as it finishes
+    import json
+    import sys
+
+    quick = "quick" in sys.argv[1:]
+    names = [a for a in sys.argv[1:] if a in _SCALARS] or list(_SCALARS)
+    result = resolution(quick=quick, scenes_run=tuple(names), log=_dump, plot_dir="docs/figures")
+    pathlib.Path("docs/results").mkdir(parents=True, exist_ok=True)
+    pathlib.Path(f"docs/results/resolution_{'_'.join(names)}.json").write_text(json.dumps(result))
