@@ -100,52 +100,83 @@ def _cheapest(rows, level, scalars):
     return min(ok, key=lambda r: r["run_s"]) if ok else None
 
 
-#: The matrix: (dx, ppc, sampling) per scene; the last entry is the converged reference.
+def _grid(dxs, ppcs, sampling, seed=0):
+    return [(dx, ppc, sampling, seed) for dx in dxs for ppc in ppcs]
+
+
+#: The matrix: (dx, ppc, sampling, seed) per scene; the last entry is the converged reference.
 MATRIX = {
     "gates-collapse": {
-        "quick": [(0.003, 2, "lattice"), (0.003, 3, "lattice"), (0.002, 2, "lattice")],
-        "full": ([(dx, ppc, "lattice") for dx in (0.004, 0.003, 0.002, 0.0015) for ppc in (2, 3, 4)]
-                 + [(dx, ppc, "jitter") for dx in (0.003, 0.002) for ppc in (2, 3, 4)]
-                 + [(dx, ppc, "poisson") for dx in (0.003, 0.002) for ppc in (2.0, 2.45, 3.0)]
-                 + [(0.001, 3, "lattice"), (0.001, 4, "lattice")]),
+        "quick": [(0.003, 2, "lattice", 0), (0.003, 3, "jitter", 0), (0.002, 3, "jitter", 0)],
+        "full": (_grid((0.004, 0.003, 0.002, 0.0015), (2, 3, 4), "lattice")
+                 + _grid((0.003, 0.002), (2, 3, 4), "jitter")
+                 + _grid((0.003, 0.002), (2.0, 2.45, 3.0), "poisson")
+                 + [(0.001, 3, "lattice", 0)]
+                 + [(0.003, 3, "jitter", s) for s in (1, 2)] + [(0.003, 4, "jitter", s) for s in (1, 2)]
+                 + [(0.003, 2.45, "poisson", s) for s in (1, 2)]
+                 + _grid((0.0015,), (3, 4), "jitter")
+                 + [(0.001, 3, "jitter", 0)]),
     },
     "cohesive-collapse": {
-        "quick": [(0.089 / 12, 2, "lattice"), (0.089 / 16, 2, "lattice"), (0.089 / 16, 3, "lattice")],
-        "full": ([(0.089 / n, ppc, "lattice") for n in (12, 16, 24, 32) for ppc in (2, 3, 4)]
-                 + [(0.089 / n, ppc, "jitter") for n in (16, 24) for ppc in (2, 3, 4)]
-                 + [(0.089 / n, ppc, "poisson") for n in (16, 24) for ppc in (2.0, 2.45, 3.0)]
-                 + [(0.089 / 48, 3, "lattice"), (0.089 / 48, 4, "lattice")]),
+        "quick": [(0.089 / 12, 2, "lattice", 0), (0.089 / 16, 3, "jitter", 0), (0.089 / 24, 3, "jitter", 0)],
+        "full": (_grid([0.089 / n for n in (12, 16, 24, 32)], (2, 3, 4), "lattice")
+                 + _grid([0.089 / n for n in (12, 16, 24)], (2, 3, 4), "jitter")
+                 + _grid([0.089 / n for n in (16, 24)], (2.0, 2.45, 3.0), "poisson")
+                 + [(0.089 / 16, 3, "jitter", s) for s in (1, 2)] + [(0.089 / 16, 4, "jitter", s) for s in (1, 2)]
+                 + _grid((0.089 / 32,), (3, 4), "jitter")
+                 + [(0.089 / 48, 3, "jitter", 0)]),
     },
 }
 
 
-def resolution(quick=False, plot_dir=None, scenes_run=("gates-collapse", "cohesive-collapse"), log=None) -> dict:
-    """Run the matrix for each scene; errors against its last (finest) entry; the cheapest
-    settings within 1 %, 2 % and 5 % on every scalar observable and on the profile."""
-    out = {"study": "resolution", "sigma_m": SIGMA, "front_threshold_m": FRONT_THRESHOLD, "scenes": {}}
+def resolution(quick=False, plot_dir=None, scenes_run=("gates-collapse", "cohesive-collapse")) -> dict:
+    """Run the matrix for each scene (``MATRIX``) and analyse it (``analyse_resolution``)."""
+    rows = []
     for name in scenes_run:
+        for dx, ppc, sampling, seed in MATRIX[name]["quick" if quick else "full"]:
+            rows.append(run_case(name, dx, ppc, sampling, seed))
+    return analyse_resolution(rows, plot_dir)
+
+
+def analyse_resolution(rows, plot_dir=None) -> dict:
+    """Errors of every run against its scene's converged reference (the last row of that scene:
+    ``MATRIX`` ends with it), the spread over seeds, and the cheapest settings within 1 %, 2 % and
+    5 % on every scalar observable and on the profile. ``rows`` are ``run_case`` results, in the
+    order ``resolution`` runs them (or read back from its log)."""
+    out = {"study": "resolution", "sigma_m": SIGMA, "front_threshold_m": FRONT_THRESHOLD, "scenes": {}}
+    for name in dict.fromkeys(r["scene"] for r in rows):
         scalars = _SCALARS[name]
-        rows = []
-        for dx, ppc, sampling in MATRIX[name]["quick" if quick else "full"]:
-            row = run_case(name, dx, ppc, sampling)
-            rows.append(row)
-            if log is not None:
-                log({k: v for k, v in row.items() if k != "profile"})
-        ref = rows[-1]
-        for row in rows[:-1]:
+        runs = [dict(r, profile=np.asarray(r["profile"])) for r in rows if r["scene"] == name]
+        ref = runs[-1]
+        for row in runs[:-1]:
             row["error"] = _errors(row, ref, scalars)
-        # The converged answer's own uncertainty: its distance to the next-finest run at the same dx.
-        same_dx = [r for r in rows[:-1] if r["dx"] == ref["dx"]]
-        uncertainty = same_dx[-1]["error"] if same_dx else rows[-2]["error"]
-        levels = {f"{int(100 * lv)}%": _summary(_cheapest(rows, lv, scalars)) for lv in (0.01, 0.02, 0.05)}
+        # The reference's own uncertainty: its distance to the next-finest run of its sampling.
+        same = [r for r in runs[:-1] if r["sampling"] == ref["sampling"]]
+        uncertainty = min(same, key=lambda r: r["dx"] / r["ppc"])["error"] if same else None
+        levels = {f"{int(100 * lv)}%": _summary(_cheapest(runs, lv, scalars)) for lv in (0.01, 0.02, 0.05)}
         out["scenes"][name] = {
             "scalars": list(scalars), "reference": _summary(ref), "reference_uncertainty": uncertainty,
-            "cheapest": levels, "xs": _xs(name).tolist(),
-            "runs": [{k: (v.tolist() if isinstance(v, np.ndarray) else v) for k, v in r.items()} for r in rows],
+            "seed_spread": _seed_spread(runs, scalars), "cheapest": levels, "xs": _xs(name).tolist(),
+            "runs": [{k: (v.tolist() if isinstance(v, np.ndarray) else v) for k, v in r.items()} for r in runs],
         }
     if plot_dir:
         _plot_resolution(out, plot_dir)
     return out
+
+
+def _seed_spread(runs, scalars):
+    """For settings run with several seeds: the relative spread (max − min over mean) of each
+    scalar: the sampling's own noise, against which a difference between settings is judged."""
+    groups = {}
+    for r in runs:
+        groups.setdefault((r["dx"], r["ppc"], r["sampling"]), []).append(r)
+    spread = []
+    for (dx, ppc, sampling), members in groups.items():
+        if len(members) > 1:
+            spread.append({"dx": dx, "ppc": ppc, "sampling": sampling, "seeds": [m["seed"] for m in members],
+                           **{k: float(np.ptp([m[k] for m in members]) / np.mean([m[k] for m in members]))
+                              for k in scalars}})
+    return spread
 
 
 def _summary(row):
@@ -166,7 +197,7 @@ def _plot_resolution(out, plot_dir):
         ax = axes[0, col]
         for r in data["runs"][:-1]:
             worst = max(abs(r["error"][k]) for k in data["scalars"])
-            color = {2: "C0", 2.0: "C0", 2.45: "C1", 3: "C2", 3.0: "C2", 4: "C3"}.get(r["ppc"], "C4")
+            color = {2.0: "C0", 2.45: "C1", 3.0: "C2", 4.0: "C3"}.get(float(r["ppc"]), "C4")
             ax.loglog(r["run_s"], max(worst, 1e-4), markers[r["sampling"]], color=color, ms=7)
             ax.annotate(f"{r['dx'] * 1e3:.2g}", (r["run_s"], max(worst, 1e-4)), fontsize=6, xytext=(3, 2),
                         textcoords="offset points")
@@ -211,18 +242,44 @@ def cross_code(quick=False, plot_dir=None, converged=None) -> dict:
     return {"study": "cross-code", "scene": "gates-collapse", "reference_source": REFERENCE_SOURCE, "runs": rows}
 
 
-def _dump(row):
+def _key(row):
+    return (row["scene"], round(row["dx"], 9), float(row["ppc"]), row["sampling"], int(row["seed"]))
+
+
+def run_logged(names, log_path, quick=False):
+    """Run the matrix of each scene in ``names``, appending each run to the JSON-lines file
+    ``log_path`` as it finishes and skipping runs the log already holds (a long study on a
+    small machine can be stopped and continued); returns the analysis of the logged runs, in
+    matrix order."""
     import json
 
-    print(json.dumps(row), flush=True)
+    path = pathlib.Path(log_path)
+    done = {}
+    if path.exists():
+        for line in path.read_text().splitlines():
+            if line.strip():
+                row = json.loads(line)
+                done[_key(row)] = row
+    rows = []
+    for name in names:
+        for dx, ppc, sampling, seed in MATRIX[name]["quick" if quick else "full"]:
+            key = (name, round(dx, 9), float(ppc), sampling, int(seed))
+            if key not in done:
+                row = run_case(name, dx, ppc, sampling, seed)
+                row = {k: (v.tolist() if isinstance(v, np.ndarray) else v) for k, v in row.items()}
+                with path.open("a") as f:
+                    f.write(json.dumps(row) + "\n")
+                done[key] = row
+            rows.append(done[key])
+    return analyse_resolution(rows)
 
 
-if __name__ == "__main__":  # python -m jaxmpm.fidelity [quick]: log each run as it finishes
+if __name__ == "__main__":  # python -m jaxmpm.fidelity LOG.jsonl [quick] [SCENE ...]
     import json
     import sys
 
-    quick = "quick" in sys.argv[1:]
-    names = [a for a in sys.argv[1:] if a in _SCALARS] or list(_SCALARS)
-    result = resolution(quick=quick, scenes_run=tuple(names), log=_dump, plot_dir="docs/figures")
-    pathlib.Path("docs/results").mkdir(parents=True, exist_ok=True)
-    pathlib.Path(f"docs/results/resolution_{'_'.join(names)}.json").write_text(json.dumps(result))
+    args = sys.argv[1:]
+    names = [a for a in args if a in _SCALARS] or list(_SCALARS)
+    result = run_logged(names, args[0], quick="quick" in args)
+    print(json.dumps({n: {k: v for k, v in d.items() if k in ("reference", "cheapest", "seed_spread")}
+                      for n, d in result["scenes"].items()}, indent=1))

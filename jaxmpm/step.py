@@ -24,7 +24,7 @@ from .kernels import make_stencil
 from .linalg import det, mm
 from .transfer import g2p, grid_velocities, p2g
 
-__all__ = ["make_step", "time_step"]
+__all__ = ["make_step", "time_step", "step_budget"]
 
 
 def time_step(config: Config, state, params):
@@ -35,6 +35,15 @@ def time_step(config: Config, state, params):
     dt_v = jnp.where(moving, config.cfl * dx * jax.lax.rsqrt(jnp.where(moving, speed2, 1.0)), jnp.inf)
     dt_e = config.cfl_elastic * dx / config.material.wave_speed(params)
     return jnp.minimum(dt_v, dt_e)
+
+
+def step_budget(material, params, dx: float, t_end: float, cfl_elastic: float = 0.5, margin: float = 1.25,
+                extra: int = 10) -> int:
+    """A step budget (``Config.max_steps``) for a run to ``t_end`` whose time step the elastic
+    bound sets (flow speeds far below the wave speed): ``margin`` × t_end / dt_e + ``extra``.
+    ``params`` must hold concrete values (this runs in Python, before tracing)."""
+    dt = cfl_elastic * dx / float(material.wave_speed(params))
+    return int(margin * t_end / dt) + int(extra)
 
 
 def make_step(config: Config):

@@ -20,6 +20,7 @@ from ..materials.critical_state import CriticalState
 from ..params import Params
 from ..sampling import SAMPLINGS, particles_per_cell, seed_box
 from ..state import State, init_state
+from ..step import step_budget
 
 __all__ = [
     "Scene", "S2_PARAMS", "S3_PARAMS", "S4_PARAMS", "S5_PARAMS",
@@ -169,9 +170,8 @@ def collapse(
         walls.append(Wall((0.0, 0.0, width + gap_z), (0.0, 0.0, -1.0), "separable"))
 
     if max_steps is None:
-        # The elastic bound sets dt (flow speeds stay far below sqrt(E/ρ)); 25 % margin.
-        dt = 0.5 * dx / math.sqrt(float(params.E) / float(params.rho))
-        max_steps = int(1.25 * t_end / dt) + frames + 10
+        # The elastic bound sets dt (flow speeds stay far below the wave speed); 25 % margin.
+        max_steps = step_budget(CriticalState(), params, dx, t_end, extra=frames + 10)
     config = Config(
         grid=grid, t_end=t_end, max_steps=max_steps, material=CriticalState(), walls=tuple(walls),
         gravity=gravity, transfer=transfer, alpha=alpha, cfl=cfl,

@@ -7,7 +7,10 @@ import math
 from ..boundary import Wall
 from ..config import Config, Grid
 from ..params import Params
-from ..state import init_state, seed_box
+from ..materials.hencky import Hencky
+from ..sampling import seed_box
+from ..state import init_state
+from ..step import step_budget
 from .collapse import Scene
 
 __all__ = ["falling_block"]
@@ -47,9 +50,7 @@ def falling_block(
     up = (0.0,) * (dim - 1) + (1.0,)
     point = (0.0,) * (dim - 1) + (floor,)
     if max_steps is None:
-        params = Params.create(**param_values)
-        dt = 0.5 * dx / math.sqrt(float(params.E) / float(params.rho))
-        max_steps = int(1.2 * t_end / dt) + 10
+        max_steps = step_budget(Hencky(), Params.create(**param_values), dx, t_end, margin=1.2)
     config = Config(
         grid=grid,
         t_end=t_end,

@@ -18,6 +18,7 @@ from ..materials.critical_state import CriticalState
 from ..params import Params
 from ..sampling import seed_box
 from ..state import init_state
+from ..step import step_budget
 from .collapse import G, Scene
 
 __all__ = ["incline", "S1_PARAMS", "bagnold_velocity"]
@@ -79,8 +80,7 @@ def incline(slope_deg: float = 24.0, dx: float | None = None, ppc: int = 2, dept
     grid = Grid((length_cells, math.ceil((1.3 * depth + gap + 2 * margin) / dx)), dx, origin=(0.0, -margin),
                 periodic=(True, False))
     if max_steps is None:
-        dt = 0.5 * dx / math.sqrt(float(params.E) / float(params.rho))
-        max_steps = int(1.1 * t_end / dt) + frames + 10
+        max_steps = step_budget(CriticalState(), params, dx, t_end, margin=1.1, extra=frames + 10)
     config = Config(
         grid=grid, t_end=t_end, max_steps=max_steps, material=CriticalState(),
         walls=(Wall((0.0, 0.0), (0.0, 1.0), "no-slip"),), gravity=(G * math.sin(theta), -G * math.cos(theta)),
