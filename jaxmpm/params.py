@@ -137,6 +137,15 @@ def validate_params(params: Params | Mapping[str, Any]) -> None:
         bad = ~np.asarray(rule(value))
         if np.any(bad):
             raise ValueError(f"{key} must be {requirement}, got {_show(value[bad] if value.ndim else value)}")
+    # μ2 is the limiting friction of μ(I) = μ1 + (μ2 - μ1) I/(I0 + I): below μ1 the law would be
+    # rate-weakening, which MODEL.md's rheology is not.
+    mu1, mu2 = _concrete(get("mu1")), _concrete(get("mu2"))
+    if mu1 is not None and mu2 is not None:
+        mu1, mu2 = np.broadcast_arrays(mu1, mu2)
+        bad = mu2 < mu1
+        if np.any(bad):
+            raise ValueError("mu2 (the limiting friction) must be >= mu1, got "
+                             f"mu1 = {_show(mu1[bad] if mu1.ndim else mu1)} and mu2 = {_show(mu2[bad] if mu2.ndim else mu2)}")
 
 
 def _show(value: np.ndarray) -> str:
