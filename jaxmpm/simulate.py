@@ -13,7 +13,7 @@ import numpy as np
 from .config import Config
 from .params import Params, validate_params
 from .rollout import Observer, frame_observer, make_rollout, make_rollout_parts
-from .state import LEFT_GRID, NONFINITE, State, describe_status
+from .state import BUDGET, LEFT_GRID, NONFINITE, State, describe_status
 
 __all__ = ["Result", "SimulationError", "simulate", "compiled_rollout", "check_state"]
 
@@ -80,6 +80,7 @@ def _run_blocks(config: Config, state: State, params: Params, observer, show_bar
     bar = tqdm(total=config.t_end, unit="s", unit_scale=False, desc="simulated time",
                bar_format="{l_bar}{bar}| {n:.3f}/{total:.3f} s [{elapsed}<{remaining}{postfix}]") if tqdm else None
     steps, last_t = 0, 0.0
+    stopped_early = False
     try:
         while steps < config.max_steps:
             carry = block(carry, params)
@@ -89,12 +90,20 @@ def _run_blocks(config: Config, state: State, params: Params, observer, show_bar
                 bar.update(t - last_t)
                 bar.set_postfix_str(f"{steps / max(time.perf_counter() - clock, 1e-9):.0f} steps/s")
             last_t = t
-            if t >= config.t_end or int(carry[0].status) & (NONFINITE | LEFT_GRID):
+            if t >= config.t_end:
+                break
+            if int(carry[0].status) & (NONFINITE | LEFT_GRID):
+                stopped_early = int(carry[0].steps) < config.max_steps
                 break
     finally:
         if bar is not None:
             bar.close()
     final, frames = jax.block_until_ready(finish(carry))
+    if stopped_early:
+        # ``finish`` sets BUDGET whenever t < t_end; here t_end was not reached because the run
+        # was stopped on a fatal bit with steps to spare, not because the budget ran out (the
+        # plain path, which runs on, never sets it for the same run).
+        final = final.replace(status=final.status & ~BUDGET)
     return final, frames, compile_s, time.perf_counter() - clock
 
 
