@@ -6,6 +6,14 @@ material's return map) and records the history of p, q, p_c, ε_v^p, γ̇, I and
 The point starts stress-free or, with ``pressure``, isotropically compressed to p = pressure.
 In the ``triaxial`` test the lateral Cauchy stress is held at -pressure by solving for the
 lateral strain rate each step (mixed control).
+
+The start must lie inside the yield surface: for the critical-state material an isotropic
+state p = pressure is admissible only up to the compressive strength p_c0. A start beyond it
+(the old default, 1000 Pa against p_c0 = 100 Pa) is not a state of the material, and in the
+triaxial test the lateral control is then asked to hold a confining stress that no admissible
+state carries: with ξ = 0 the cap never grows, the control's Newton step on the lateral rate
+divides by a slope near zero, the first step compacts by ε_v^p ≈ -354 and the next overflows to
+NaN. ``element_test`` refuses such a start; its default pressure is p_c0 / 2.
 """
 
 from __future__ import annotations
@@ -41,6 +49,7 @@ class ElementHistory:
     I: Any
     mu_eff: Any
     F: Any  # elastic deformation gradient
+    lateral_error: Any  # triaxial: |lateral Cauchy stress + pressure| after the step (Pa); else 0
 
     def final(self) -> dict[str, float]:
         return {
@@ -66,46 +75,76 @@ def drive(
     dim: int = 2,
     pressure: float = 0.0,
     lateral_control: bool = False,
-    control_iterations: int = 4,
+    control_iterations: int = 40,
+    rate_bound: float = 100.0,
 ) -> ElementHistory:
     """Drive one material point. Pure and differentiable in ``params``.
 
     ``velocity_gradient`` is a (dim, dim) array (constant) or (n_steps, dim, dim). With
     ``lateral_control`` the diagonal entries other than axis 1 are unknowns chosen each step so
     that the lateral Cauchy stresses equal -pressure (a triaxial cell; axis 1 is axial).
+
+    The lateral rate is the root of r(rate) = σ_lateral + pressure, which increases with the
+    rate (more lateral extension, less lateral compression). It is found by safeguarded Newton
+    steps inside the bracket ±``rate_bound`` × the applied rate (bisection when a step leaves
+    the bracket), ``control_iterations`` of them on stop-gradient values, then one Newton step on
+    live values for the implicit-function derivative. Plain Newton from the last step's rate
+    (what this did before) diverges when a step crosses from the elastic range onto a
+    perfectly plastic cap, where r is nearly flat: with 200 steps the default triaxial test
+    reached NaN at the third step. ``lateral_error`` records |r| after each step.
     """
     dtype = jnp.asarray(params.E).dtype
     L = jnp.asarray(velocity_gradient, dtype)
     if L.ndim == 2:
         L = jnp.broadcast_to(L, (n_steps, dim, dim))
     eye = jnp.eye(dim, dtype=dtype)
-    lateral = jnp.asarray([0.0 if a == 1 else 1.0 for a in range(dim)], dtype)
+    lateral = jnp.diag(jnp.asarray([0.0 if a == 1 else 1.0 for a in range(dim)], dtype))
     pressure = jnp.asarray(pressure, dtype)
+    sg = jax.lax.stop_gradient
 
-    def update(F, internal, L_step):
-        return material.update(mm(eye + dt * L_step, F), internal, params, dt)
+    def update(F, internal, L_step, prm):
+        return material.update(mm(eye + dt * L_step, F), internal, prm, dt)
 
-    def lateral_residual(rate, F, internal, L_step):
-        F_new, tau, _ = update(F, internal, L_step + rate * jnp.diag(lateral))
+    def lateral_residual(rate, F, internal, L_step, prm):
+        F_new, tau, _ = update(F, internal, L_step + rate * lateral, prm)
         return tau[0, 0] / det(F_new) + pressure  # lateral Cauchy stress + confining pressure
+
+    def lateral_rate(rate0, F, internal, L_step):
+        F_s, internal_s, params_s = sg((F, internal, params))
+        fn = lambda x: lateral_residual(x, F_s, internal_s, L_step, params_s)  # noqa: E731
+        bound = rate_bound * jnp.max(jnp.abs(L_step))
+
+        def body(_, carry):
+            x, neg, pos = carry  # iterate; bracket ends where r < 0 and r > 0 (neg < pos)
+            r, slope = jax.jvp(fn, (x,), (jnp.ones_like(x),))
+            neg = jnp.where(r < 0, x, neg)
+            pos = jnp.where(r > 0, x, pos)
+            newton = x - safe_div(r, slope, fill=0.0)
+            inside = (newton > neg) & (newton < pos) & (slope > 0)
+            return jnp.where(r == 0, x, jnp.where(inside, newton, 0.5 * (neg + pos))), neg, pos
+
+        x, neg, pos = jax.lax.fori_loop(0, control_iterations, body, (jnp.clip(rate0, -bound, bound), -bound, bound))
+        r, slope = jax.jvp(lambda y: lateral_residual(y, F, internal, L_step, params), (x,), (jnp.ones_like(x),))
+        correction = -safe_div(r, sg(slope), fill=0.0)
+        small = jnp.isfinite(correction) & (jnp.abs(correction) <= sg(pos - neg) + 1e-12)
+        return x + jnp.where(small, correction, 0.0)
 
     def step(carry, L_step):
         F, internal, t, rate = carry
         if lateral_control:
-            for _ in range(control_iterations):
-                r, slope = jax.jvp(lambda x: lateral_residual(x, F, internal, L_step), (rate,), (jnp.ones_like(rate),))
-                rate = rate - safe_div(r, slope)
-            L_step = L_step + rate * jnp.diag(lateral)
-        F, tau, internal = update(F, internal, L_step)
+            rate = lateral_rate(rate, F, internal, L_step)
+            L_step = L_step + rate * lateral
+        F, tau, internal = update(F, internal, L_step, params)
         p, q = invariants(tau)
         pc = internal.get("pc", jnp.zeros_like(p))
         p_bar = p + params.beta * pc
+        error = jnp.abs(tau[0, 0] / det(F) + pressure) if lateral_control else jnp.zeros_like(p)
         out = {
             "t": t + dt, "p": p, "q": q, "pc": pc,
             "eps_v_p": internal.get("eps_v_p", jnp.zeros_like(p)),
             "gamma_dot": internal.get("gamma_dot", jnp.zeros_like(p)),
             "I": internal.get("I", jnp.zeros_like(p)),
-            "mu_eff": safe_div(q, p_bar), "F": F,
+            "mu_eff": safe_div(q, p_bar), "F": F, "lateral_error": error,
         }
         return (F, internal, t + dt, rate), out
 
@@ -120,7 +159,7 @@ def element_test(
     test: str,
     params: Params | None = None,
     rate: float = 1.0,
-    pressure: float = 1000.0,
+    pressure: float | None = None,
     steps: int = 2000,
     strain: float | None = None,
     dim: int = 2,
@@ -129,20 +168,29 @@ def element_test(
     """A standard test: ``isotropic`` compression (volumetric strain rate ``rate``),
     ``simple-shear`` at engineering shear rate ``rate`` and constant volume, or ``triaxial``
     compression at axial strain rate ``rate`` under lateral stress ``pressure`` (Pa). The point
-    starts at p = ``pressure``; ``strain`` is the total applied strain (default 0.1 for isotropic
-    and triaxial, 0.5 for shear), reached in ``steps`` steps."""
+    starts at p = ``pressure`` (default: half of p_c0, an admissible, lightly overconsolidated
+    start), which for the critical-state material must not exceed p_c0; ``strain`` is the total
+    applied strain (default 0.1 for isotropic and triaxial, 0.5 for shear), reached in ``steps``
+    steps."""
     if test not in TESTS:
         raise ValueError(f"test must be one of {TESTS}, got {test!r}")
     for name, value in (("rate", rate), ("steps", steps)):
         if not (np.isfinite(value) and value > 0):
             raise ValueError(f"{name} must be > 0, got {value!r}")
-    if not (np.isfinite(pressure) and pressure >= 0):
-        raise ValueError(f"pressure must be >= 0, got {pressure!r}")
     if dim not in (2, 3):
         raise ValueError(f"dim must be 2 or 3, got {dim!r}")
     params = Params.create() if params is None else params
     validate_params(params)
     material = material or CriticalState()
+    critical_state = isinstance(material, CriticalState)
+    if pressure is None:
+        pressure = 0.5 * float(params.pc0) if critical_state else 0.0
+    if not (np.isfinite(pressure) and pressure >= 0):
+        raise ValueError(f"pressure must be >= 0, got {pressure!r}")
+    if critical_state and pressure > float(params.pc0):
+        raise ValueError(f"pressure = {pressure:g} Pa exceeds the compressive strength pc0 = {float(params.pc0):g} Pa: "
+                         "an isotropic start at p = pressure lies outside the yield surface (and a triaxial cell "
+                         "could not hold it); lower the pressure or raise pc0")
     strain = strain if strain is not None else (0.5 if test == "simple-shear" else 0.1)
     if not (np.isfinite(strain) and strain > 0):
         raise ValueError(f"strain must be > 0, got {strain!r}")

@@ -6,6 +6,7 @@ import math
 import subprocess
 import sys
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -56,6 +57,53 @@ def test_rate_independent_when_mu1_equals_mu2():
         assert abs(final["mu_eff"] / float(params.mu1) - 1) < 1e-6
 
 
+@pytest.mark.parametrize("pressure", [0.0, 1.0, 50.0, 100.0])
+def test_triaxial_control_holds_the_lateral_stress_at_any_step_size(pressure):
+    """The lateral stress is held at -P to 1e-9 Pa in every step, whether the strain comes in 20
+    or 200 steps (plain Newton from the last rate diverged to NaN with 200). The final states
+    agree to 1e-3 (measured 6e-4 at P = 0 against 2000 steps: the μ(I) overstress depends on G dt), and lie
+    on the 2D triaxial path: Cauchy q = p - P, i.e. q = p - J P for the Kirchhoff invariants."""
+    finals = []
+    for steps in (20, 200):
+        h = element_test("triaxial", jm.Params.create(), pressure=pressure, steps=steps)
+        assert np.all(np.isfinite(np.asarray(h.p))) and np.all(np.isfinite(np.asarray(h.F)))
+        assert float(np.max(h.lateral_error)) < 1e-9
+        J = float(np.linalg.det(np.asarray(h.F[-1])))
+        assert abs(float(h.q[-1]) - (float(h.p[-1]) - J * pressure)) < 1e-8
+        finals.append(h.final())
+    for final in finals[:1]:
+        assert abs(final["p"] / finals[-1]["p"] - 1) < 1e-3 and abs(final["q"] / finals[-1]["q"] - 1) < 1e-3
+
+
+def test_triaxial_default_pressure_is_half_of_pc0():
+    h = element_test("triaxial", jm.Params.create(pc0=300.0), steps=20)
+    J = float(np.linalg.det(np.asarray(h.F[-1])))
+    assert float(np.max(h.lateral_error)) < 1e-9
+    assert abs(float(h.p[-1]) - float(h.q[-1]) - 150.0 * J) < 1e-8  # the lateral stress is -150 Pa
+
+
+def test_triaxial_gradient_through_the_control_matches_central_differences():
+    """The control's last Newton step on live values gives the implicit-function derivative."""
+    from jaxmpm.element import drive
+    from jaxmpm.materials import CriticalState
+
+    base = jm.Params.create(xi=20.0)
+    L = np.zeros((2, 2))
+    L[1, 1] = -1.0
+
+    def final_q(mu1, steps=20):
+        h = drive(CriticalState(), base.replace(mu1=mu1), L, 0.1 / steps, n_steps=steps, pressure=50.0,
+                  lateral_control=True)
+        return h.q[-1]
+
+    # Forward mode (a fraction of reverse mode's compile time); one compiled function gives both
+    # the derivative and the values for the central difference.
+    value_and_tangent = jax.jit(lambda m: jax.jvp(final_q, (m,), (jnp.ones_like(m),)))
+    grad = float(value_and_tangent(jnp.asarray(0.38))[1])
+    fd = float((value_and_tangent(jnp.asarray(0.38 + 1e-6))[0] - value_and_tangent(jnp.asarray(0.38 - 1e-6))[0]) / 2e-6)
+    assert abs(grad / fd - 1) < 1e-6, (grad, fd)
+
+
 def test_element_rejects_bad_input():
     with pytest.raises(ValueError, match="test must be one of"):
         element_test("torsion")
@@ -63,6 +111,8 @@ def test_element_rejects_bad_input():
         element_test("simple-shear", rate=-1.0)
     with pytest.raises(ValueError, match="pressure must be >= 0"):
         element_test("isotropic", pressure=-5.0)
+    with pytest.raises(ValueError, match="exceeds the compressive strength pc0 = 100 Pa"):
+        element_test("triaxial", pressure=1000.0)  # the old default: beyond the yield surface
 
 
 def test_element_command_line(tmp_path):
