@@ -4,16 +4,108 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
+import os
 import sys
 
 import numpy as np
 
 from .scenes import add_scene_arguments, parse_set, scene_from_args
 
+#: Scene options that take a number (``add_scene_arguments``): argparse's float() accepts
+#: "nan" and "inf", which would otherwise surface as some derived quantity's error.
+_SCENE_NUMBERS = ("dx", "ppc", "width", "slope", "aspect", "t_end")
+
+
+def check_scene_args(args) -> None:
+    """Checks on the scene options of ``add_scene_arguments`` that the scene builders cannot
+    make with the option's name (shared with ``python -m calibration``): every number finite,
+    --width only with --dim 3 (a 2D run has no width: it would be ignored), --set keys once each."""
+    for name in _SCENE_NUMBERS:
+        value = getattr(args, name, None)
+        if value is not None and not math.isfinite(value):
+            raise ValueError(f"--{name.replace('_', '-')} must be a finite number, got {value}")
+    if getattr(args, "width", None) is not None and getattr(args, "dim", 2) != 3:
+        raise ValueError(f"--width applies to --dim 3 (a 3D channel), got --width {args.width} with --dim {args.dim}")
+    check_repeated_keys(getattr(args, "set", []), "--set")
+
+
+def check_repeated_keys(items, option: str) -> None:
+    """``key=value`` items (``--set``, ``--init``, ``--over``) must name each key once: a repeated
+    key would silently keep only its last value."""
+    seen: dict[str, str] = {}
+    for item in items:
+        key = item.partition("=")[0].strip()
+        if key in seen:
+            raise ValueError(f"{option} {key} is given twice ({seen[key]!r} and {item!r}); give each key once")
+        seen[key] = item
+
+
+def print_json(summary: dict, compact: bool) -> list[str]:
+    """Print ``summary`` as valid JSON: non-finite numbers become null and their paths are listed
+    under ``"nonfinite"``. Returns that list (empty when every number was finite)."""
+    from .io import json_safe
+
+    summary, bad = json_safe(summary)
+    if bad:
+        summary["nonfinite"] = bad
+    print(json.dumps(summary, allow_nan=False) if compact else json.dumps(summary, indent=2, allow_nan=False))
+    return bad
+
+
+def check_figure_file(path, option: str):
+    """A figure file: matplotlib installed, a format it writes, a place it can be written."""
+    import importlib.util
+
+    from .io import check_output_file
+
+    if importlib.util.find_spec("matplotlib") is None:
+        raise ValueError(f"{option} needs matplotlib: pip install 'jaxmpm[plot]'")
+    from matplotlib.figure import Figure
+
+    kinds = tuple("." + k for k in Figure().canvas.get_supported_filetypes())
+    return check_output_file(path, option, suffixes=kinds)
+
+
+def _check_run_outputs(args, frames: int) -> None:
+    """Every output of ``run`` is checked before the scene is built or anything compiles."""
+    import importlib.util
+
+    from .io import check_output_file
+
+    named = [(opt, getattr(args, attr)) for opt, attr in
+             (("--out", "out"), ("--profile-csv", "profile_csv"), ("--plot", "plot"), ("--gif", "gif"))
+             if getattr(args, attr)]
+    if args.out:
+        check_output_file(args.out, "--out")
+    if args.profile_csv:
+        check_output_file(args.profile_csv, "--profile-csv")
+    if args.plot:
+        check_figure_file(args.plot, "--plot")
+    if args.gif:
+        if importlib.util.find_spec("matplotlib") is None:
+            raise ValueError("--gif needs matplotlib: pip install 'jaxmpm[plot]'")
+        if importlib.util.find_spec("PIL") is None:
+            raise ValueError("--gif needs Pillow: pip install pillow")
+        if frames < 1:
+            raise ValueError(f"--gif animates the frames: --frames must be >= 1, got {frames}")
+        check_output_file(args.gif, "--gif", suffixes=(".gif",))
+    seen: dict[str, str] = {}
+    for option, path in named:
+        key = os.path.realpath(path)
+        if key in seen:
+            raise ValueError(f"{seen[key]} and {option} name the same file {path!r}")
+        seen[key] = option
+
 
 def _run(args) -> int:
     import jax
 
+    check_scene_args(args)
+    if args.frames is not None and args.frames < 0:
+        raise ValueError(f"--frames must be >= 0, got {args.frames}")
+    frames = args.frames if args.frames is not None else (40 if args.gif else 0)
+    _check_run_outputs(args, frames)
     if args.dtype == "float64":
         jax.config.update("jax_enable_x64", True)
     from . import io
@@ -21,7 +113,6 @@ def _run(args) -> int:
     from .simulate import simulate
     from .state import describe_status
 
-    frames = args.frames if args.frames is not None else (40 if args.gif else 0)
     scene = scene_from_args(args, frames=frames)
     config, state, params = scene
     result = simulate(config, state, params, throw=False, progress=not args.no_progress, timed=True)
@@ -42,32 +133,53 @@ def _run(args) -> int:
         "run_s": round(result.run_s, 3),
     }
     meta = {"scene": scene.name, **{k: v for k, v in scene.meta.items() if v is not None}}
+    # The outputs were checked before the run; should one still fail (a full disk, a folder
+    # removed meanwhile), the others are written and the summary is printed all the same.
+    errors = {}
+
+    def output(option, write):
+        try:
+            return write()
+        except (OSError, ValueError, RuntimeError) as err:
+            errors[option] = f"{type(err).__name__}: {err}"
+            return None
+
     if args.out:
-        summary["out"] = str(io.write_h5(args.out, result, config, params, attrs=meta))
-    if args.profile_csv or args.plot:
+        path = output("--out", lambda: io.write_h5(args.out, result, config, params, attrs=meta))
+        if path is not None:
+            summary["out"] = str(path)
+    profile = None
+    if (args.profile_csv or args.plot) and not np.all(np.isfinite(x)):
+        for option in ("--profile-csv", "--plot"):
+            if getattr(args, option[2:].replace("-", "_")):
+                errors[option] = "not written: the final positions are not finite (see status_text)"
+    elif args.profile_csv or args.plot:
         sigma = config.grid.dx / scene.meta.get("ppc", 2)
         xs = np.arange(x[:, 0].min() - 3 * sigma, x[:, 0].max() + 3 * sigma, sigma / 2)
         h = np.asarray(deposit_profile(result.state.x, particle_volumes(result.state), xs, sigma,
                                        width=scene.meta.get("width")))
+        profile = (xs, h)
         if args.profile_csv:
-            io.write_profile_csv(args.profile_csv, xs, h, {
+            output("--profile-csv", lambda: io.write_profile_csv(args.profile_csv, xs, h, {
                 "experiment": f"{scene.name} (synthetic, jaxmpm {_version()})", "time_s": config.t_end,
                 "units": "m", "synthetic": True, "source": "python -m jaxmpm run " + " ".join(sys.argv[2:]),
                 # float32 leaves printed to the precision they hold (0.3, not 0.30000001192092896)
                 "parameters": {k: float(f"{v:.7g}") if args.dtype == "float32" else v
                                for k, v in params.to_dict().items()},
                 "scene": {k: v for k, v in scene.meta.items() if v is not None}, "status": result.status,
-            })
-    if args.plot:
+            }))
+    if args.plot and profile is not None:
         from .plots import plot_run
 
-        plot_run(scene, result, args.plot, profile=(xs, h))
+        output("--plot", lambda: plot_run(scene, result, args.plot, profile=profile))
     if args.gif:
         from .plots import animate_run
 
-        animate_run(scene, result, args.gif)
-    print(json.dumps(summary) if args.json else json.dumps(summary, indent=2))
-    return 0 if result.ok else 1
+        output("--gif", lambda: animate_run(scene, result, args.gif))
+    if errors:
+        summary["output_errors"] = errors
+    bad = print_json(summary, args.json)
+    return 0 if result.ok and not bad and not errors else 1
 
 
 def _version() -> str:
@@ -83,16 +195,34 @@ def _element(args) -> int:
     from .element import element_test
     from .params import Params
 
+    check_repeated_keys(args.set, "--set")
+    if args.plot:
+        check_figure_file(args.plot, "--plot")
     params = Params.create(**dict(parse_set(item) for item in args.set))
     history = element_test(args.test, params, rate=args.rate, pressure=args.pressure, steps=args.steps,
                            strain=args.strain, dim=args.dim)
     final = history.final()
-    print(json.dumps(final) if args.json else json.dumps(final, indent=2))
-    if args.plot:
+    # Any non-finite value in the whole history (not only the last step) fails the command.
+    broken = sorted(name for name, value in vars(history).items() if not np.all(np.isfinite(np.asarray(value))))
+    failed = bool(broken)
+    if broken:
+        rows = [np.isfinite(np.asarray(getattr(history, name))).reshape(args.steps, -1).all(axis=1) for name in broken]
+        first = int(np.argmax(~np.logical_and.reduce(rows)))
+        final["error"] = f"non-finite {', '.join(broken)} (first at step {first})"
+    else:
+        # The triaxial cell must have held the lateral stress (to 1e-6 of the stresses reached).
+        error = np.asarray(history.lateral_error)
+        tol = 1e-6 * max(1.0, float(np.max(np.abs(np.asarray(history.p)))))
+        if np.max(error) > tol:
+            failed = True
+            final["error"] = (f"the triaxial control did not hold the lateral stress: off by up to "
+                              f"{float(np.max(error)):.3g} Pa (step {int(np.argmax(error))})")
+    bad = print_json(final, args.json)
+    if args.plot and not failed:
         from .plots import plot_stress_path
 
         plot_stress_path(history, params, args.plot, title=f"{args.test}, rate {args.rate:g} 1/s")
-    return 0
+    return 1 if (failed or bad) else 0
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -112,7 +242,8 @@ def build_parser() -> argparse.ArgumentParser:
     element = sub.add_parser("element", help="drive one material point (a lab element test)")
     element.add_argument("test", choices=("isotropic", "simple-shear", "triaxial"))
     element.add_argument("--rate", type=float, default=1.0, help="applied engineering strain rate, 1/s")
-    element.add_argument("--pressure", type=float, default=1000.0, help="confining pressure p, Pa")
+    element.add_argument("--pressure", type=float, default=None,
+                         help="confining pressure p, Pa, at most p_c0 (default p_c0/2: 50 Pa at the defaults)")
     element.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="material parameter")
     element.add_argument("--steps", type=int, default=2000)
     element.add_argument("--strain", type=float, default=None, help="total strain (default 0.5 shear, 0.1 else)")
