@@ -127,6 +127,9 @@ class Config:
       transfer: ``"aflip"`` (AFLIP blend with ``alpha``; alpha = 0 is APIC), ``"apic"`` or
         ``"pic"`` (no affine matrix).
       alpha: FLIP fraction of the AFLIP blend, in [0, 1].
+      xpic: 0 (default) or the order m >= 1 of an XPIC(m) filter on the FLIP part of the AFLIP
+        update (``transfer.xpic_velocity``): removes the particle-velocity noise the grid cannot
+        see, at the cost of m − 1 extra transfers per step.
       cfl, cfl_elastic: time step dt = min(cfl·dx/max|v_p|, cfl_elastic·dx/sqrt(E/ρ)).
       frame_times: output times (s), increasing, in [0, t_end]; steps are clipped to land on them.
       block_size: steps per checkpointed block of the rollout (None: about sqrt(max_steps)).
@@ -140,6 +143,7 @@ class Config:
     gravity: tuple[float, ...] | None = None
     transfer: str = "aflip"
     alpha: float = 0.95
+    xpic: int = 0
     cfl: float = 0.5
     cfl_elastic: float = 0.5
     frame_times: tuple[float, ...] = ()
@@ -168,6 +172,8 @@ class Config:
             raise ValueError(f"transfer must be one of {TRANSFERS}, got {self.transfer!r}")
         if not 0.0 <= float(self.alpha) <= 1.0:
             raise ValueError(f"alpha must be in [0, 1], got {self.alpha!r}")
+        if not (isinstance(self.xpic, int) and 0 <= self.xpic <= 8):
+            raise ValueError(f"xpic must be an integer order in [0, 8] (0: off), got {self.xpic!r}")
         for name in ("cfl", "cfl_elastic"):
             value = float(getattr(self, name))
             if not (math.isfinite(value) and value > 0):

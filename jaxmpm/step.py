@@ -22,7 +22,7 @@ from .boundary import apply_walls
 from .config import Config
 from .kernels import make_stencil
 from .linalg import det, mm
-from .transfer import g2p, grid_velocities, p2g
+from .transfer import g2p, grid_velocities, p2g, xpic_velocity
 
 __all__ = ["make_step", "time_step", "step_budget"]
 
@@ -64,7 +64,10 @@ def make_step(config: Config):
         fields = p2g(stencil, mass, state.v, state.C, state.vol0, state.tau, grid.n_nodes)
         v_old, v_new = grid_velocities(fields, dt, jnp.asarray(config.gravity, dtype))
         v_new = apply_walls(config.walls, v_new, jnp.asarray(node_x_np, dtype), state.t, dt)
-        moved = g2p(stencil, v_old, v_new, state.v, dx, config.transfer, alpha)
+        v_flip = state.v
+        if config.xpic and config.transfer == "aflip" and alpha != 0.0:
+            v_flip = xpic_velocity(stencil, mass, fields.mass, state.v, config.xpic)
+        moved = g2p(stencil, v_old, v_new, v_flip, dx, config.transfer, alpha)
         x = state.x + dt * moved.v_pic
         if periodic.any():  # wrap positions on periodic axes
             origin, length = jnp.asarray(grid.origin, dtype), jnp.asarray(grid.length, dtype)
