@@ -192,7 +192,8 @@ def _columns(parsed: _Parsed, dataset: str | None):
     number, first = rows[0]
     if all(_is_number(c) for c in first if c) and any(first):
         if dataset is not None:
-            raise ValueError(f"{parsed.file}: dataset={dataset!r} given but the file has no dataset names")
+            raise ValueError(f"{parsed.file}: dataset={dataset!r} given but the file has no dataset names "
+                             "(command line: --dataset)")
         return None, [(n, _trim(c)) for n, c in rows], None
     names = [c.lower() for c in first]
     second = rows[1][1] if len(rows) > 1 else []
@@ -202,7 +203,7 @@ def _columns(parsed: _Parsed, dataset: str | None):
     if not multi:
         if dataset is not None:
             raise ValueError(f"{parsed.file}: dataset={dataset!r} given but the file is not a multi-dataset "
-                             "WebPlotDigitizer export")
+                             "WebPlotDigitizer export (command line: --dataset)")
         return tuple(_trim(names)), [(n, _trim(c)) for n, c in rows[1:]], None
     # WebPlotDigitizer multi-dataset layout: names on line 1 (every other cell), X,Y,... on line 2.
     width = len(pairs)
@@ -249,7 +250,7 @@ def _unit_scale(parsed: _Parsed, from_names: str | None, argument: str | None, t
         where = f"line {parsed.header_line['units']}"
         declared.append((f"the header ({where})", str(parsed.header["units"])))
     if argument is not None:
-        declared.append((f"the argument {what}=", argument))
+        declared.append((f"the argument {what}= (--{what.replace('_', '-')})", argument))
     if not declared:
         raise ValueError(f"{parsed.file}: the file has no {'units' if what == 'units' else 'time units'} "
                          f"(a WebPlotDigitizer export never has); pass {hint}")
@@ -280,7 +281,7 @@ def _check_increasing(file: str, values: np.ndarray, lines: np.ndarray, name: st
                           f"({name} = {values[k + 1]:g} {unit})" for k in bad[:3])
         more = f" and {bad.size - 3} more" if bad.size > 3 else ""
         raise ValueError(f"{file}: {name} is not strictly increasing: {shown}{more}; if the points are in "
-                         "WebPlotDigitizer click order, pass sort=True")
+                         "WebPlotDigitizer click order, pass sort=True (command line: --sort)")
     return np.arange(values.size)
 
 
@@ -470,7 +471,8 @@ def load_profile(
         raise ValueError(f"{file}: line {parsed.rows[0][0]}: unrecognised column names {list(names)}; expected "
                          "x_m,h_m (or x_cm,h_cm / x_mm,h_mm), x,h with a '# units:' line, or a WebPlotDigitizer "
                          "export (no header, X,Y, or its multi-dataset layout)")
-    unit, scale = _unit_scale(parsed, column_units, units, UNITS, "units", "units='m'|'cm'|'mm'")
+    unit, scale = _unit_scale(parsed, column_units, units, UNITS, "units",
+                              "units='m'|'cm'|'mm' (command line: --units m|cm|mm)")
     values, lines = _numeric(parsed, rows, ("x", "h"))
     _check_count(file, len(values))
     x_raw, h_raw = values[:, 0], values[:, 1]
@@ -491,8 +493,9 @@ def load_profile(
         shown = ", ".join(f"line {lines[k]} (h = {h_raw[k]:g} {unit})" for k in listed[:5])
         more = f" and {listed.size - 5} more" if listed.size > 5 else ""
         if not clip_noise:
-            raise ValueError(f"{file}: negative height at {shown}{more}; heights must be >= 0 (pass clip_noise=True "
-                             f"to zero digitisation noise down to -{NOISE_FRACTION:g} x max h = {-tol:g} {unit})")
+            raise ValueError(f"{file}: negative height at {shown}{more}; heights must be >= 0 (pass clip_noise=True, "
+                             f"on the command line --clip-noise, to zero digitisation noise down to "
+                             f"-{NOISE_FRACTION:g} x max h = {-tol:g} {unit})")
         if beyond.size:
             raise ValueError(f"{file}: negative height beyond the noise tolerance -{NOISE_FRACTION:g} x max h = "
                              f"{-tol:g} {unit} at {shown}{more}")
@@ -575,9 +578,10 @@ def load_front_history(
             raise ValueError(f"{file}: line {parsed.rows[0][0]}: unrecognised column names {list(names)}; expected "
                              "t_s,xf_m (or xf_cm / xf_mm) or a WebPlotDigitizer export")
         column_time, column_units = names[0][2:], names[1][3:]
-    _, scale = _unit_scale(parsed, column_units, units, UNITS, "units", "units='m'|'cm'|'mm'")
+    _, scale = _unit_scale(parsed, column_units, units, UNITS, "units",
+                           "units='m'|'cm'|'mm' (command line: --units m|cm|mm)")
     time_unit, time_scale = _unit_scale(parsed, column_time, time_units, _TIME_UNITS, "time_units",
-                                        "time_units='s'|'ms'")
+                                        "time_units='s'|'ms' (command line: --time-units s|ms)")
     values, lines = _numeric(parsed, rows, ("t", "xf"))
     _check_count(file, len(values))
     order = _check_increasing(file, values[:, 0], lines, "t", time_unit, sort)
