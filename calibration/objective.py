@@ -24,6 +24,8 @@ docs/calibration.md for the measured ratio against reverse mode).
 from __future__ import annotations
 
 import dataclasses
+import hashlib
+import json
 import math
 from typing import Any, Mapping, Sequence
 
@@ -31,7 +33,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxmpm import PARAM_KEYS, make_rollout
+from jaxmpm import PARAM_KEYS, make_rollout, validate_params
 from jaxmpm.observables import deposit_profile, front_from_profile, particle_volumes
 
 from .bounds import Bounds
@@ -42,28 +44,106 @@ __all__ = ["Objective", "CompositeObjective", "ProfileTarget", "FrontTarget"]
 @dataclasses.dataclass(frozen=True)
 class ProfileTarget:
     """A deposit profile to match: heights ``h`` (m) at points ``x`` (m) at time ``time_s``
-    (None: the end of the run)."""
+    (None: the end of the run). ``source``: where the numbers came from (a file), named in
+    error messages."""
 
     x: np.ndarray
     h: np.ndarray
     time_s: float | None = None
+    source: str | None = None
 
     @classmethod
     def of(cls, data) -> "ProfileTarget":
         """From a ``calibration.data.Profile`` (or anything with ``x``, ``h`` and ``time_s``)."""
-        return cls(np.asarray(data.x, float), np.asarray(data.h, float), getattr(data, "time_s", None))
+        return cls(np.asarray(data.x, float), np.asarray(data.h, float), getattr(data, "time_s", None),
+                   getattr(data, "path", None))
 
 
 @dataclasses.dataclass(frozen=True)
 class FrontTarget:
-    """Front positions ``x_front`` (m) at times ``t`` (s)."""
+    """Front positions ``x_front`` (m) at times ``t`` (s); ``source`` as for ``ProfileTarget``."""
 
     t: np.ndarray
     x_front: np.ndarray
+    source: str | None = None
 
     @classmethod
     def of(cls, data) -> "FrontTarget":
-        return cls(np.asarray(data.t, float), np.asarray(data.x_front, float))
+        return cls(np.asarray(data.t, float), np.asarray(data.x_front, float), getattr(data, "path", None))
+
+
+#: Plausibility limits of data against the scene they are said to come from (``check_data``):
+#: no deposit is taller than 1.5 column heights or lower than 1 % of one, none holds more than
+#: twice the column's area L·H, and the measured material lies on the grid.
+MAX_HEIGHT_RATIO, MIN_HEIGHT_RATIO, MAX_AREA_RATIO = 1.5, 0.01, 2.0
+#: A point counts as "material" for the grid check when h exceeds this fraction of max h.
+MATERIAL_FRACTION = 0.01
+
+
+def _check_profile_plausible(label: str, x: np.ndarray, h: np.ndarray, scene, x_lo: float, x_hi: float, dtype):
+    """Refuse a profile that cannot be a deposit of ``scene`` (units off by 10^3, another scene's
+    data, numbers beyond the run's precision), naming ``label`` (the file)."""
+    meta = scene.meta
+    if not (_representable(x, dtype) and _representable(h, dtype)):
+        raise ValueError(f"{label}: values beyond the range of {np.dtype(dtype).name}, in which the run computes")
+    h_max = float(h.max())
+    height, length = meta.get("H"), meta.get("L")
+    where = f"scene {scene.name}'s column (H = {height:g} m)" if height else ""
+    if height:
+        if h_max > MAX_HEIGHT_RATIO * height:
+            raise ValueError(f"{label}: its highest point, h = {h_max:g} m, is {h_max / height:.3g} x the height of "
+                             f"{where}: no deposit of this scene is that tall (wrong units? millimetres read as "
+                             "metres are 1000 x too large)")
+        if h_max < MIN_HEIGHT_RATIO * height:
+            raise ValueError(f"{label}: its highest point, h = {h_max:g} m, is only {h_max / height:.3g} x the height "
+                             f"of {where}: no deposit of this scene is that flat (wrong units? metres read as "
+                             "millimetres are 1000 x too small)")
+    if height and length and x.size > 1:
+        area = float(np.sum(0.5 * (np.maximum(h[1:], 0) + np.maximum(h[:-1], 0)) * np.diff(x)))
+        if area > MAX_AREA_RATIO * length * height:
+            raise ValueError(f"{label}: the profile holds {area:g} m^2, {area / (length * height):.3g} x the area "
+                             f"L H = {length * height:g} m^2 of scene {scene.name}'s column: more material than the "
+                             "scene has")
+    material = h > MATERIAL_FRACTION * h_max
+    outside = material & ((x < x_lo) | (x > x_hi))
+    if np.all((x < x_lo) | (x > x_hi)):
+        raise ValueError(f"{label}: all its points (x = {x.min():g} .. {x.max():g} m) lie outside the scene's grid, "
+                         f"x = {x_lo:g} .. {x_hi:g} m")
+    if np.any(outside):
+        shown = ", ".join(f"{v:g}" for v in x[outside][:3])
+        raise ValueError(f"{label}: {int(outside.sum())} point(s) with material (h > {MATERIAL_FRACTION:g} max h) lie "
+                         f"outside the scene's grid, x = {x_lo:g} .. {x_hi:g} m, where the model's deposit is always "
+                         f"zero (x = {shown} m): enlarge the scene or trim the data")
+
+
+def _representable(values, dtype) -> bool:
+    with np.errstate(over="ignore"):
+        return bool(np.all(np.isfinite(np.asarray(values, dtype))))
+
+
+def _check_front_plausible(label: str, t: np.ndarray, xf: np.ndarray, scene, x_lo: float, x_hi: float, dtype):
+    if not (_representable(xf, dtype) and _representable(t, dtype)):
+        raise ValueError(f"{label}: values beyond the range of {np.dtype(dtype).name}, in which the run computes")
+    outside = (xf < x_lo) | (xf > x_hi)
+    if np.any(outside):
+        k = int(np.argmax(outside))
+        raise ValueError(f"{label}: the front at t = {t[k]:g} s, x = {xf[k]:g} m, lies outside the scene's grid, "
+                         f"x = {x_lo:g} .. {x_hi:g} m, which the model's front never leaves (wrong units?)")
+    front0 = scene.meta.get("front0")
+    if front0 and float(xf.max()) < 0.5 * front0:
+        raise ValueError(f"{label}: every front position (at most {float(xf.max()):g} m) lies behind half the "
+                         f"initial front x = {front0:g} m of scene {scene.name}, which the front only leaves "
+                         "forwards (wrong units? metres read as millimetres are 1000 x too small)")
+
+
+def _digest(*arrays) -> str:
+    """A short content hash of float arrays (as float64, so the dtype of the input does not matter)."""
+    h = hashlib.sha256()
+    for a in arrays:
+        a = np.ascontiguousarray(np.asarray(a, np.float64))
+        h.update(str(a.shape).encode())
+        h.update(a.tobytes())
+    return h.hexdigest()[:16]
 
 
 def _check_array(name: str, values, n: int | None = None) -> np.ndarray:
@@ -75,6 +155,14 @@ def _check_array(name: str, values, n: int | None = None) -> np.ndarray:
     if not np.all(np.isfinite(arr)):
         raise ValueError(f"{name} must be finite, got {arr[~np.isfinite(arr)][:3]}")
     return arr
+
+
+def _valid(values) -> bool:
+    try:
+        validate_params(values)
+    except ValueError:
+        return False
+    return True
 
 
 class Objective:
@@ -92,13 +180,17 @@ class Objective:
         (default: half a particle spacing, below the height of one isolated particle).
     x_ref: where the front is measured from (default: the back wall, x = 0).
     bounds: overrides of ``calibration.bounds.DEFAULT_BOUNDS`` by key.
+    check_data: refuse data that cannot come from ``scene`` (a deposit taller than 1.5 columns or
+        lower than 1 % of one, more than twice the column's area, material or a front outside the
+        grid, values beyond the run's float range), naming the target's ``source``. Turn it off
+        only for placeholder targets (the model's own predictions are wanted, not a fit).
     """
 
     def __init__(self, scene, keys: Sequence[str], *, profile=None, front=None,
                  weights: Mapping[str, float] | None = None, sigma: float | None = None,
                  front_threshold: float | None = None, x_ref: float = 0.0,
                  bounds: Mapping[str, tuple[float, float]] | None = None, jacobian: str = "ad",
-                 fd_step: float = 1e-2):
+                 fd_step: float = 1e-2, check_data: bool = True):
         keys = tuple(keys)
         if jacobian not in ("ad", "fd"):
             raise ValueError(f"jacobian must be 'ad' or 'fd', got {jacobian!r}")
@@ -127,6 +219,11 @@ class Objective:
             if not (math.isfinite(w) and w >= 0):
                 raise ValueError(f"weights[{name!r}] must be finite and >= 0, got {w!r}")
         self.weights = weights
+        present = {"profile": bool(self.profiles), "front": self.front is not None}
+        for name, there in present.items():
+            if there and weights[name] == 0:
+                raise ValueError(f"weights[{name!r}] is 0: the {name} data would have no say in the fit (every "
+                                 f"residual of theirs zero, their noise undefined); leave the {name} out instead")
 
         self.scene = scene
         config = scene.config
@@ -144,6 +241,9 @@ class Objective:
         times, blocks, scales = [], {}, []
         m = 0
         t_end = config.t_end
+        self.dtype = jnp.result_type(scene.params.E)
+        x_lo = float(config.grid.origin[0])
+        x_hi = x_lo + config.grid.cells[0] * config.grid.dx
         self._profiles = []  # (x, h, h_scale, time)
         for i, prof in enumerate(self.profiles):
             name = "profile" if len(self.profiles) == 1 else f"profile[{i}]"
@@ -151,6 +251,8 @@ class Objective:
             hp = _check_array(f"{name}.h", prof.h, xp.size)
             if hp.max() <= 0:
                 raise ValueError(f"{name}.h is zero everywhere: there is no deposit to fit")
+            if check_data:
+                _check_profile_plausible(getattr(prof, "source", None) or name, xp, hp, scene, x_lo, x_hi, self.dtype)
             t_prof = t_end if prof.time_s is None else float(prof.time_s)
             if not (0 < t_prof <= t_end * (1 + 1e-9)):
                 raise ValueError(f"{name}.time_s = {t_prof} must lie in (0, t_end = {t_end}]: "
@@ -168,6 +270,8 @@ class Objective:
                 raise ValueError(f"front.t must lie in (0, t_end = {t_end}], got {tf.min()}..{tf.max()}")
             if np.any(np.diff(tf) <= 0):
                 raise ValueError("front.t must be strictly increasing")
+            if check_data:
+                _check_front_plausible(self.front.source or "front", tf, xf, scene, x_lo, x_hi, self.dtype)
             tf = np.minimum(tf, t_end)
             times += list(tf)
             self._t_front, self._xf_data = tf, xf
@@ -203,7 +307,6 @@ class Objective:
         self._rollout = make_rollout(self.config, observer)
         self._state = scene.state
         self._base = scene.params
-        self.dtype = jnp.result_type(scene.params.E)
 
         self._residuals = jax.jit(self._residual_fn)
         self._jacobian = jax.jit(jax.jacfwd(lambda th, s, b: (lambda r, aux: (r, (r, aux)))(
@@ -304,6 +407,65 @@ class Objective:
         """The scene's values of the fitted keys."""
         return {k: float(getattr(self._base, k)) for k in self.keys}
 
+    def check_thetas(self, thetas, name: str = "thetas") -> None:
+        """Raise ``ValueError`` unless every row of ``thetas`` (B, n), with the scene's values for
+        the other keys, passes ``jaxmpm.validate_params`` (the rules ``python -m jaxmpm run --set``
+        applies): a member with β < 0 or μ2 < μ1 is not a parameter set of the model, and a loss
+        computed for it must not be reported. Names up to three offending rows."""
+        thetas = np.asarray(thetas, float)
+        if thetas.ndim == 1:
+            thetas = thetas[None, :]
+        if thetas.ndim != 2 or thetas.shape[1] != len(self.keys):
+            raise ValueError(f"{name} must have shape (B, {len(self.keys)}) for keys {self.keys}, got {thetas.shape}")
+        base = {k: np.full(thetas.shape[0], float(v)) for k, v in self._base.to_dict().items()}
+        values = {**base, **{k: thetas[:, j] for j, k in enumerate(self.keys)}}
+        try:
+            validate_params(values)
+            return
+        except ValueError:
+            pass
+        bad = []
+        for i in range(thetas.shape[0]):
+            try:
+                validate_params({k: v[i] for k, v in values.items()})
+            except ValueError as err:
+                bad.append((i, err))
+                if len(bad) == 3:
+                    break
+        count = sum(1 for i in range(thetas.shape[0]) if not _valid({k: v[i] for k, v in values.items()}))
+        rows = "; ".join(f"member {i} ({', '.join(f'{k} = {thetas[i, j]:g}' for j, k in enumerate(self.keys))}): "
+                         f"{err}" for i, err in bad)
+        what = "the member is" if thetas.shape[0] == 1 else f"{count} of {thetas.shape[0]} members are"
+        raise ValueError(f"{name}: {what} not a valid parameter set: {rows}")
+
+    def fingerprint(self) -> dict[str, Any]:
+        """What this objective's loss and its optimiser steps depend on, as a JSON-able dict: the
+        data's content (a hash; file names do not matter), the scene and its geometry, the fixed
+        parameters, weights, smoothing, front threshold, bounds, dtype, the Jacobian's kind, the
+        initial particles and the whole run configuration (hashed). Two objectives with equal
+        fingerprints compute the same residuals; ``fit`` refuses to resume a history made for
+        another one."""
+        data = [a for x, h, _, t in self._profiles for a in (x, h, [t])]
+        if self.front is not None:
+            data += [self._t_front, self._xf_data]
+        meta = self.scene.meta
+        config = json.dumps(self.config.to_dict(), sort_keys=True, default=str)
+        return {
+            "scene": self.scene.name, "data": _digest(*data), "keys": list(self.keys),
+            "dx": float(self.config.grid.dx), "ppc": meta.get("ppc"), "sampling": meta.get("sampling"),
+            "seed": meta.get("seed"), "dim": meta.get("dim"), "width": meta.get("width"),
+            "slope_deg": meta.get("slope_deg"), "L": meta.get("L"), "H": meta.get("H"),
+            "t_end": float(self.config.t_end),
+            "fixed": {k: float(v) for k, v in self._base.to_dict().items() if k not in self.keys},
+            "weights": {k: float(v) for k, v in self.weights.items()}, "sigma": self.sigma,
+            "front_threshold": self.front_threshold, "x_ref": self.x_ref,
+            "bounds": {k: [lo, hi] for k, lo, hi in zip(self.keys, self.bounds.lower, self.bounds.upper)},
+            "dtype": np.dtype(self.dtype).name, "jacobian": self.jacobian, "fd_step": self.fd_step,
+            "n_particles": int(self._state.x.shape[0]),
+            "particles": _digest(self._state.x, self._state.vol0),
+            "config": hashlib.sha256(config.encode()).hexdigest()[:16],
+        }
+
     def describe(self) -> dict[str, Any]:
         """A JSON-able description (scene, data sizes, weights), for history files."""
         return {"scene": self.scene.name, "keys": list(self.keys), "times": list(self.times),
@@ -356,6 +518,13 @@ class CompositeObjective:
 
     def initial(self) -> dict[str, float]:
         return self.members[0].initial()
+
+    def check_thetas(self, thetas, name: str = "thetas") -> None:
+        for member in self.members:
+            member.check_thetas(thetas, name)
+
+    def fingerprint(self) -> dict[str, Any]:
+        return {"members": [m.fingerprint() for m in self.members]}
 
     def describe(self) -> dict[str, Any]:
         return {"members": [m.describe() for m in self.members], "keys": list(self.keys)}
