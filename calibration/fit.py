@@ -16,7 +16,10 @@ After every iteration the whole history (θ, z, loss, gradient norm, status, acc
 wall time) and what is needed to continue (the current point, λ or the optimiser state) is
 written to ``out`` (HDF5, written to a temporary file and renamed, so a kill never leaves a
 partial file). ``resume=True`` continues from that file exactly where it stopped: the resumed
-trajectory equals the uninterrupted one.
+trajectory equals the uninterrupted one. The file records the objective's ``fingerprint`` (the
+data's content, the scene and every option that changes the loss), and a resume refuses an
+objective whose fingerprint differs, naming what differs; it also refuses a missing file. An
+existing file is never replaced by a new fit unless ``overwrite=True``.
 """
 
 from __future__ import annotations
@@ -26,6 +29,7 @@ import json
 import math
 import os
 import pathlib
+import re
 import time
 import uuid
 from typing import Any, Callable, Mapping
@@ -35,6 +39,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import optax
+
+from jaxmpm import describe_status
 
 from .uncertainty import Uncertainty, gauss_newton_uncertainty
 
@@ -82,16 +88,83 @@ def _atomic_h5(path: pathlib.Path, write: Callable[[h5py.File], None]) -> None:
             tmp.unlink()
 
 
+class _NotAHistory(Exception):
+    pass
+
+
 def read_history(path) -> dict[str, Any]:
-    """A history file as ``{"attrs": {...}, "history": {field: array}, "resume": {...}}``."""
+    """A history file as ``{"attrs": {...}, "history": {field: array}, "resume": {...}}``.
+
+    Raises ``ValueError`` naming the file when it does not exist, is not a readable HDF5 file
+    (empty, truncated, some other format) or is an HDF5 file of another kind (a run's output)."""
     path = pathlib.Path(path)
+    shown = repr(str(path))
     if not path.exists():
-        raise ValueError(f"out: {str(path)!r} does not exist (nothing to resume)")
-    with h5py.File(path, "r") as f:
-        attrs = {k: (json.loads(v) if k.endswith("_json") else v) for k, v in f.attrs.items()}
-        history = {k: np.asarray(f["history"][k]) for k in f["history"]}
-        resume = {k: np.asarray(f["resume"][k]) for k in f["resume"]}
+        raise ValueError(f"out: {shown} does not exist (nothing to resume)")
+    if not path.is_file():
+        raise ValueError(f"out: {shown} is not a file")
+    try:
+        with h5py.File(path, "r") as f:
+            missing = [f"attribute {k!r}" for k in ("keys_json", "method", "options_json") if k not in f.attrs]
+            missing += [f"group {g!r}" for g in ("history", "resume") if g not in f]
+            if missing:
+                raise _NotAHistory(f"no {', '.join(missing)}")
+            attrs = {k: (json.loads(v) if k.endswith("_json") else v) for k, v in f.attrs.items()}
+            history = {k: np.asarray(f["history"][k]) for k in f["history"]}
+            resume = {k: np.asarray(f["resume"][k]) for k in f["resume"]}
+    except _NotAHistory as err:
+        raise ValueError(f"{shown} is not a fit history written by calibration.fit ({err})") from None
+    except (OSError, KeyError, ValueError, TypeError) as err:  # h5py's errors for unreadable files are OSErrors
+        raise ValueError(f"{shown} is not a readable fit history: {type(err).__name__}: {err} (an empty or "
+                         "truncated file, or not HDF5 at all?)") from None
+    missing = [k for k in _HISTORY_FIELDS if k not in history] + [k for k in ("z", "lam", "done") if k not in resume]
+    lengths = {k: len(history[k]) for k in _HISTORY_FIELDS if k in history}
+    if missing or len(set(lengths.values())) > 1:
+        raise ValueError(f"{shown} is not a complete fit history (missing {missing}, lengths {lengths})")
     return {"attrs": attrs, "history": history, "resume": resume}
+
+
+#: Which command-line option sets each entry of ``Objective.fingerprint`` (for resume errors).
+_FINGERPRINT_OPTIONS = {
+    "scene": "--scene", "data": "--data/--front: their content", "keys": "--fit", "dx": "--dx", "ppc": "--ppc",
+    "sampling": "--sampling", "seed": "--seed", "dim": "--dim", "width": "--width", "slope_deg": "--slope",
+    "L": "--aspect", "H": "--aspect", "t_end": "--t-end", "fixed": "--set",
+    "weights": "--weight-profile/--weight-front", "sigma": "sigma", "front_threshold": "--front-threshold",
+    "x_ref": "x_ref", "bounds": "bounds", "dtype": "--dtype", "jacobian": "--jacobian", "fd_step": "--fd-step",
+    "n_particles": "--dx/--ppc/--sampling", "particles": "--ppc/--sampling/--seed",
+    "config": "the scene's run configuration",
+}
+
+
+def _flatten(value, prefix="") -> dict[str, Any]:
+    if isinstance(value, dict):
+        out = {}
+        for k, v in value.items():
+            out.update(_flatten(v, f"{prefix}.{k}" if prefix else str(k)))
+        return out
+    if isinstance(value, list) and value and all(isinstance(v, dict) for v in value):
+        out = {}
+        for i, v in enumerate(value):
+            out.update(_flatten(v, f"{prefix}[{i}]"))
+        return out
+    return {prefix: value}
+
+
+def _fingerprint_differences(saved: dict, now: dict) -> list[str]:
+    """Human-readable differences between two fingerprints: 'dx (--dx): 0.0148 in the file, 0.0111 now'."""
+    a, b = _flatten(saved), _flatten(now)
+    out = []
+    for key in list(a) + [k for k in b if k not in a]:
+        if a.get(key, "<absent>") == b.get(key, "<absent>"):
+            continue
+        top = re.sub(r"^(\w+\[\d+\]\.)+", "", key).split(".")[0]  # "members[0].fixed.pc0" -> "fixed"
+        option = _FINGERPRINT_OPTIONS.get(top, top)
+        out.append(f"{key} ({option}): {a.get(key, '<absent>')!r} in the file, {b.get(key, '<absent>')!r} now")
+    return out
+
+
+def _status_text(status: int) -> str:
+    return f"status {status}: {'; '.join(describe_status(status))}" if status else "status 0"
 
 
 def _as_theta(objective, init: Mapping[str, float] | None) -> np.ndarray:
@@ -101,17 +174,24 @@ def _as_theta(objective, init: Mapping[str, float] | None) -> np.ndarray:
         raise ValueError(f"init: {unknown} are not fitted keys {objective.keys}")
     theta = np.array([float(values[k]) for k in objective.keys])
     objective.bounds.check(theta, "init")
+    check = getattr(objective, "check_thetas", None)
+    if check is not None:  # the engine's rules (mu2 >= mu1, ...) on the full parameter set
+        check(theta, "init")
     return theta
 
 
 def fit(objective, init: Mapping[str, float] | None = None, *, method: str = "lm", steps: int = 30,
-        out=None, resume: bool = False, learning_rate: float = 0.05, clip: float = 1.0, grad_mode: str = "fwd",
+        out=None, resume: bool = False, overwrite: bool = False, learning_rate: float = 0.05, clip: float = 1.0,
+        grad_mode: str = "fwd",
         xtol: float = 1e-6, ftol: float = 1e-7, stat_tol: float = 0.1, max_rejections: int = 6, progress: bool = False, callback: Callable | None = None,
         noise: Mapping[str, float] | float | None = None, uncertainty: bool = True,
         meta: Mapping[str, Any] | None = None) -> FitResult:
     """Fit ``objective.keys`` from ``init`` (physical values by key; missing keys start at the
     scene's values). ``steps``: the maximum number of iterations (model evaluations), counted
-    over resumes. ``out``: the HDF5 history file; ``resume``: continue from it. ``noise``: the
+    over resumes. ``out``: the HDF5 history file; ``resume``: continue from it (it must exist
+    and hold a fit of the same objective: same fingerprint, keys, method and optimiser options);
+    ``overwrite``: replace an existing ``out`` with a new fit (without it an existing file is an
+    error, so that no history is lost by accident). ``noise``: the
     known noise per residual block, for the uncertainty (None: estimated from the residuals).
     LM stops when the decrease its linearised model promises for the next step is below
     ``stat_tol`` × n σ² (σ² = loss / (m − n), what fitting pure noise would promise: the step is
@@ -130,10 +210,22 @@ def fit(objective, init: Mapping[str, float] | None = None, *, method: str = "lm
         raise ValueError(f"learning_rate must be > 0, got {learning_rate!r}")
     if resume and out is None:
         raise ValueError("resume=True needs out (the history file to resume from)")
+    if resume and overwrite:
+        raise ValueError("resume and overwrite exclude each other: continue the history in out, or replace it")
     bounds, keys = objective.bounds, objective.keys
     path = pathlib.Path(out) if out is not None else None
     if path is not None and not path.parent.exists():
         raise ValueError(f"out: directory {str(path.parent)!r} does not exist")
+    if path is not None and path.is_dir():
+        raise ValueError(f"out: {str(path)!r} is a folder, not a file")
+    if path is not None and resume and not path.exists():
+        raise ValueError(f"resume: {str(path)!r} does not exist: there is nothing to resume (check the name; "
+                         "without resume (--resume) a new fit starts)")
+    if path is not None and not resume and path.exists() and not overwrite:
+        raise ValueError(f"out: {str(path)!r} exists (an earlier fit's history?); continue it with resume=True "
+                         "(--resume) or replace it with overwrite=True (--overwrite)")
+    fingerprint_of = getattr(objective, "fingerprint", None)
+    fingerprint = json.loads(json.dumps(fingerprint_of())) if fingerprint_of is not None else None
     options = {"method": method, "steps": steps, "learning_rate": learning_rate, "clip": clip,
                "grad_mode": grad_mode, "xtol": xtol, "ftol": ftol}
 
@@ -143,7 +235,7 @@ def fit(objective, init: Mapping[str, float] | None = None, *, method: str = "lm
         schedule = optax.cosine_decay_schedule(learning_rate, decay_steps=steps, alpha=0.05)
         optimizer = optax.chain(optax.clip_by_global_norm(clip), optax.adam(schedule))
 
-    if resume and path.exists():
+    if resume:
         saved = read_history(path)
         attrs = saved["attrs"]
         if tuple(attrs["keys_json"]) != keys or attrs["method"] != method:
@@ -153,6 +245,15 @@ def fit(objective, init: Mapping[str, float] | None = None, *, method: str = "lm
             if attrs["options_json"].get(k) != options[k]:
                 raise ValueError(f"resume: {k} = {options[k]!r} differs from the file's "
                                  f"{attrs['options_json'].get(k)!r}")
+        if fingerprint is not None:
+            if "fingerprint_json" not in attrs:
+                raise ValueError(f"resume: {str(path)!r} does not record the problem it was made for (written by an "
+                                 "older calibration.fit), so it cannot be checked against this one; start a new fit "
+                                 "(another out, or overwrite=True / --overwrite)")
+            differences = _fingerprint_differences(attrs["fingerprint_json"], fingerprint)
+            if differences:
+                raise ValueError(f"resume: {str(path)!r} holds a fit of a different problem, which a resume would "
+                                 "mix into one history; what differs (option): " + "; ".join(differences))
         history = {k: list(saved["history"][k]) for k in _HISTORY_FIELDS}
         z = saved["resume"]["z"]
         lam = float(saved["resume"]["lam"])
@@ -190,6 +291,8 @@ def fit(objective, init: Mapping[str, float] | None = None, *, method: str = "lm
             f.attrs["method"] = method
             f.attrs["options_json"] = json.dumps(options)
             f.attrs["objective_json"] = json.dumps(objective.describe())
+            if fingerprint is not None:
+                f.attrs["fingerprint_json"] = json.dumps(fingerprint)
             f.attrs["meta_json"] = json.dumps(dict(meta or {}))
             f.attrs["message"] = msg
             g = f.create_group("history")
@@ -247,8 +350,8 @@ def fit(objective, init: Mapping[str, float] | None = None, *, method: str = "lm
                 theta, loss, r, J, g, pred = evaluate(z)
                 status = int(np.asarray(pred["status"]))
                 if status or not math.isfinite(loss):
-                    raise ValueError(f"init: the run at the initial parameters fails "
-                                     f"(status {status}, loss {loss}); choose another start")
+                    raise ValueError(f"init: the run at the initial parameters fails ({_status_text(status)}; "
+                                     f"loss {loss}); choose another start")
                 current = (z, theta, loss, r, J, g, pred)
                 record(z, theta, loss, g, status, True, lam)
             else:
@@ -293,7 +396,7 @@ def fit(objective, init: Mapping[str, float] | None = None, *, method: str = "lm
             ok = status == 0 and math.isfinite(loss) and np.all(np.isfinite(g))
             record(z, theta, loss, g, status, ok, float("nan"))
             if not ok:
-                done, message = True, f"stopped: the run at iteration {k} failed (status {status})"
+                done, message = True, f"stopped: the run at iteration {k} failed ({_status_text(status)})"
                 save(z, lam, opt_state, done, message)
                 report(k)
                 break

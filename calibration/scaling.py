@@ -64,7 +64,8 @@ def _runouts(objective, theta) -> tuple[float, int]:
 def fit_runout_law(a_fit: Sequence[float] = (0.5, 1.0, 4.0), a_test: Sequence[float] = (2.0, 8.0),
                    keys: Sequence[str] = ("mu1", "mu2"), *, law: Callable = runout_law, L0: float = 0.05,
                    dx: float | None = None, ppc: int = 2, values: Mapping[str, float] | None = None,
-                   init: Mapping[str, float] | None = None, steps: int = 15, out=None, progress: bool = False,
+                   init: Mapping[str, float] | None = None, steps: int = 15, out=None, overwrite: bool = False,
+                   progress: bool = False,
                    dtype=None, jacobian: str = "fd", fd_step: float = 0.05) -> dict[str, Any]:
     """Fit ``keys`` to the runout law at ``a_fit`` and predict it at ``a_test``. Returns a JSON-able
     dict (fitted values, standard errors, runouts before and after the fit at every a) plus the
@@ -77,7 +78,7 @@ def fit_runout_law(a_fit: Sequence[float] = (0.5, 1.0, 4.0), a_test: Sequence[fl
     composite = CompositeObjective(members)
     theta0 = np.array([float(getattr(members[0].scene.params, k)) for k in keys])
     start = {**dict(zip(keys, theta0.tolist())), **dict(init or {})}
-    result = fit(composite, start, method="lm", steps=steps, out=out, progress=progress,
+    result = fit(composite, start, method="lm", steps=steps, out=out, overwrite=overwrite, progress=progress,
                  meta={"runout_law": True, "a_fit": a_fit, "a_test": a_test})
     theta = np.array([result.theta[k] for k in keys])
     theta_start = np.array([start[k] for k in keys])

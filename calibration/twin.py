@@ -43,14 +43,14 @@ def twin_data(scene, keys, truth: np.ndarray, noise: float = 0.0, seed: int = 0,
     """Synthetic profiles and front history from ``scene`` at ``truth``, with noise."""
     times = np.asarray(FRONT_TIMES)
     # First pass: where is the final front? (The data cover the deposit plus a margin.)
-    probe = Objective(scene, keys, front=FrontTarget(times, np.ones_like(times)))
+    probe = Objective(scene, keys, front=FrontTarget(times, np.ones_like(times)), check_data=False)  # placeholder
     _, pred = probe.residuals(truth)
     if int(pred["status"]):
         raise ValueError(f"the twin's true run fails (status {int(pred['status'])})")
     x_end = 1.3 * float(np.asarray(pred["front"])[-1])
     xs = np.linspace(0.0, x_end, n_points)
     gen = Objective(scene, keys, profile=[ProfileTarget(xs, np.ones_like(xs), t) for t in PROFILE_TIMES],
-                    front=FrontTarget(times, np.ones_like(times)))
+                    front=FrontTarget(times, np.ones_like(times)), check_data=False)  # placeholder data
     _, pred = gen.residuals(truth)
     h = np.asarray(pred["h"], float).reshape(len(PROFILE_TIMES), n_points)
     front = np.asarray(pred["front"], float)
@@ -65,7 +65,7 @@ def twin_data(scene, keys, truth: np.ndarray, noise: float = 0.0, seed: int = 0,
 def twin(*, quick: bool = False, noise: float = 0.0, keys: Sequence[str] = ("beta", "mu1", "xi"),
          method: str = "lm", steps: int | None = None, seed: int = 0, dx: float | None = None, ppc: int = 2,
          t_end: float | None = None, values: Mapping[str, float] | None = None, dtype=None, out=None,
-         resume: bool = False, progress: bool = False, reference_noise: float = 0.01,
+         resume: bool = False, overwrite: bool = False, progress: bool = False, reference_noise: float = 0.01,
          threshold: float = 0.1) -> dict[str, Any]:
     """Run the twin experiment and return the fit's JSON plus ``true``, ``rel_error``,
     ``constrained``, ``in_ci95`` and the objects (under ``"_fit"``, ``"_objective"``)."""
@@ -84,7 +84,7 @@ def twin(*, quick: bool = False, noise: float = 0.0, keys: Sequence[str] = ("bet
     profiles, front = twin_data(scene, keys, truth, noise=noise, seed=seed)
     objective = Objective(scene, keys, profile=profiles, front=front)
     result = fit(objective, start, method=method, steps=steps or (25 if method == "lm" else 150), out=out,
-                 resume=resume, progress=progress, noise=None,
+                 resume=resume, overwrite=overwrite, progress=progress, noise=None,
                  meta={"twin": True, "noise": noise, "seed": seed, "true": dict(zip(keys, truth.tolist()))})
     # Identifiability at the stated reference noise (or the twin's own noise when larger).
     from .uncertainty import gauss_newton_uncertainty
