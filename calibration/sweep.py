@@ -40,7 +40,7 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from jaxmpm import describe_status
 
-__all__ = ["SweepResult", "sweep", "grid_points", "latin_hypercube", "MODES", "DEFAULT_CHUNK"]
+__all__ = ["SweepResult", "sweep", "grid_points", "latin_hypercube", "write_sweep", "MODES", "DEFAULT_CHUNK"]
 
 MODES = ("auto", "vmap", "shard", "loop")
 #: Members per device in a trial chunk (the chunk used when the memory analysis is unavailable).
@@ -336,7 +336,7 @@ def _check_thetas(objective, thetas) -> tuple[tuple[str, ...], np.ndarray]:
 
 
 def sweep(objective, thetas, *, chunk: int | None = None, mode: str = "auto",
-          memory_budget_bytes: int | None = None, progress: bool = False) -> SweepResult:
+          memory_budget_bytes: int | None = None, progress: bool = False, validate: bool = True) -> SweepResult:
     """Evaluate ``objective.residual_fn`` at every row of ``thetas``.
 
     Parameters
@@ -352,6 +352,12 @@ def sweep(objective, thetas, *, chunk: int | None = None, mode: str = "auto",
         share the host's RAM, so it is split among them). Default: a quarter of the device's
         memory limit, or of physical RAM.
     progress: print progress lines to stderr (one per chunk, at most about twenty).
+    validate: check every member before anything compiles with ``objective.check_thetas`` (the
+        engine's parameter rules, as ``python -m jaxmpm run --set`` applies them) and raise
+        ``ValueError`` naming the invalid members: a member with β < 0 or μ2 < μ1 would run,
+        get a finite loss and could be reported as the best. ``False`` runs them anyway (their
+        failures, if any, are reported as usual); objectives without ``check_thetas`` are not
+        checked.
     """
     if mode not in MODES:
         raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
@@ -359,6 +365,8 @@ def sweep(objective, thetas, *, chunk: int | None = None, mode: str = "auto",
         raise ValueError(f"objective must have keys and residual_fn (a calibration.Objective), "
                          f"got {type(objective).__name__}")
     keys, thetas = _check_thetas(objective, thetas)
+    if validate and hasattr(objective, "check_thetas"):
+        objective.check_thetas(thetas, "thetas")
     if chunk is not None:
         chunk = _check_count("chunk", chunk)
     if memory_budget_bytes is not None and not (
@@ -429,3 +437,25 @@ def sweep(objective, thetas, *, chunk: int | None = None, mode: str = "auto",
     return SweepResult(keys=keys, thetas=thetas, loss=loss, status=status, residuals=residuals,
                        predictions=predictions, failed=np.flatnonzero(failed_mask), mode=mode, chunk=size,
                        n_devices=n_dev, wall_s=time.perf_counter() - clock, compile_s=evaluator.compile_s)
+
+
+def write_sweep(path, result: SweepResult, objective=None) -> None:
+    """Write a sweep to the HDF5 file ``path``: attributes ``keys_json`` (and ``objective_json``,
+    the objective's ``describe()``), datasets ``thetas``, ``loss``, ``status`` and ``residuals``.
+    Written to a temporary file in the same folder and renamed (the atomic write of the fit
+    histories), so a reader never sees a partial file and a failure leaves the old one."""
+    import json
+    import pathlib
+
+    from .fit import _atomic_h5
+
+    def write(f):
+        f.attrs["keys_json"] = json.dumps(list(result.keys))
+        if objective is not None and hasattr(objective, "describe"):
+            f.attrs["objective_json"] = json.dumps(objective.describe())
+        f.create_dataset("thetas", data=np.asarray(result.thetas))
+        f.create_dataset("loss", data=np.asarray(result.loss))
+        f.create_dataset("status", data=np.asarray(result.status))
+        f.create_dataset("residuals", data=np.asarray(result.residuals))
+
+    _atomic_h5(pathlib.Path(path), write)

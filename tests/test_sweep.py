@@ -24,7 +24,9 @@ from calibration.sweep import SweepResult, grid_points, latin_hypercube, sweep
 
 RTOL = 1e-12
 #: (beta, E): member 1 runs out of its step budget (E = 1e8 needs 10x more steps than the
-#: scene's budget, set for E = 1e6: BUDGET) and member 3 blows up (E < 0: NONFINITE).
+#: scene's budget, set for E = 1e6: BUDGET) and member 3 blows up (E < 0: NONFINITE). E < 0 is
+#: not a valid parameter set, which ``sweep`` refuses by default; these sweeps pass
+#: ``validate=False`` to exercise how a member that fails inside the run is reported.
 THETAS = np.array([[0.10, 1.0e6], [0.25, 1.0e8], [0.40, 1.0e6], [0.30, -1.0e6], [0.20, 1.2e6]])
 FAILED = [1, 3]
 
@@ -60,12 +62,12 @@ def objective():
 
 @pytest.fixture(scope="module")
 def looped(objective):
-    return sweep(objective, THETAS, mode="loop")
+    return sweep(objective, THETAS, mode="loop", validate=False)
 
 
 @pytest.fixture(scope="module")
 def vmapped(objective):
-    return sweep(objective, THETAS, mode="vmap", chunk=len(THETAS))
+    return sweep(objective, THETAS, mode="vmap", chunk=len(THETAS), validate=False)
 
 
 def assert_same_members(result: SweepResult, reference: SweepResult, exact: bool = False):
@@ -139,8 +141,19 @@ def test_vmap_matches_loop(vmapped, looped):
                                    rtol=RTOL, atol=1e-15)
 
 
+def test_invalid_members_are_refused_before_anything_compiles(objective):
+    """By default every member is checked with the engine's rules (E > 0, beta >= 0, mu2 >= mu1, ...)
+    and the sweep refuses, naming the member, before compiling: a member with beta < 0 would run and
+    could be reported as the best."""
+    with pytest.raises(ValueError, match=r"thetas: 1 of 5 members are not a valid parameter set: member 3 "
+                                         r"\(beta = 0.3, E = -1e\+06\): E must be > 0"):
+        sweep(objective, THETAS)
+    with pytest.raises(ValueError, match=r"member 0 \(beta = -0.2, E = 1e\+06\): beta must be >= 0"):
+        sweep(objective, np.array([[-0.2, 1e6], [0.2, 1e6]]))
+
+
 def test_chunks_with_a_padded_last_chunk_match_one_chunk(objective, vmapped):
-    chunked = sweep(objective, THETAS, mode="vmap", chunk=2)  # chunks of 2, 2, 1 (+1 padding)
+    chunked = sweep(objective, THETAS, mode="vmap", chunk=2, validate=False)  # chunks of 2, 2, 1 (+1 padding)
     assert chunked.chunk == 2 and chunked.residuals.shape == vmapped.residuals.shape
     assert chunked.predictions["h"].shape[0] == len(THETAS)
     assert_same_members(chunked, vmapped)
@@ -174,7 +187,7 @@ jax.config.update("jax_numpy_dtype_promotion", "strict")
 sys.path.insert(0, {tests!r})
 from test_sweep import THETAS, make_objective
 from calibration.sweep import sweep
-result = sweep(make_objective(), THETAS)  # auto: shard over all devices, chunk from memory analysis
+result = sweep(make_objective(), THETAS, validate=False)  # auto: shard over all devices, chunk from memory analysis
 print(json.dumps({{"n_devices_seen": len(jax.devices()), **result.to_json()}}))
 """
 
