@@ -8,7 +8,10 @@
 
 ``fit``, ``sweep`` and ``twin`` take the scene options of ``python -m jaxmpm run`` (--dx, --ppc,
 --t-end, --set key=value, ...). Invalid input exits with status 2 and a message naming the
-argument and what was wrong.
+argument and what was wrong, before anything compiles: options, data (against the scene too),
+every swept member, and every output path (--out, --plot). An existing --out is never replaced
+without --overwrite; --resume continues only a history made for the same problem. --json output
+is valid JSON: a non-finite number is printed as null and its path listed under "nonfinite".
 """
 
 from __future__ import annotations
@@ -38,17 +41,28 @@ def _pairs(items, option: str) -> dict[str, float]:
             key, value = parse_set(item)
         except ValueError as err:
             raise ValueError(str(err).replace("--set", option)) from None
+        if key in out:
+            raise ValueError(f"{option} {key} is given twice; give each key once")
         out[key] = value
     return out
 
 
 def _load_data(args):
+    from jaxmpm import describe_status
+
     from .data import load_front_history, load_profile
 
-    profiles = [load_profile(p, units=args.units) for p in args.data]
-    front = load_front_history(args.front, units=args.units, time_units=args.time_units) if args.front else None
+    profiles = [load_profile(p, units=args.units, dataset=args.dataset, sort=args.sort, clip_noise=args.clip_noise)
+                for p in args.data]
+    front = (load_front_history(args.front, units=args.units, time_units=args.time_units, dataset=args.dataset,
+                                sort=args.sort) if args.front else None)
     if not profiles and front is None:
         raise ValueError("--data (a profile CSV) and/or --front (a front-history CSV) is required")
+    for data in [*profiles, front]:
+        status = data.meta.get("status") if data is not None else None
+        if status not in (None, 0):  # what `python -m jaxmpm run --profile-csv` records of its run
+            raise ValueError(f"{data.path}: written by a run that failed (status {status}: "
+                             f"{'; '.join(describe_status(int(status)))}); it is not a result of its scene")
     return profiles, front
 
 
@@ -75,8 +89,25 @@ def _scene_and_objective(args, keys):
     return scene, objective
 
 
-def _write_json(obj) -> str:
-    return json.dumps(obj, default=lambda o: o.tolist() if hasattr(o, "tolist") else str(o))
+def _emit(obj, compact: bool) -> list[str]:
+    """Print ``obj`` as valid JSON (NaN and infinities as null, their paths under "nonfinite");
+    return those paths."""
+    from jaxmpm.io import json_safe
+
+    obj, bad = json_safe(obj)
+    if bad:
+        obj["nonfinite"] = bad
+    print(json.dumps(obj, allow_nan=False, default=str, indent=None if compact else 2))
+    return bad
+
+
+def _guard(errors: dict, option: str, write):
+    """Run one output step after the work; on failure keep the message (the JSON still prints)."""
+    try:
+        return write()
+    except (OSError, ValueError, RuntimeError, ImportError) as err:
+        errors[option] = f"{type(err).__name__}: {err}"
+        return None
 
 
 def _fit(args) -> int:
@@ -89,7 +120,7 @@ def _fit(args) -> int:
     noise = args.noise
     steps = args.steps or (25 if args.method == "lm" else 150)
     result = fit(objective, init, method=args.method, steps=steps, out=args.out, resume=args.resume,
-                 learning_rate=args.lr, progress=not args.no_progress, noise=noise,
+                 overwrite=args.overwrite, learning_rate=args.lr, progress=not args.no_progress, noise=noise,
                  meta={"command": "python -m calibration " + " ".join(sys.argv[1:]), "data": args.data,
                        "front": args.front})
     result.uncertainty = gauss_newton_uncertainty(
@@ -103,10 +134,17 @@ def _fit(args) -> int:
     near = objective.bounds.near_bound([result.theta[k] for k in keys])
     if near:
         out["warning"] = f"{near} ended at a bound: the data push them outside the physical range"
+    errors: dict[str, str] = {}
     if args.plot:
-        out["figures"] = _plots(args.plot, objective, result, prefix="fit")
-    print(_write_json(out) if args.json else json.dumps(json.loads(_write_json(out)), indent=2))
-    return 0
+        out["figures"] = _guard(errors, "--plot", lambda: _plots(args.plot, objective, result, prefix="fit"))
+    return _finish(out, args, errors)
+
+
+def _finish(out, args, errors) -> int:
+    if errors:
+        out["output_errors"] = errors
+    bad = _emit(out, args.json)
+    return 1 if (bad or errors) else 0
 
 
 def _plots(directory, objective, result, prefix: str, truth=None, initial=None):
@@ -119,10 +157,11 @@ def _plots(directory, objective, result, prefix: str, truth=None, initial=None):
     return [str(f) for f in figs]
 
 
-def _parse_over(items) -> dict[str, tuple[float, float, int]]:
+def _parse_over(items, lhs: bool = False) -> dict[str, tuple[float, float, int]]:
     out = {}
     for item in items:
         key, sep, rng = item.partition("=")
+        key = key.strip()
         parts = rng.split(":")
         if not sep or len(parts) not in (2, 3):
             raise ValueError(f"--over expects key=lo:hi[:n], got {item!r}")
@@ -131,54 +170,62 @@ def _parse_over(items) -> dict[str, tuple[float, float, int]]:
             n = int(parts[2]) if len(parts) == 3 else 5
         except ValueError:
             raise ValueError(f"--over {key}: lo, hi must be numbers and n an integer, got {rng!r}") from None
-        out[key.strip()] = (lo, hi, n)
+        if key in out:
+            raise ValueError(f"--over {key} is given twice ({key}={':'.join(map(str, out[key]))} and {item!r}); "
+                             "give each swept key once")
+        if lhs and len(parts) == 3:
+            raise ValueError(f"--over {item!r}: a count n does not apply with --lhs (which draws --lhs N points)")
+        out[key] = (lo, hi, n)
     if not out:
         raise ValueError("--over key=lo:hi[:n] is required (once per swept parameter)")
     return out
 
 
 def _sweep(args) -> int:
-    import numpy as np
+    from .sweep import grid_points, latin_hypercube, sweep, write_sweep
 
-    from .sweep import grid_points, latin_hypercube, sweep
-
-    over = _parse_over(args.over)
+    over = _parse_over(args.over, lhs=args.lhs is not None)
     keys = tuple(over)
+    if args.plot and args.lhs:
+        raise ValueError("--plot draws the loss over a grid; a Latin hypercube (--lhs) is none: drop one of them")
+    if args.plot and len(keys) > 2:
+        raise ValueError(f"--plot draws the loss over one or two swept keys, got {len(keys)} ({', '.join(keys)})")
     ranges = {k: (lo, hi) for k, (lo, hi, _) in over.items()}
     if args.lhs:
-        keys, thetas = latin_hypercube(ranges, args.lhs, seed=args.seed)
+        keys, thetas = latin_hypercube(ranges, args.lhs, seed=args.lhs_seed)
     else:
         keys, thetas = grid_points(ranges, {k: n for k, (_, _, n) in over.items()})
     scene, objective = _scene_and_objective(args, keys)
+    objective.check_thetas(thetas, "--over")  # every member, before anything compiles
     result = sweep(objective, thetas, chunk=args.chunk, mode=args.mode, progress=not args.no_progress)
     out = result.to_json()
     out.pop("residuals", None)  # per-member residual vectors go to --out, not to the terminal
     out["scene"] = scene.name
-    if args.out:
-        import h5py
-
-        with h5py.File(args.out, "w") as f:
-            f.attrs["keys_json"] = json.dumps(list(keys))
-            f.attrs["objective_json"] = json.dumps(objective.describe())
-            f.create_dataset("thetas", data=np.asarray(result.thetas))
-            f.create_dataset("loss", data=np.asarray(result.loss))
-            f.create_dataset("status", data=np.asarray(result.status))
-            f.create_dataset("residuals", data=np.asarray(result.residuals))
+    errors: dict[str, str] = {}
+    if args.out and _guard(errors, "--out", lambda: write_sweep(args.out, result, objective) or True):
         out["out"] = str(args.out)
-    if args.plot and len(keys) >= 2 and not args.lhs:
-        from .plots import plot_landscape
+    if args.plot:
+        out["figures"] = _guard(errors, "--plot", lambda: _sweep_plot(args.plot, result, keys))
+    return _finish(out, args, errors)
 
-        d = pathlib.Path(args.plot)
-        d.mkdir(parents=True, exist_ok=True)
-        xs, ys, loss = result.landscape(keys[0], keys[1])
-        best = result.best()
-        failed = [i for i in result.failed]
-        fx = np.asarray(result.thetas)[failed, 0] if failed else np.zeros(0)
-        fy = np.asarray(result.thetas)[failed, 1] if failed else np.zeros(0)
-        out["figures"] = [str(plot_landscape(xs, ys, loss, keys[0], keys[1], d / "landscape.png",
-                                             marks={"lowest": (best[keys[0]], best[keys[1]])}, failed=(fx, fy)))]
-    print(_write_json(out) if args.json else json.dumps(json.loads(_write_json(out)), indent=2))
-    return 0
+
+def _sweep_plot(directory, result, keys) -> list[str]:
+    import numpy as np
+
+    from .plots import plot_landscape, plot_loss_curve
+
+    d = pathlib.Path(directory)
+    d.mkdir(parents=True, exist_ok=True)
+    best = result.best() if result.ok.any() else None
+    if len(keys) == 1:
+        return [str(plot_loss_curve(result.thetas[:, 0], result.loss, keys[0], d / "loss.png",
+                                    best=best[keys[0]] if best else None))]
+    xs, ys, loss = result.landscape(keys[0], keys[1])
+    failed = list(result.failed)
+    fx = np.asarray(result.thetas)[failed, 0] if failed else np.zeros(0)
+    fy = np.asarray(result.thetas)[failed, 1] if failed else np.zeros(0)
+    marks = {"lowest": (best[keys[0]], best[keys[1]])} if best else None
+    return [str(plot_landscape(xs, ys, loss, keys[0], keys[1], d / "landscape.png", marks=marks, failed=(fx, fy)))]
 
 
 def _twin(args) -> int:
@@ -190,18 +237,22 @@ def _twin(args) -> int:
         jax.config.update("jax_enable_x64", True)
     if args.slope is not None or args.aspect is not None or args.dim != 2 or args.width is not None:
         raise ValueError("twin is the 2D S4 cohesive collapse: --slope, --aspect, --dim and --width do not apply")
+    if args.sampling is not None or args.seed != 0:
+        raise ValueError("twin uses the S4 scene's default particle sampling: --sampling and --seed do not apply "
+                         "(--noise-seed seeds the noise)")
     keys = _keys(args.fit)
-    out = twin(quick=args.quick, noise=args.noise, keys=keys, method=args.method, steps=args.steps, seed=args.seed,
-               dx=args.dx, ppc=args.ppc, t_end=args.t_end, values=_pairs(args.set, "--set"), dtype=args.dtype,
-               out=args.out, resume=args.resume, progress=not args.no_progress,
-               reference_noise=args.reference_noise, threshold=args.threshold)
+    out = twin(quick=args.quick, noise=args.noise, keys=keys, method=args.method, steps=args.steps,
+               seed=args.noise_seed, dx=args.dx, ppc=args.ppc, t_end=args.t_end, values=_pairs(args.set, "--set"),
+               dtype=args.dtype, out=args.out, resume=args.resume, overwrite=args.overwrite,
+               progress=not args.no_progress, reference_noise=args.reference_noise, threshold=args.threshold)
     result, objective = out.pop("_fit"), out.pop("_objective")
+    errors: dict[str, str] = {}
     if args.plot:
-        out["figures"] = _plots(args.plot, objective, result, prefix="twin", truth=out["true"])
+        out["figures"] = _guard(errors, "--plot", lambda: _plots(args.plot, objective, result, prefix="twin",
+                                                                 truth=out["true"]))
     if args.landscape:
         out["landscape"] = _twin_landscape(args, objective, out)
-    print(_write_json(out) if args.json else json.dumps(json.loads(_write_json(out)), indent=2))
-    return 0
+    return _finish(out, args, errors)
 
 
 def _twin_landscape(args, objective, out) -> dict:
@@ -260,18 +311,22 @@ def _law(args) -> int:
         law(a)  # an aspect ratio the law file does not tabulate fails here, before any run
     out = fit_runout_law(_floats(args.train, "--train"), _floats(args.test, "--test"), _keys(args.fit), law=law,
                          dx=args.dx, ppc=args.ppc, values=_pairs(args.set, "--set"), steps=args.steps, out=args.out,
-                         progress=not args.no_progress, jacobian=args.jacobian, fd_step=args.fd_step)
+                         overwrite=args.overwrite, progress=not args.no_progress, jacobian=args.jacobian,
+                         fd_step=args.fd_step)
     result = out.pop("_fit")
     out["law"] = label
+    errors: dict[str, str] = {}
     if args.plot:
         from .plots import plot_history, plot_runout_law
 
-        d = pathlib.Path(args.plot)
-        d.mkdir(parents=True, exist_ok=True)
-        out["figures"] = [str(plot_runout_law(out["cases"], d / "law_runout.png", law=law, title=out["law"])),
-                          str(plot_history(result.history, result.keys, d / "law_history.png"))]
-    print(_write_json(out) if args.json else json.dumps(json.loads(_write_json(out)), indent=2))
-    return 0
+        def figures():
+            d = pathlib.Path(args.plot)
+            d.mkdir(parents=True, exist_ok=True)
+            return [str(plot_runout_law(out["cases"], d / "law_runout.png", law=law, title=out["law"])),
+                    str(plot_history(result.history, result.keys, d / "law_history.png"))]
+
+        out["figures"] = _guard(errors, "--plot", figures)
+    return _finish(out, args, errors)
 
 
 def _bench(args) -> int:
@@ -283,8 +338,7 @@ def _bench(args) -> int:
         jax.config.update("jax_enable_x64", True)
     kw = {"dx": 0.089 / 8, "t_end": 0.2} if args.quick else {"dx": args.dx}
     out = bench(_keys(args.fit), repeat=args.repeat, dtype=args.dtype, **kw)
-    print(json.dumps(out) if args.json else json.dumps(out, indent=2))
-    return 0
+    return 1 if _emit(out, args.json) else 0
 
 
 def _common(p, data: bool = True) -> None:
@@ -298,6 +352,12 @@ def _common(p, data: bool = True) -> None:
         p.add_argument("--units", default=None, choices=("m", "cm", "mm"),
                        help="length units of files that do not state them (WebPlotDigitizer exports)")
         p.add_argument("--time-units", default=None, choices=("s", "ms"), help="time units of a front file")
+        p.add_argument("--dataset", default=None, metavar="NAME",
+                       help="the dataset to take from multi-dataset WebPlotDigitizer exports (default: the first)")
+        p.add_argument("--sort", action="store_true",
+                       help="sort points given in WebPlotDigitizer click order by x (or t); duplicates are refused")
+        p.add_argument("--clip-noise", action="store_true",
+                       help="set heights in [-1e-3 max h, 0) to zero (digitisation noise); lower ones are refused")
         p.add_argument("--weight-profile", type=float, default=1.0, help="weight of the profile misfit")
         p.add_argument("--weight-front", type=float, default=1.0, help="weight of the front misfit")
         p.add_argument("--front-threshold", type=float, default=None,
@@ -313,7 +373,9 @@ def _fit_options(p, default_keys: str | None) -> None:
     p.add_argument("--method", choices=("lm", "adam"), default="lm")
     p.add_argument("--steps", type=int, default=None, help="maximum iterations (default 25 for lm, 150 for adam)")
     p.add_argument("--out", default=None, metavar="FILE.h5", help="history file, written after every iteration")
-    p.add_argument("--resume", action="store_true", help="continue the fit stored in --out")
+    p.add_argument("--resume", action="store_true",
+                   help="continue the fit stored in --out (it must be a history of the same problem)")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing --out with a new fit")
     p.add_argument("--plot", default=None, metavar="DIR", help="write the figures into DIR")
     p.add_argument("--reference-noise", type=float, default=0.01,
                    help="noise (fraction of the data scale) at which identifiability is judged (default 0.01)")
@@ -340,11 +402,14 @@ def build_parser() -> argparse.ArgumentParser:
     _common(sweep)
     sweep.add_argument("--over", action="append", default=[], metavar="KEY=LO:HI[:N]", help="swept parameter")
     sweep.add_argument("--lhs", type=int, default=None, metavar="N", help="N Latin-hypercube samples instead of a grid")
-    sweep.add_argument("--seed", type=int, default=0)
+    sweep.add_argument("--lhs-seed", type=int, default=0, help="seed of the Latin hypercube (--seed seeds "
+                       "the particle sampling)")
     sweep.add_argument("--chunk", type=int, default=None, help="members per vmapped chunk (default: by memory)")
     sweep.add_argument("--mode", choices=("auto", "vmap", "shard", "loop"), default="auto")
-    sweep.add_argument("--out", default=None, metavar="FILE.h5")
-    sweep.add_argument("--plot", default=None, metavar="DIR", help="the loss landscape of the first two keys")
+    sweep.add_argument("--out", default=None, metavar="FILE.h5", help="every member's loss, status and residuals")
+    sweep.add_argument("--overwrite", action="store_true", help="replace an existing --out")
+    sweep.add_argument("--plot", default=None, metavar="DIR",
+                       help="the loss over the swept key, or the landscape over two (a grid, not --lhs)")
 
     be = sub.add_parser("bench", help="time a forward run, the forward-mode Jacobian and the reverse-mode gradient")
     be.add_argument("--fit", default="beta,mu1,mu2,I0,xi", metavar="KEYS", help="parameters (default all five)")
@@ -368,6 +433,7 @@ def build_parser() -> argparse.ArgumentParser:
     law.add_argument("--jacobian", choices=("ad", "fd"), default="fd")
     law.add_argument("--fd-step", type=float, default=0.05, help="relative step of the central differences")
     law.add_argument("--out", default=None, metavar="FILE.h5")
+    law.add_argument("--overwrite", action="store_true", help="replace an existing --out")
     law.add_argument("--plot", default=None, metavar="DIR")
     law.add_argument("--no-progress", action="store_true")
     law.add_argument("--json", action="store_true")
@@ -377,10 +443,70 @@ def build_parser() -> argparse.ArgumentParser:
     _fit_options(tw, "beta,mu1,xi")
     tw.add_argument("--quick", action="store_true", help="a coarse grid (dx = L/8): about a minute")
     tw.add_argument("--noise", type=float, default=0.0, help="Gaussian noise, fraction of the peak height")
-    tw.add_argument("--seed", type=int, default=0, help="seed of the noise")
+    tw.add_argument("--noise-seed", type=int, default=0, help="seed of the noise")
     tw.add_argument("--landscape", type=int, default=None, metavar="N",
                     help="also sweep the loss on an N × N grid over the first two keys (figure with --plot)")
     return parser
+
+
+def _check_options(args) -> None:
+    """Checks the library would make later, or with its own argument names."""
+    from jaxmpm.__main__ import check_scene_args
+
+    if hasattr(args, "sampling"):  # the scene options of add_scene_arguments
+        check_scene_args(args)
+    for name in ("lr", "fd_step", "front_threshold"):
+        value = getattr(args, name, None)
+        if value is not None and not (math.isfinite(value) and value > 0):
+            raise ValueError(f"--{name.replace('_', '-')} must be a finite number > 0, got {value}")
+    if hasattr(args, "weight_profile"):
+        for option, weight, given, what in (("--weight-profile", args.weight_profile, bool(args.data), "--data"),
+                                            ("--weight-front", args.weight_front, bool(args.front), "--front")):
+            if not (math.isfinite(weight) and weight >= 0):
+                raise ValueError(f"{option} must be a finite number >= 0, got {weight}")
+            if given and weight == 0:
+                raise ValueError(f"{option} 0 gives the {what} data no weight: their residuals would all be zero and "
+                                 f"their uncertainty undefined; leave out {what} instead")
+    for option in ("init", "set"):
+        if hasattr(args, option):
+            _pairs(getattr(args, option), f"--{option}")  # malformed or repeated keys
+
+
+def _check_outputs(args) -> None:
+    """Every output path is checked before the data are read or anything compiles: a file for
+    --out (which must exist for --resume, and must not, unless --overwrite, otherwise), a folder
+    for --plot. Nothing is created here."""
+    import importlib.util
+
+    from jaxmpm.io import check_output_dir, check_output_file
+
+    out = getattr(args, "out", None)
+    resume, overwrite = getattr(args, "resume", False), getattr(args, "overwrite", False)
+    if out:
+        check_output_file(out, "--out")
+        path = pathlib.Path(out)
+        if resume and overwrite:
+            raise ValueError("--resume and --overwrite exclude each other")
+        if resume:
+            from .fit import read_history
+
+            if not path.exists():
+                raise ValueError(f"--resume: --out {out!r} does not exist, so there is nothing to resume (check the "
+                                 "name; without --resume a new fit starts)")
+            try:
+                read_history(path)
+            except ValueError as err:
+                raise ValueError(f"--resume: {err}") from None
+        elif path.exists() and not overwrite:
+            hint = "--resume to continue the fit it holds, or " if hasattr(args, "resume") else ""
+            raise ValueError(f"--out {out!r} exists: pass {hint}--overwrite to replace it")
+    elif overwrite:
+        raise ValueError("--overwrite needs --out")
+    plot = getattr(args, "plot", None)
+    if plot:
+        if importlib.util.find_spec("matplotlib") is None:
+            raise ValueError("--plot needs matplotlib: pip install 'jaxmpm[plot]'")
+        check_output_dir(plot, "--plot")
 
 
 def main(argv=None) -> int:
@@ -397,6 +523,8 @@ def main(argv=None) -> int:
                 raise ValueError(f"--{name.replace('_', '-')} must be >= 0, got {value}")
         if getattr(args, "resume", False) and not args.out:
             raise ValueError("--resume needs --out (the history file to continue)")
+        _check_options(args)
+        _check_outputs(args)
         commands = {"fit": _fit, "sweep": _sweep, "twin": _twin, "bench": _bench, "law": _law}
         return commands[args.command](args)
     except ValueError as err:

@@ -1,4 +1,5 @@
-"""Figures of a calibration: the fit against the data, the optimiser's history, a loss landscape.
+"""Figures of a calibration: the fit against the data, the optimiser's history, a loss landscape
+(or a loss curve, for a sweep over one key).
 
 matplotlib is an optional dependency (the ``plot`` extra); it is imported only here.
 """
@@ -9,7 +10,7 @@ import pathlib
 
 import numpy as np
 
-__all__ = ["plot_fit", "plot_history", "plot_landscape", "plot_runout_law"]
+__all__ = ["plot_fit", "plot_history", "plot_landscape", "plot_loss_curve", "plot_runout_law"]
 
 
 def _plt():
@@ -137,6 +138,32 @@ def plot_landscape(xs, ys, loss, key_x, key_y, path, *, marks=None, failed=None,
     ax.set_xlabel(key_x)
     ax.set_ylabel(key_y)
     ax.set_title(title or f"loss landscape over ({key_x}, {key_y})", fontsize=10)
+    fig.tight_layout()
+    path = pathlib.Path(path)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def plot_loss_curve(xs, loss, key, path, *, best=None, title: str | None = None):
+    """The loss of a sweep over one key (log scale); NaN (failed members) drawn as crosses on the
+    axis; ``best``: the key's value at the lowest loss."""
+    plt = _plt()
+    xs, loss = np.asarray(xs, float), np.asarray(loss, float)
+    order = np.argsort(xs)
+    xs, loss = xs[order], loss[order]
+    fig, ax = plt.subplots(figsize=(5.0, 3.6))
+    ok = np.isfinite(loss) & (loss > 0)
+    ax.semilogy(xs[ok], loss[ok], "o-", ms=4)
+    if np.any(~np.isfinite(loss)):
+        floor = float(np.min(loss[ok])) if ok.any() else 1.0
+        ax.plot(xs[~np.isfinite(loss)], np.full(int((~np.isfinite(loss)).sum()), floor), "kx", ms=7, label="failed run")
+        ax.legend(fontsize=8)
+    if best is not None:
+        ax.axvline(best, color="r", lw=1, ls="--")
+    ax.set_xlabel(key)
+    ax.set_ylabel("loss")
+    ax.set_title(title or f"loss over {key}", fontsize=10)
     fig.tight_layout()
     path = pathlib.Path(path)
     fig.savefig(path, dpi=110)
