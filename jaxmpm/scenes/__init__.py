@@ -1,7 +1,7 @@
 """Scene builders: each returns a ``Scene`` that unpacks as ``(config, state, params)``."""
 
 from .collapse import (
-    S2_PARAMS, S3_PARAMS, S4_PARAMS, S5_PARAMS, Scene, aspect_ratio_collapse, cohesive_collapse, collapse,
+    DEFAULT_PPC, DEFAULT_SAMPLING, S2_PARAMS, S3_PARAMS, S4_PARAMS, S5_PARAMS, Scene, aspect_ratio_collapse, cohesive_collapse, collapse,
     gates_collapse, height_law, runout_law, slope_collapse,
 )
 from .elastic import falling_block
@@ -9,7 +9,7 @@ from .incline import S1_PARAMS, bagnold_velocity, incline
 
 __all__ = [
     "SCENE_NAMES", "add_scene_arguments", "build_scene", "parse_set", "scene_from_args",
-    "S1_PARAMS", "bagnold_velocity", "incline", "S2_PARAMS", "S3_PARAMS", "S4_PARAMS", "S5_PARAMS", "Scene", "aspect_ratio_collapse", "cohesive_collapse",
+    "DEFAULT_PPC", "DEFAULT_SAMPLING", "S1_PARAMS", "bagnold_velocity", "incline", "S2_PARAMS", "S3_PARAMS", "S4_PARAMS", "S5_PARAMS", "Scene", "aspect_ratio_collapse", "cohesive_collapse",
     "collapse", "falling_block", "gates_collapse", "height_law", "runout_law", "slope_collapse",
 ]
 
@@ -17,10 +17,11 @@ __all__ = [
 SCENE_NAMES = ("cohesive-collapse", "gates-collapse", "slope-collapse", "aspect-ratio", "elastic-block")
 
 
-def build_scene(name: str, dx=None, ppc=2, dim=2, width=None, t_end=None, frames=0, slope=None, aspect=None,
-                dtype=None, values=None, sampling="lattice", seed=0):
+def build_scene(name: str, dx=None, ppc=None, dim=2, width=None, t_end=None, frames=0, slope=None, aspect=None,
+                dtype=None, values=None, sampling=None, seed=0):
     """A scene by its command-line name (``SCENE_NAMES``) with the command line's options:
-    ``dx``/``t_end`` None take the scene's coarse defaults, ``values`` are material parameters."""
+    ``dx``, ``ppc``, ``sampling``, ``t_end`` None take the scene's defaults, ``values`` are
+    material parameters."""
     values = dict(values or {})
     common = dict(ppc=ppc, dim=dim, width=width, frames=frames, dtype=dtype, sampling=sampling, seed=seed, **values)
     if t_end is not None:
@@ -42,7 +43,7 @@ def build_scene(name: str, dx=None, ppc=2, dim=2, width=None, t_end=None, frames
     if name == "elastic-block":
         if dim != 2 or width is not None:
             raise ValueError("elastic-block is 2D")
-        if sampling != "lattice" or ppc != 2:
+        if sampling not in (None, "lattice") or ppc not in (None, 2):
             raise ValueError("elastic-block is sampled on a 2 x 2 lattice (--ppc and --sampling do not apply)")
         return falling_block(n_particles=2_500, t_end=t_end or 0.39, frames=frames, dtype=dtype, **values)
     raise ValueError(f"scene must be one of {SCENE_NAMES}, got {name!r}")
@@ -56,10 +57,10 @@ def add_scene_arguments(parser, scene_choices: bool = True) -> None:
         parser.add_argument("scene", choices=SCENE_NAMES)
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="material parameter")
     parser.add_argument("--dx", type=float, default=None, help="grid spacing, m (default: a coarse, fast value)")
-    parser.add_argument("--ppc", type=float, default=2, help="particles per cell and axis (default 2; an integer "
-                        "for lattice and jitter sampling)")
-    parser.add_argument("--sampling", choices=("lattice", "jitter", "poisson"), default="lattice",
-                        help="particle sampling (jaxmpm.sampling; poisson needs scipy)")
+    parser.add_argument("--ppc", type=float, default=None, help="particles per cell and axis (default: the "
+                        "scene's, DEFAULT_PPC; an integer for lattice and jitter sampling)")
+    parser.add_argument("--sampling", choices=("lattice", "jitter", "poisson"), default=None,
+                        help="particle sampling (default: the scene's, DEFAULT_SAMPLING; poisson needs scipy)")
     parser.add_argument("--seed", type=int, default=0, help="random seed of jitter and poisson sampling")
     parser.add_argument("--dim", type=int, default=2, choices=(2, 3))
     parser.add_argument("--width", type=float, default=None, help="channel width for --dim 3, m")

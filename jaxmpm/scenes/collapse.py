@@ -23,12 +23,16 @@ from ..state import State, init_state
 from ..step import step_budget
 
 __all__ = [
-    "Scene", "S2_PARAMS", "S3_PARAMS", "S4_PARAMS", "S5_PARAMS",
+    "DEFAULT_PPC", "DEFAULT_SAMPLING", "Scene", "S2_PARAMS", "S3_PARAMS", "S4_PARAMS", "S5_PARAMS",
     "gates_collapse", "slope_collapse", "cohesive_collapse", "aspect_ratio_collapse", "collapse", "runout_law",
     "height_law",
 ]
 
 G = 9.81
+#: Default particle sampling and particles per cell (along each axis) of every collapse scene
+#: and of the command line, chosen by the resolution study (docs/validation.md §1).
+DEFAULT_SAMPLING = "lattice"
+DEFAULT_PPC = 2
 #: SCENES.md S2 material; unlisted keys take MODEL.md §4 defaults (E = 1e6, ν = 0.3,
 #: ρ = 1550, ρ_s = 2500, μ1 = tan 20.9°, μ2 = tan 32.76°, I0 = 0.279).
 S2_PARAMS = {"d": 2e-3, "beta": 0.0, "pc0": 100.0, "xi": 50.0}
@@ -77,8 +81,8 @@ def collapse(
     height: float,
     *,
     dx: float,
-    ppc: float = 2,
-    sampling: str = "lattice",
+    ppc: float | None = None,
+    sampling: str | None = None,
     seed: int = 0,
     wall_gap: float | None = None,
     dim: int = 2,
@@ -113,6 +117,8 @@ def collapse(
         raise ValueError(f"dim must be 2 or 3, got {dim!r}")
     if dim == 3 and width is None:
         raise ValueError("width (the channel width, m) is required when dim=3")
+    sampling = DEFAULT_SAMPLING if sampling is None else sampling
+    ppc = DEFAULT_PPC if ppc is None else ppc
     if sampling not in SAMPLINGS:
         raise ValueError(f"sampling must be one of {SAMPLINGS}, got {sampling!r}")
     if sampling == "poisson":
@@ -186,7 +192,7 @@ def collapse(
     return Scene(name, config, init_state(config, x, vol, dtype=dtype), params, meta)
 
 
-def gates_collapse(dx: float = 0.0025, ppc: int = 2, dim: int = 2, width: float | None = None,
+def gates_collapse(dx: float = 0.0025, ppc: float | None = None, dim: int = 2, width: float | None = None,
                    t_end: float = 0.4198, frames: int = 0, **kw) -> Scene:
     """S2: a 0.08 m × 0.05 m column between two slip-free gates lifted at 0.45 m/s; it spreads to
     both sides (about 0.07 m each way by t = 0.42 s)."""
@@ -197,7 +203,7 @@ def gates_collapse(dx: float = 0.0025, ppc: int = 2, dim: int = 2, width: float 
                     base_params=S2_PARAMS, **kw)
 
 
-def slope_collapse(slope_deg: float = 10.0, dx: float = 0.005, ppc: int = 2, dim: int = 2,
+def slope_collapse(slope_deg: float = 10.0, dx: float = 0.005, ppc: float | None = None, dim: int = 2,
                    width: float | None = None, t_end: float | None = None, frames: int = 0, **kw) -> Scene:
     """S3 (Mangeney et al. 2010 set-up): a 0.20 m × 0.14 m column against a slip-free back wall
     on a no-slip bed inclined at ``slope_deg``, released at t = 0 with no gate."""
@@ -208,7 +214,7 @@ def slope_collapse(slope_deg: float = 10.0, dx: float = 0.005, ppc: int = 2, dim
                     t_end=t_end, frames=frames, base_params=S3_PARAMS, **kw)
 
 
-def cohesive_collapse(beta: float = 0.0, dx: float = 0.089 / 16, ppc: int = 2, dim: int = 2,
+def cohesive_collapse(beta: float = 0.0, dx: float = 0.089 / 16, ppc: float | None = None, dim: int = 2,
                       width: float | None = None, t_end: float = 0.5, frames: int = 0, **kw) -> Scene:
     """S4 (Gans et al. 2023 set-up): a 0.089 m square column of coated beads on a no-slip floor
     against a slip-free back wall; the front gate is lifted at 50 m/s (practically instantly)."""
@@ -235,7 +241,7 @@ def height_law(a):
     return np.where(a <= 0.7, a, a ** (1.0 / 3.0))
 
 
-def aspect_ratio_collapse(a: float = 1.0, L0: float = 0.05, dx: float | None = None, ppc: int = 2,
+def aspect_ratio_collapse(a: float = 1.0, L0: float = 0.05, dx: float | None = None, ppc: float | None = None,
                           dim: int = 2, width: float | None = None, t_end: float | None = None,
                           frames: int = 0, **kw) -> Scene:
     """S5: a column L0 × a L0 on a horizontal no-slip floor against a slip-free back wall,
