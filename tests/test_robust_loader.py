@@ -61,7 +61,7 @@ def files(draw) -> bytes:
             lines[k] = delimiter.join(cells[:-1] + [f"{value:.6g}"])
         elif mutation == "bad header":
             lines.insert(0, draw(st.sampled_from(BAD_HEADERS)))
-        elif mutation == "repeat header" and first > 0 and lines[0].startswith("# "):
+        elif mutation == "repeat header" and lines and lines[0].startswith("# "):
             lines.insert(1, lines[0])
         elif mutation == "bad columns":
             lines.insert(first, draw(st.sampled_from(BAD_COLUMNS)))
