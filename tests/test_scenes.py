@@ -25,14 +25,18 @@ from jaxmpm.observables import deposit_profile, front_position, particle_volumes
 )
 def test_scene_builds_and_runs(build):
     """Every builder runs without status bits. The column is the body [0, L] × [g, H + g] above
-    the floor at y = 0 (g = wall_gap = dx/2), and no particle's stencil reaches a node behind
-    any wall at t = 0 (MODEL.md §5; the scenes' placement convention)."""
+    the floor at y = 0, raised so that its lowest particle lies half a cell (0.501 dx) above
+    the floor (g = wall_gap = (dx − dx/ppc)/2 for a lattice), and no particle's stencil reaches
+    a node behind any wall at t = 0 (MODEL.md §5; the scenes' placement convention)."""
     scene = build()
     config, state, params = scene
     x = np.asarray(state.x)
-    gap = scene.meta["wall_gap"]
-    assert gap == 0.5 * scene.meta["dx"]
-    assert x[:, 1].min() > gap
+    gap, dx = scene.meta["wall_gap"], scene.meta["dx"]
+    np.testing.assert_allclose(x[:, 1].min(), 0.501 * dx, rtol=1e-12)
+    if scene.meta.get("sampling", "lattice") == "lattice":  # rows of spacing H / round(H ppc / dx)
+        height = scene.meta.get("H", scene.meta.get("depth"))
+        spacing = height / round(height * scene.meta["ppc"] / dx)
+        np.testing.assert_allclose(gap, 0.501 * dx - 0.5 * spacing, rtol=1e-9)
     if "L" in scene.meta:
         assert x[:, 0].min() > 0 and x[:, 0].max() < scene.meta["L"] and x[:, 1].max() < scene.meta["H"] + gap
     assert _stencil_nodes_behind_walls(config, state) == 0

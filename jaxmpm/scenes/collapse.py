@@ -23,7 +23,7 @@ from ..state import State, init_state
 from ..step import step_budget
 
 __all__ = [
-    "DEFAULT_PPC", "DEFAULT_SAMPLING", "Scene", "S2_PARAMS", "S3_PARAMS", "S4_PARAMS", "S5_PARAMS",
+    "DEFAULT_PPC", "DEFAULT_SAMPLING", "Scene", "floor_lift", "S2_PARAMS", "S3_PARAMS", "S4_PARAMS", "S5_PARAMS",
     "gates_collapse", "slope_collapse", "cohesive_collapse", "aspect_ratio_collapse", "collapse", "runout_law",
     "height_law",
 ]
@@ -64,6 +64,16 @@ def _check_positive(**values):
             continue
         if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
             raise ValueError(f"{name} must be > 0, got {value!r}")
+
+
+def floor_lift(y, dx: float, wall_gap: float | None = None) -> float:
+    """How far to raise a body sampled with its lower face on the floor (y = 0): so that its
+    lowest particle lies half a cell above the floor (``wall_gap`` None), or by ``wall_gap``.
+    "Half a cell" is 0.501 dx: exactly dx/2 would put the particle on the edge of its stencil,
+    where a float32 rounding of x/dx picks the node row below the floor."""
+    if wall_gap is not None:
+        return float(wall_gap)
+    return max(0.0, 0.501 * dx - float(min(y)))
 
 
 def _side_gap(extent: float, gap: float, dx: float) -> float:
@@ -109,8 +119,9 @@ def collapse(
     ``back_gate_speed``: separable gates in front of x = L / behind x = 0 lifted at that speed
     (their lower edge starts on the bed). ``runout`` and ``backward_runout``: how far beyond x = L
     and before x = 0 the grid reaches. ``ppc``, ``sampling``, ``seed``: particles per cell along
-    each axis, the sampler (``jaxmpm.sampling``) and its seed. ``wall_gap``: the gap between the
-    body and its walls at t = 0 (default dx/2; see the module docstring).
+    each axis, the sampler (``jaxmpm.sampling``) and its seed. ``wall_gap``: the placement
+    against the walls (default: the lowest particle half a cell above the floor; see the module
+    docstring).
     """
     _check_positive(dx=dx, length=length, height=height, runout=runout, t_end=t_end, width=width)
     if dim not in (2, 3):
@@ -128,9 +139,10 @@ def collapse(
         raise ValueError(f"ppc must be a positive integer for {sampling} sampling, got {ppc!r}")
     if sampling != "poisson":
         ppc = int(ppc)
-    gap = 0.5 * dx if wall_gap is None else wall_gap
-    if not (isinstance(gap, (int, float)) and math.isfinite(gap) and 0.0 <= gap <= 2.0 * dx):
+    if wall_gap is not None and not (isinstance(wall_gap, (int, float)) and math.isfinite(wall_gap)
+                                     and 0.0 <= wall_gap <= 2.0 * dx):
         raise ValueError(f"wall_gap must be in [0, 2 dx] (m), got {wall_gap!r}")
+    gap = 0.501 * dx if wall_gap is None else wall_gap  # side walls (0.501: see floor_lift); the floor follows the sample
     if not (math.isfinite(slope_deg) and -60.0 < slope_deg < 60.0):
         raise ValueError(f"slope_deg must be in (-60, 60) degrees, got {slope_deg!r}")
     if not (isinstance(frames, int) and frames >= 0):
@@ -148,7 +160,7 @@ def collapse(
     x0 = x_back - math.ceil((backward_runout + margin) / dx) * dx
     span_x = (length + gap_x + runout + margin) - x0
     # Height: the column plus room for a splash (material rarely rises above its start).
-    span_y = height * 1.15 + gap + 2 * margin
+    span_y = height * 1.15 + 0.5 * dx + gap + 2 * margin
     cells = [math.ceil(span_x / dx), math.ceil(span_y / dx)]
     origin = [x0, -margin]
     channel = None
@@ -183,12 +195,13 @@ def collapse(
         gravity=gravity, transfer=transfer, alpha=alpha, cfl=cfl,
         frame_times=tuple(t_end * (k + 1) / frames for k in range(frames)),
     )
-    lower = (0.0, gap) + ((0.0,) if dim == 3 else ())
-    upper = (length, height + gap) + ((width,) if dim == 3 else ())
-    x, vol = seed_box(lower, upper, dx, ppc, sampling=sampling, seed=seed)
+    upper = (length, height) + ((width,) if dim == 3 else ())
+    x, vol = seed_box((0.0,) * dim, upper, dx, ppc, sampling=sampling, seed=seed)
+    lift = floor_lift(x[:, 1], dx, wall_gap)
+    x[:, 1] += lift
     meta = {"L": length, "H": height, "slope_deg": slope_deg, "front0": length, "dim": dim, "dx": dx,
-            "ppc": ppc, "sampling": sampling, "seed": seed, "wall_gap": gap, "side_gap": gap_x, "width": channel,
-            "particles_per_cell": particles_per_cell(len(x), lower, upper, dx)}
+            "ppc": ppc, "sampling": sampling, "seed": seed, "wall_gap": lift, "side_gap": gap_x, "width": channel,
+            "particles_per_cell": particles_per_cell(len(x), (0.0,) * dim, upper, dx)}
     return Scene(name, config, init_state(config, x, vol, dtype=dtype), params, meta)
 
 

@@ -3,9 +3,9 @@
 A layer of depth h on a rough (no-slip) bed at y = 0, periodic along the slope (x), with gravity
 rotated to g = 9.81 (sin θ, -cos θ). The periodic length is a few cells: the steady state is
 uniform in x, so nothing is gained by a longer domain. As in the collapses (``collapse.py``),
-the layer starts half a cell above the bed (``wall_gap``, default dx/2), so that no particle's
-stencil reaches a node below it; z = y - wall_gap is the height in the layer
-(``meta["wall_gap"]``).
+the layer is raised so that its lowest particle lies half a cell above the bed (no particle's
+stencil reaches a node below it); its lower face then stands ``meta["wall_gap"]`` above the bed
+(dx/4 for a 2 × 2 lattice), and z = y - wall_gap is the height in the layer.
 """
 
 from __future__ import annotations
@@ -19,7 +19,7 @@ from ..params import Params
 from ..sampling import seed_box
 from ..state import init_state
 from ..step import step_budget
-from .collapse import G, Scene
+from .collapse import G, Scene, floor_lift
 
 __all__ = ["incline", "S1_PARAMS", "bagnold_velocity"]
 
@@ -66,8 +66,8 @@ def incline(slope_deg: float = 24.0, dx: float | None = None, ppc: int = 2, dept
     exp(ε_v^p(t = 0)) for volumes relative to the start. ``start_from_analytic=False`` starts
     from rest (the approach to the steady state, ``validate bagnold --from-rest``)."""
     dx = dx if dx is not None else depth / 16
-    gap = 0.5 * dx if wall_gap is None else wall_gap
-    if not (isinstance(gap, (int, float)) and math.isfinite(gap) and 0.0 <= gap <= 2.0 * dx):
+    if wall_gap is not None and not (isinstance(wall_gap, (int, float)) and math.isfinite(wall_gap)
+                                     and 0.0 <= wall_gap <= 2.0 * dx):
         raise ValueError(f"wall_gap must be in [0, 2 dx] (m), got {wall_gap!r}")
     for name, value in (("dx", dx), ("depth", depth), ("t_end", t_end)):
         if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
@@ -77,7 +77,7 @@ def incline(slope_deg: float = 24.0, dx: float | None = None, ppc: int = 2, dept
     params = Params.create(dtype=dtype, **{**S1_PARAMS, **param_values})
     theta = math.radians(slope_deg)
     margin = 3 * dx
-    grid = Grid((length_cells, math.ceil((1.3 * depth + gap + 2 * margin) / dx)), dx, origin=(0.0, -margin),
+    grid = Grid((length_cells, math.ceil((1.3 * depth + 2 * dx + 2 * margin) / dx)), dx, origin=(0.0, -margin),
                 periodic=(True, False))
     if max_steps is None:
         max_steps = step_budget(CriticalState(), params, dx, t_end, margin=1.1, extra=frames + 10)
@@ -87,8 +87,10 @@ def incline(slope_deg: float = 24.0, dx: float | None = None, ppc: int = 2, dept
         transfer=transfer, alpha=alpha,
         frame_times=tuple(t_end * (k + 1) / frames for k in range(frames)),
     )
-    x, vol = seed_box((0.0, gap), (length_cells * dx, depth + gap), dx, ppc, sampling=sampling, seed=seed)
-    z = x[:, 1] - gap
+    x, vol = seed_box((0.0, 0.0), (length_cells * dx, depth), dx, ppc, sampling=sampling, seed=seed)
+    z = x[:, 1].copy()
+    gap = floor_lift(z, dx, wall_gap)
+    x[:, 1] += gap
     v = None
     if start_from_analytic:
         v = [[vx, 0.0] for vx in bagnold_velocity(z, depth, slope_deg, params)]
