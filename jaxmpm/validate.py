@@ -26,7 +26,7 @@ import numpy as np
 
 from . import fidelity, scenes
 from .materials.base import invariants
-from .observables import deposit_profile, particle_volumes
+from .observables import deposit_profile, front_from_profile, particle_volumes
 from .simulate import simulate
 
 __all__ = ["STUDIES", "run_study", "bagnold", "convergence", "aspect_ratio", "cohesion", "speed_accuracy",
@@ -198,55 +198,51 @@ def _plot_bagnold(profiles, slopes, divisions, cases, plot_dir, name="bagnold.pn
     _save(fig, plot_dir, name, 90)
 
 
-def _deposit(scene, result, xs):
-    sigma = scene.meta["dx"] / scene.meta["ppc"]
-    return np.asarray(deposit_profile(result.state.x, particle_volumes(result.state), xs, sigma))
-
-
 def convergence(quick=False, plot_dir=None) -> dict:
-    """S3 at 10°: runout and deposit profile at several dx (ppc 2) and at ppc 3, against the
-    finest run; the observed order from successive differences."""
+    """S3 at 10° at the scene defaults (sampling, particles per cell) over dx: the front (where
+    the deposit profile falls below 3 mm), the deposit profile and the maximum-particle runout
+    against the finest run; the observed order of the front from successive differences."""
     dxs = (0.02, 0.01) if quick else (0.02, 0.01, 0.005, 0.0025)
     t_end = 0.3 if quick else 1.0
     runs = []
     for dx in dxs:
-        scene = scenes.slope_collapse(10.0, dx=dx, t_end=t_end)
-        result, wall = _timed(scene)
-        runs.append((scene, result, wall, 2))
-    scene = scenes.slope_collapse(10.0, dx=dxs[-2], ppc=3, t_end=t_end)
-    result, wall = _timed(scene)
-    runs.append((scene, result, wall, 3))
-    ref_scene, ref = runs[len(dxs) - 1][0], runs[len(dxs) - 1][1]
-    xs = np.linspace(0.0, float(np.asarray(ref.state.x)[:, 0].max()) + 0.02, 300)
-    h_ref = _deposit(ref_scene, ref, xs)
-    runout_ref = float(np.asarray(ref.state.x)[:, 0].max()) - 0.2
-    rows = []
-    for scene, result, wall, ppc in runs:
-        runout = float(np.asarray(result.state.x)[:, 0].max()) - 0.2
-        h = _deposit(scene, result, xs)
+        scene = _s3(dx, t_end)
+        runs.append((scene, simulate(*scene, throw=False, timed=True)))
+    ref_scene, ref = runs[-1]
+    xs = np.linspace(-0.05, float(np.asarray(ref.state.x)[:, 0].max()) + 0.05, 400)
+    h_ref, front_ref, runout_ref = _s3_observe(ref_scene, ref.state, xs)
+    rows, profiles = [], []
+    for scene, result in runs:
+        h, front, runout = _s3_observe(scene, result.state, xs)
+        profiles.append(h)
         rows.append({
-            "dx": scene.meta["dx"], "ppc": ppc, "n_particles": scene.state.n_particles, "runout": runout,
-            "runout_diff": abs(runout - runout_ref), "profile_l2_rel": float(np.linalg.norm(h - h_ref) / np.linalg.norm(h_ref)),
-            "status": result.status, "wall_s": round(wall, 2),
+            "dx": scene.meta["dx"], "ppc": scene.meta["ppc"], "sampling": scene.meta["sampling"],
+            "n_particles": scene.state.n_particles, "front": front, "runout": runout,
+            "front_diff": abs(front - front_ref), "runout_diff": abs(runout - runout_ref),
+            "profile_l2_rel": float(np.linalg.norm(h - h_ref) / np.linalg.norm(h_ref)),
+            "status": result.status, "run_s": round(result.run_s, 2),
         })
-    base = [r for r in rows if r["ppc"] == 2]
-    diffs = [abs(b["runout"] - a["runout"]) for a, b in zip(base, base[1:])]
+    diffs = [abs(b["front"] - a["front"]) for a, b in zip(rows, rows[1:])]
     orders = [math.log2(d1 / d2) for d1, d2 in zip(diffs, diffs[1:]) if d1 > 0 and d2 > 0]
-    out = {"study": "convergence", "scene": "slope-collapse 10°", "t_end": t_end, "runs": rows,
-           "successive_runout_differences": diffs, "observed_order": orders}
+    out = {"study": "convergence", "scene": "slope-collapse 10°", "t_end": t_end, "sigma_m": S3_SIGMA,
+           "front_threshold_m": S3_FRONT_THRESHOLD, "runs": rows,
+           "successive_front_differences": diffs, "observed_order": orders}
     if plot_dir:
         from .plots import _pyplot
 
         plt = _pyplot()
         fig, (a1, a2) = plt.subplots(1, 2, figsize=(11, 3.6))
-        for scene, result, _, ppc in runs:
-            a1.plot(xs, _deposit(scene, result, xs) * 1e3, label=f"dx = {scene.meta['dx'] * 1e3:g} mm, ppc {ppc}")
+        for row, h in zip(rows, profiles):
+            a1.plot(xs, h * 1e3, label=f"dx = {row['dx'] * 1e3:g} mm, {row['sampling']} ppc {row['ppc']:g}")
         a1.set_xlabel("x along the bed (m)")
-        a1.set_ylabel("h (mm)")
+        a1.set_ylabel(f"h (mm), kernel σ = {S3_SIGMA * 1e3:g} mm")
         a1.legend(fontsize=7)
         a1.set_title(f"S3, θ = 10°, t = {t_end} s")
-        a2.loglog([r["dx"] for r in base[:-1]], [max(r["runout_diff"], 1e-6) for r in base[:-1]], "o-", label="runout")
-        a2.loglog([r["dx"] for r in base[:-1]], [r["profile_l2_rel"] for r in base[:-1]], "s-", label="profile (rel. L2)")
+        coarse = rows[:-1]
+        a2.loglog([r["dx"] for r in coarse], [max(r["front_diff"], 1e-6) for r in coarse], "o-", label="front (m)")
+        a2.loglog([r["dx"] for r in coarse], [max(r["runout_diff"], 1e-6) for r in coarse], "^-",
+                  label="max-particle runout (m)")
+        a2.loglog([r["dx"] for r in coarse], [r["profile_l2_rel"] for r in coarse], "s-", label="profile (rel. L2)")
         a2.set_xlabel("dx (m)")
         a2.set_ylabel("difference to the finest run")
         a2.legend(fontsize=7)
@@ -317,69 +313,92 @@ def cohesion(quick=False, plot_dir=None) -> dict:
     return out
 
 
-def _s3(dx, t_end, ppc=2, transfer="aflip", alpha=0.95, cfl=0.5, dtype=None, **kw):
-    return scenes.slope_collapse(10.0, dx=dx, ppc=ppc, t_end=t_end, transfer=transfer, alpha=alpha, cfl=cfl,
-                                 dtype=dtype, **kw)
+def _s3(dx, t_end, ppc=None, transfer="aflip", alpha=0.95, cfl=0.5, dtype=None, sampling=None, xpic=0, **kw):
+    scene = scenes.slope_collapse(10.0, dx=dx, ppc=ppc, t_end=t_end, transfer=transfer, alpha=alpha, cfl=cfl,
+                                  dtype=dtype, sampling=sampling, **kw)
+    if xpic:
+        scene = dataclasses.replace(scene, config=dataclasses.replace(scene.config, xpic=xpic))
+    return scene
+
+
+#: Kernel width (m) of the S3 deposit profile in the speed-accuracy study: one width for every run.
+S3_SIGMA = 5e-3
+#: Height (m) below which the S3 deposit has ended (its front).
+S3_FRONT_THRESHOLD = 3e-3
+
+
+def _s3_observe(scene, state, xs):
+    h = np.asarray(deposit_profile(state.x, particle_volumes(state), xs, S3_SIGMA))
+    front = float(front_from_profile(xs, h, S3_FRONT_THRESHOLD, x_ref=0.0)) - 0.2
+    return h, front, float(np.asarray(state.x)[:, 0].max()) - 0.2
 
 
 def speed_accuracy(quick=False, plot_dir=None) -> dict:
-    """S3 at 10°: error in runout and deposit profile against a fine reference run, versus wall
-    time, over dx, ppc, transfer, float32/float64 and cfl. One point per run; the Pareto front
-    (no other run both faster and more accurate) is marked."""
+    """S3 at 10°: errors in the front (where the deposit profile falls below 3 mm), the deposit
+    profile and the maximum-particle runout against a fine reference run (dx = 2.5 mm, the
+    scene defaults), versus run time (compilation apart), over dx, particles per cell, sampling,
+    transfer, XPIC, float32/float64 and cfl. One point per run; the Pareto front (no other run
+    both faster and more accurate on the front) is marked."""
     t_end = 0.3 if quick else 1.0
     ref_dx = 0.005 if quick else 0.0025
     variants = [dict(dx=dx) for dx in ((0.02, 0.01) if quick else (0.02, 0.01, 0.005))]
-    variants += [dict(dx=0.01, transfer="pic"), dict(dx=0.01, transfer="apic"), dict(dx=0.01, ppc=3)]
+    variants += [dict(dx=0.01, transfer="pic"), dict(dx=0.01, transfer="apic"), dict(dx=0.01, sampling="lattice", ppc=2)]
     if not quick:
-        variants += [dict(dx=0.01, dtype="float64"), dict(dx=0.01, cfl=0.9), dict(dx=0.005, transfer="apic"),
-                     dict(dx=0.005, transfer="pic"), dict(dx=0.02, ppc=4)]
+        variants += [dict(dx=0.01, sampling=smp, ppc=n) for smp in ("lattice", "jitter") for n in (3, 4)]
+        variants += [dict(dx=0.01, sampling="jitter", ppc=2), dict(dx=0.01, sampling="poisson", ppc=2.45),
+                     dict(dx=0.005, sampling="lattice", ppc=2), dict(dx=0.01, xpic=2), dict(dx=0.01, dtype="float64"),
+                     dict(dx=0.01, cfl=0.9), dict(dx=0.005, transfer="apic"), dict(dx=0.005, transfer="pic"),
+                     dict(dx=0.02, ppc=4)]
     ref_scene = _s3(ref_dx, t_end, dtype="float32")
-    ref, ref_wall = _timed(ref_scene)
-    xs = np.linspace(0.0, float(np.asarray(ref.state.x)[:, 0].max()) + 0.02, 300)
-    h_ref = _deposit(ref_scene, ref, xs)
-    runout_ref = float(np.asarray(ref.state.x)[:, 0].max()) - 0.2
+    ref = simulate(*ref_scene, throw=False, timed=True)
+    xs = np.linspace(-0.05, float(np.asarray(ref.state.x)[:, 0].max()) + 0.05, 400)
+    h_ref, front_ref, runout_ref = _s3_observe(ref_scene, ref.state, xs)
     rows = []
     for v in variants:
         if v.get("dtype") == "float64":
             jax.config.update("jax_enable_x64", True)
         scene = _s3(t_end=t_end, **v)
-        simulate(*scene, throw=False)  # compile outside the timing
-        result, wall = _timed(scene)
+        result = simulate(*scene, throw=False, timed=True)  # compiled before the clock starts
         if v.get("dtype") == "float64":
             jax.config.update("jax_enable_x64", False)
-        h = _deposit(scene, result, xs)
-        runout = float(np.asarray(result.state.x)[:, 0].max()) - 0.2
+        h, front, runout = _s3_observe(scene, result.state, xs)
         rows.append({
-            "dx": v["dx"], "ppc": v.get("ppc", 2), "transfer": v.get("transfer", "aflip"),
+            "dx": v["dx"], "ppc": scene.meta["ppc"], "sampling": scene.meta["sampling"],
+            "transfer": v.get("transfer", "aflip"), "xpic": v.get("xpic", 0),
             "dtype": v.get("dtype", "float32"), "cfl": v.get("cfl", 0.5), "n_particles": scene.state.n_particles,
-            "wall_s": round(wall, 3), "runout_rel_error": abs(runout - runout_ref) / runout_ref,
+            "n_steps": int(result.state.steps), "wall_s": round(result.run_s, 3),
+            "front_rel_error": abs(front - front_ref) / front_ref,
+            "runout_rel_error": abs(runout - runout_ref) / runout_ref,
             "profile_rel_error": float(np.linalg.norm(h - h_ref) / np.linalg.norm(h_ref)), "status": result.status,
         })
     for r in rows:
-        r["pareto"] = not any(o["wall_s"] <= r["wall_s"] and o["runout_rel_error"] < r["runout_rel_error"]
+        r["pareto"] = not any(o["wall_s"] <= r["wall_s"] and o["front_rel_error"] < r["front_rel_error"]
                               for o in rows if o is not r)
     out = {"study": "speed-accuracy", "scene": "slope-collapse 10°", "t_end": t_end,
-           "reference": {"dx": ref_dx, "transfer": "aflip", "wall_s": round(ref_wall, 2), "runout": runout_ref},
+           "sigma_m": S3_SIGMA, "front_threshold_m": S3_FRONT_THRESHOLD,
+           "reference": {"dx": ref_dx, "ppc": ref_scene.meta["ppc"], "sampling": ref_scene.meta["sampling"],
+                         "transfer": "aflip", "wall_s": round(ref.run_s, 2), "front": front_ref, "runout": runout_ref},
            "runs": rows}
     if plot_dir:
         from .plots import _pyplot
 
         plt = _pyplot()
-        fig, axes = plt.subplots(1, 2, figsize=(11, 4))
-        for ax, key, label in ((axes[0], "runout_rel_error", "runout error"), (axes[1], "profile_rel_error",
-                                                                                "deposit profile error (rel. L2)")):
+        fig, axes = plt.subplots(1, 2, figsize=(12, 4.5))
+        for ax, key, label in ((axes[0], "front_rel_error", "front error (h < 3 mm)"),
+                               (axes[1], "profile_rel_error", "deposit profile error (rel. L2)")):
             for r in rows:
                 marker = {"aflip": "o", "apic": "s", "pic": "^"}[r["transfer"]]
                 ax.loglog(r["wall_s"], max(r[key], 1e-4), marker, color="C3" if r["pareto"] else "C0", ms=7)
-                ax.annotate(f"{r['dx'] * 1e3:g}mm {r['transfer']} ppc{r['ppc']}"
+                ax.annotate(f"{r['dx'] * 1e3:g}mm {r['transfer']} {r['sampling'][:3]} ppc{r['ppc']:g}"
+                            + (f" xpic{r['xpic']}" if r["xpic"] else "")
                             + (" f64" if r["dtype"] == "float64" else "") + (f" cfl{r['cfl']}" if r["cfl"] != 0.5 else ""),
-                            (r["wall_s"], max(r[key], 1e-4)), fontsize=6, xytext=(3, 3), textcoords="offset points")
-            for level in (0.01, 0.05):
+                            (r["wall_s"], max(r[key], 1e-4)), fontsize=5.5, xytext=(3, 3), textcoords="offset points")
+            for level in (0.01, 0.02, 0.05):
                 ax.axhline(level, color="k", lw=0.6, ls=":")
-            ax.set_xlabel("wall time on 2 CPU cores (s)")
+            ax.set_xlabel("run time on 2 CPU cores (s), compilation apart")
             ax.set_ylabel(label)
-        axes[0].set_title("o AFLIP  s APIC  ^ PIC;  red: Pareto front")
-        _save(fig, plot_dir, "speed_accuracy.png", 100)
+        axes[0].set_title("o AFLIP  s APIC  ^ PIC;  red: Pareto front (front error)", fontsize=9)
+        _save(fig, plot_dir, "speed_accuracy.png", 110)
     return out
 
 
