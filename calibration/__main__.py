@@ -427,7 +427,7 @@ def build_parser() -> argparse.ArgumentParser:
     law.add_argument("--law", default=None, metavar="FILE.csv",
                      help="a scaling-law table (a,dL_over_L0), e.g. experiments_data/scaling_laws/runout_glass_beads.csv")
     law.add_argument("--dx", type=float, default=None, help="grid spacing, m (default L0/10)")
-    law.add_argument("--ppc", type=int, default=2)
+    law.add_argument("--ppc", type=float, default=None, help="particles per cell and axis (default: the scenes')")
     law.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="material parameter")
     law.add_argument("--steps", type=int, default=15)
     law.add_argument("--jacobian", choices=("ad", "fd"), default="fd")

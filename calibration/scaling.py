@@ -43,7 +43,7 @@ def law_from_table(table) -> Callable:
 
 
 def runout_objective(a: float, keys: Sequence[str], law: Callable = runout_law, L0: float = 0.05,
-                     dx: float | None = None, ppc: int = 2, values: Mapping[str, float] | None = None, dtype=None,
+                     dx: float | None = None, ppc: float | None = None, values: Mapping[str, float] | None = None, dtype=None,
                      jacobian: str = "fd", fd_step: float = 0.05):
     """The S5 objective at aspect ratio ``a``: the final front against ``law(a)``. The Jacobian
     defaults to central differences over ±5 %: in the tall, violent columns (a ≥ 4) the final
@@ -63,7 +63,7 @@ def _runouts(objective, theta) -> tuple[float, int]:
 
 def fit_runout_law(a_fit: Sequence[float] = (0.5, 1.0, 4.0), a_test: Sequence[float] = (2.0, 8.0),
                    keys: Sequence[str] = ("mu1", "mu2"), *, law: Callable = runout_law, L0: float = 0.05,
-                   dx: float | None = None, ppc: int = 2, values: Mapping[str, float] | None = None,
+                   dx: float | None = None, ppc: float | None = None, values: Mapping[str, float] | None = None,
                    init: Mapping[str, float] | None = None, steps: int = 15, out=None, overwrite: bool = False,
                    progress: bool = False,
                    dtype=None, jacobian: str = "fd", fd_step: float = 0.05) -> dict[str, Any]:

@@ -63,7 +63,7 @@ def twin_data(scene, keys, truth: np.ndarray, noise: float = 0.0, seed: int = 0,
 
 
 def twin(*, quick: bool = False, noise: float = 0.0, keys: Sequence[str] = ("beta", "mu1", "xi"),
-         method: str = "lm", steps: int | None = None, seed: int = 0, dx: float | None = None, ppc: int = 2,
+         method: str = "lm", steps: int | None = None, seed: int = 0, dx: float | None = None, ppc: float | None = None,
          t_end: float | None = None, values: Mapping[str, float] | None = None, dtype=None, out=None,
          resume: bool = False, overwrite: bool = False, progress: bool = False, reference_noise: float = 0.01,
          threshold: float = 0.1) -> dict[str, Any]:

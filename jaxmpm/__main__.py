@@ -258,6 +258,9 @@ def build_parser() -> argparse.ArgumentParser:
     validate.add_argument("--json", action="store_true", help="print one JSON object")
     validate.add_argument("--plot", default=None, metavar="DIR", help="write the study's figure into DIR")
     validate.add_argument("--alpha", type=float, default=None, help="AFLIP blend for the bagnold studies (default 0.95)")
+    validate.add_argument("--xpic", type=int, default=None, help="XPIC order on the FLIP part, bagnold only (0: off)")
+    validate.add_argument("--slopes", default=None, help="comma-separated slopes (deg), bagnold only")
+    validate.add_argument("--divisions", default=None, help="comma-separated h/dx, bagnold only")
     validate.add_argument("--dtype", choices=("float32", "float64"), default="float32",
                           help="precision of the study's runs (default float32, the run command's default)")
 
@@ -290,7 +293,22 @@ def main(argv=None) -> int:
                 jax.config.update("jax_enable_x64", True)
             from .validate import run_study
 
-            out = run_study(args.study, quick=args.quick, plot_dir=args.plot, alpha=args.alpha)
+            options = {}
+            for key in ("xpic", "slopes", "divisions"):
+                value = getattr(args, key)
+                if value is None:
+                    continue
+                if args.study != "bagnold":
+                    raise ValueError(f"--{key} applies to the bagnold study, not {args.study}")
+                if key == "xpic":
+                    options[key] = value
+                else:
+                    try:
+                        items = [float(v) if key == "slopes" else int(v) for v in value.split(",")]
+                    except ValueError:
+                        raise ValueError(f"--{key} must be comma-separated numbers, got {value!r}") from None
+                    options[key] = tuple(items)
+            out = run_study(args.study, quick=args.quick, plot_dir=args.plot, alpha=args.alpha, **options)
             print(json.dumps(out) if args.json else json.dumps(out, indent=2))
             return 0
         from . import bench

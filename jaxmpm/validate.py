@@ -53,7 +53,7 @@ def _timed(scene, observer=None):
 
 
 def bagnold(quick=False, plot_dir=None, alpha=0.95, slopes=(22.0, 24.0, 26.0, 28.0), divisions=None,
-            t_end=None) -> dict:
+            t_end=None, xpic=0) -> dict:
     """S1: start from the analytic profile, at the critical state (p_c = 2p, the state the
     analytic solution assumes), and measure how well the scheme holds it.
 
@@ -62,14 +62,17 @@ def bagnold(quick=False, plot_dir=None, alpha=0.95, slopes=(22.0, 24.0, 26.0, 28
     analytic surface velocity v_max for the initial depth h0 = 0.038 m (``rel_error``), and with
     the analytic profile at the particles' own heights for the depth measured from the particle
     volumes (``rel_error_local``); the profile error is the RMS difference over all particles
-    divided by v_max. Heights are measured from the bed: z = y − wall_gap (the layer starts half
-    a cell above it). The precision is the session's (float32 unless jax_enable_x64 is on)."""
+    divided by v_max. Heights are measured from the bed: z = y − wall_gap (the layer's lowest
+    particles start half a cell above it). The precision is the session's (float32 unless
+    jax_enable_x64 is on). ``xpic``: the order of an XPIC filter on the FLIP part (0: off)."""
     divisions = divisions or ((8, 16) if quick else (8, 16, 32))
     t_end = t_end or (0.5 if quick else 3.0)
     cases, profiles = [], {}
     for slope in slopes:
         for div in divisions:
             scene = scenes.incline(slope, dx=0.038 / div, t_end=t_end, frames=16, alpha=alpha, critical_start=True)
+            if xpic:
+                scene = dataclasses.replace(scene, config=dataclasses.replace(scene.config, xpic=xpic))
             gap = scene.meta["wall_gap"]
             result, wall = _timed(scene, _profile_observer)
             frames = {k: np.asarray(v) for k, v in result.frames.items()}
@@ -98,10 +101,10 @@ def bagnold(quick=False, plot_dir=None, alpha=0.95, slopes=(22.0, 24.0, 26.0, 28
             cases.append(case)
             profiles[(slope, div)] = (frames["vx"][15], frames["y"][15] - gap, h)
     finest = [c for c in cases if c["dx"] == min(c2["dx"] for c2 in cases)]
-    out = {"study": "bagnold", "t_end": t_end, "alpha": alpha, "dtype": str(jax.numpy.zeros(()).dtype),
+    out = {"study": "bagnold", "t_end": t_end, "alpha": alpha, "xpic": xpic, "dtype": str(jax.numpy.zeros(()).dtype),
            "cases": finest, "all_cases": cases}
     if plot_dir:
-        suffix = "" if alpha == 0.95 else f"_alpha{alpha:g}"
+        suffix = ("" if alpha == 0.95 else f"_alpha{alpha:g}") + (f"_xpic{xpic}" if xpic else "")
         suffix += "" if out["dtype"] == "float32" else "_" + out["dtype"]
         _plot_bagnold(profiles, slopes, divisions, cases, plot_dir, f"bagnold{suffix}.png")
     return out
@@ -465,8 +468,9 @@ STUDIES = {"bagnold": bagnold, "bagnold-from-rest": bagnold_from_rest, "converge
            "resolution": fidelity.resolution, "cross-code": fidelity.cross_code}
 
 
-def run_study(name: str, quick: bool = False, plot_dir=None, alpha: float | None = None) -> dict:
-    """Run one study; ``alpha`` (the AFLIP blend) applies to the bagnold studies only."""
+def run_study(name: str, quick: bool = False, plot_dir=None, alpha: float | None = None, **options) -> dict:
+    """Run one study; ``alpha`` (the AFLIP blend) applies to the bagnold studies only; other
+    keyword options go to the study function (``slopes``, ``divisions``, ``xpic`` for bagnold)."""
     if name not in STUDIES:
         raise ValueError(f"study must be one of {sorted(STUDIES)}, got {name!r}")
     if alpha is not None and not name.startswith("bagnold"):
@@ -476,7 +480,7 @@ def run_study(name: str, quick: bool = False, plot_dir=None, alpha: float | None
     if plot_dir is not None:
         pathlib.Path(plot_dir).mkdir(parents=True, exist_ok=True)
     clock = time.perf_counter()
-    out = STUDIES[name](quick=quick, plot_dir=plot_dir, **({} if alpha is None else {"alpha": alpha}))
+    out = STUDIES[name](quick=quick, plot_dir=plot_dir, **({} if alpha is None else {"alpha": alpha}), **options)
     out["quick"] = quick
     out["wall_s"] = round(time.perf_counter() - clock, 1)
     return out
