@@ -258,7 +258,7 @@ def build_parser() -> argparse.ArgumentParser:
     validate.add_argument("--json", action="store_true", help="print one JSON object")
     validate.add_argument("--plot", default=None, metavar="DIR", help="write the study's figure into DIR")
     validate.add_argument("--alpha", type=float, default=None, help="AFLIP blend for the bagnold studies (default 0.95)")
-    validate.add_argument("--xpic", type=int, default=None, help="XPIC order on the FLIP part, bagnold only (0: off)")
+    validate.add_argument("--xpic", type=int, default=None, help="XPIC order on the FLIP part, bagnold studies only (0: off)")
     validate.add_argument("--slopes", default=None, help="comma-separated slopes (deg), bagnold only")
     validate.add_argument("--divisions", default=None, help="comma-separated h/dx, bagnold only")
     validate.add_argument("--dtype", choices=("float32", "float64"), default="float32",
@@ -298,7 +298,7 @@ def main(argv=None) -> int:
                 value = getattr(args, key)
                 if value is None:
                     continue
-                if args.study != "bagnold":
+                if args.study != "bagnold" and not (key == "xpic" and args.study == "bagnold-from-rest"):
                     raise ValueError(f"--{key} applies to the bagnold study, not {args.study}")
                 if key == "xpic":
                     options[key] = value

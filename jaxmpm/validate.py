@@ -110,7 +110,7 @@ def bagnold(quick=False, plot_dir=None, alpha=0.95, slopes=(22.0, 24.0, 26.0, 28
     return out
 
 
-def bagnold_from_rest(quick=False, plot_dir=None, alpha=0.95, slope=24.0, division=16, t_end=None) -> dict:
+def bagnold_from_rest(quick=False, plot_dir=None, alpha=0.95, slope=24.0, division=16, t_end=None, xpic=0) -> dict:
     """S1 at 24° from rest: the layer starts at rest at the critical state and accelerates
     towards the steady Bagnold profile. The velocity profile (binned in height) is recorded at
     a series of times, with its RMS distance to the analytic profile over v_max, and the
@@ -120,6 +120,8 @@ def bagnold_from_rest(quick=False, plot_dir=None, alpha=0.95, slope=24.0, divisi
     frames = 24 if not quick else 8
     scene = scenes.incline(slope, dx=0.038 / division, t_end=t_end, frames=frames, alpha=alpha,
                            critical_start=True, start_from_analytic=False)
+    if xpic:
+        scene = dataclasses.replace(scene, config=dataclasses.replace(scene.config, xpic=xpic))
     gap = scene.meta["wall_gap"]
     result, wall = _timed(scene, _profile_observer)
     fr = {k: np.asarray(v) for k, v in result.frames.items()}
@@ -139,7 +141,7 @@ def bagnold_from_rest(quick=False, plot_dir=None, alpha=0.95, slope=24.0, divisi
                           "surface_rel": float(vx[top].mean() / v_max),
                           "profile_rel_error": float(np.sqrt(np.mean((vx - analytic) ** 2)) / v_max),
                           "profile": [None if not np.isfinite(v) else float(v) for v in prof]})
-    out = {"study": "bagnold-from-rest", "slope_deg": slope, "dx": scene.meta["dx"], "alpha": alpha,
+    out = {"study": "bagnold-from-rest", "slope_deg": slope, "dx": scene.meta["dx"], "alpha": alpha, "xpic": xpic,
            "dtype": str(jax.numpy.zeros(()).dtype), "t_end": t_end, "v_max_analytic": v_max,
            "z_bins": mid.tolist(), "analytic": analytic_mid.tolist(), "snapshots": snapshots,
            "status": result.status, "wall_s": round(wall, 1)}
@@ -162,7 +164,8 @@ def _plot_from_rest(out, plot_dir):
     a1.plot(out["analytic"], z, "k--", lw=1.5, label="Bagnold (MODEL §6)")
     a1.set_xlabel("v (m/s)")
     a1.set_ylabel("height above bed (mm)")
-    a1.set_title(f"S1, θ = {out['slope_deg']:g}° from rest, dx = h/{round(0.038 / out['dx'])}, {out['dtype']}")
+    a1.set_title(f"S1, θ = {out['slope_deg']:g}° from rest, dx = h/{round(0.038 / out['dx'])}, {out['dtype']}"
+                 + (f", XPIC({out['xpic']})" if out["xpic"] else ""), fontsize=9)
     a1.legend(fontsize=7)
     t = [s["t"] for s in out["snapshots"]]
     a2.plot(t, [s["surface_rel"] for s in out["snapshots"]], "o-", label="surface velocity / v_max")
@@ -171,7 +174,8 @@ def _plot_from_rest(out, plot_dir):
     a2.axhline(0.03, color="k", lw=0.6, ls=":")
     a2.set_xlabel("t (s)")
     a2.legend(fontsize=7)
-    suffix = "" if out["alpha"] == 0.95 else f"_alpha{out['alpha']:g}"
+    suffix = ("" if out["alpha"] == 0.95 else f"_alpha{out['alpha']:g}") + (f"_xpic{out['xpic']}" if out["xpic"] else "")
+    suffix += "" if out["dtype"] == "float32" else "_" + out["dtype"]
     _save(fig, plot_dir, f"bagnold_from_rest{suffix}.png", 100)
 
 
