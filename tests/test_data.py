@@ -344,6 +344,7 @@ def _check_params(setup, scene):
     assert (cfg.transfer, cfg.alpha, cfg.cfl) == (numerics["transfer"]["value"], numerics["alpha"]["value"],
                                                   numerics["cfl"]["value"])
     assert scene.meta["ppc"] == numerics["ppc"]["value"]
+    assert scene.meta["sampling"] == numerics["sampling"]["value"]
 
 
 def _gate_speeds(scene):

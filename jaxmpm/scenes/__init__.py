@@ -35,9 +35,9 @@ def build_scene(name: str, dx=None, ppc=None, dim=2, width=None, t_end=None, fra
     if name == "cohesive-collapse":
         return cohesive_collapse(**common)
     if name == "gates-collapse":
-        return gates_collapse(**{"dx": 0.005, **common})
+        return gates_collapse(**common)
     if name == "slope-collapse":
-        return slope_collapse(10.0 if slope is None else slope, **{"dx": 0.01, **common})
+        return slope_collapse(10.0 if slope is None else slope, **common)
     if name == "aspect-ratio":
         return aspect_ratio_collapse(1.0 if aspect is None else aspect, **common)
     if name == "elastic-block":
