@@ -2,7 +2,7 @@
 
     python experiments_data/generate.py tables    # scaling_laws/*.csv, bagnold/*.csv, examples/wpd_example.csv
     python experiments_data/generate.py profiles  # synthetic/S4_beta0.25.csv, S4_beta0.csv, S3_10deg.csv (~20 s)
-    python experiments_data/generate.py front     # synthetic/S3_10deg_front.csv (one ~10 s run)
+    python experiments_data/generate.py front     # synthetic/S3_10deg_front.csv (one ~15 s run)
 
 ``tables`` only evaluates formulas (and reads synthetic/S4_beta0.25.csv for the WebPlotDigitizer
 format example, so run ``profiles`` first on a fresh checkout). ``profiles`` runs exactly the
@@ -121,7 +121,8 @@ def profiles() -> None:
 
 def front() -> None:
     """Front position of the synthetic S3 run at 10 degrees (the CLI's slope-collapse: dx = 0.01 m,
-    float32), as the largest particle x at 20 frames, plus the initial front at t = 0."""
+    float32), as the largest particle x at 20 frames (t > 0: a fit's front data start after the
+    release; the initial front L is in the header's scene)."""
     import jax.numpy as jnp
 
     from jaxmpm import __version__, scenes, simulate
@@ -132,8 +133,8 @@ def front() -> None:
     scene = scenes.slope_collapse(10.0, dx=0.01, frames=20)
     config, state, params = scene
     result = simulate(config, state, params, observer=lambda s, p: {"front": jnp.max(s.x[:, 0])}, throw=False)
-    t = np.concatenate([[0.0], np.asarray(result.frame_times, float)])
-    xf = np.concatenate([[scene.meta["front0"]], np.asarray(result.frames["front"], float)])
+    t = np.asarray(result.frame_times, float)
+    xf = np.asarray(result.frames["front"], float)
     FrontHistory(
         t=t, x_front=xf, experiment=f"slope-collapse 10 deg front position (synthetic, jaxmpm {__version__})",
         source="python experiments_data/generate.py front", synthetic=True,
