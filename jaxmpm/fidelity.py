@@ -235,7 +235,8 @@ def _plot_resolution(out, plot_dir):
 
 def cross_code(quick=False, plot_dir=None, converged=None, seeds=(0, 1, 2)) -> dict:
     """S2 against the reference code (``REFERENCE_S2``): jaxmpm at the command line's defaults
-    (``--dx 0.003`` and ``--dx 0.0015``, default sampling and particles per cell) and at
+    (``--dx 0.003`` and ``--dx 0.0015``, default sampling and particles per cell), with the
+    reference code's own sampling (Poisson disk, about 6 per cell) at both dx, and at
     ``converged`` settings (dx, ppc, sampling: default 1 mm, jittered 3 × 3). At 3 mm each setting
     runs with several sampling ``seeds`` (the spread is the observables' own sampling noise; the
     reference code ran one Poisson-disk sample)."""
@@ -245,6 +246,9 @@ def cross_code(quick=False, plot_dir=None, converged=None, seeds=(0, 1, 2)) -> d
     plan = [("defaults", 0.003, 2.98e-3, defaults["ppc"], defaults["sampling"], seeds if not quick else seeds[:1])]
     if not quick:
         plan += [("defaults", 0.0015, 1.5e-3, defaults["ppc"], defaults["sampling"], seeds[:1]),
+                 # the reference code's own sampling: Poisson disk, about 6 particles per cell
+                 ("reference-like", 0.003, 2.98e-3, 2.45, "poisson", seeds),
+                 ("reference-like", 0.0015, 1.5e-3, 2.45, "poisson", seeds[:1]),
                  ("converged", converged["dx"], 1.5e-3, converged["ppc"], converged["sampling"], seeds[:1])]
     for label, dx, ref_dx, ppc, sampling, run_seeds in plan:
         for seed in run_seeds:

@@ -56,7 +56,7 @@ def add_scene_arguments(parser, scene_choices: bool = True) -> None:
     if scene_choices:
         parser.add_argument("scene", choices=SCENE_NAMES)
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="material parameter")
-    parser.add_argument("--dx", type=float, default=None, help="grid spacing, m (default: a coarse, fast value)")
+    parser.add_argument("--dx", type=float, default=None, help="grid spacing, m (default: the scene's)")
     parser.add_argument("--ppc", type=float, default=None, help="particles per cell and axis (default: the "
                         "scene's, DEFAULT_PPC; an integer for lattice and jitter sampling)")
     parser.add_argument("--sampling", choices=("lattice", "jitter", "poisson"), default=None,
