@@ -56,7 +56,9 @@ def plot_run(scene, result, path, profile=None):
     L, H = scene.meta.get("L"), scene.meta.get("H")
     if L is not None:
         ax.plot([0, 0, L, L], [0, H, H, 0], "k:", lw=1, label="initial column")
-    art = ax.scatter(x[:, 0], x[:, 1], s=2, c=p, cmap="viridis", lw=0)
+    # 1st-99th percentile colour range: a few particles pressed on a wall would wash the map out
+    art = ax.scatter(x[:, 0], x[:, 1], s=2, c=p, cmap="viridis", lw=0, vmin=min(0.0, float(np.percentile(p, 1))),
+                     vmax=float(np.percentile(p, 99)))
     fig.colorbar(art, ax=ax, label="p (Pa)", shrink=0.8)
     if profile is not None:
         ax.plot(profile[0], profile[1], "C3-", lw=1.5, label="deposit profile h(x)")

@@ -311,7 +311,10 @@ def cohesion(quick=False, plot_dir=None) -> dict:
         fig, axes = plt.subplots(2, 1, figsize=(8, 5), sharex=True)
         for ax, (beta, x, p) in zip(axes, shown):
             ax.plot([0, 0, 0.089, 0.089], [0, 0.089, 0.089, 0], "k:", lw=1)
-            art = ax.scatter(x[:, 0], x[:, 1], c=p, s=2, lw=0)
+            # colour range from the 1st to the 99th percentile: a few particles pressed against a
+            # wall carry p an order of magnitude above the rest and would wash the map out
+            art = ax.scatter(x[:, 0], x[:, 1], c=p, s=2, lw=0, vmin=min(0.0, float(np.percentile(p, 1))),
+                             vmax=float(np.percentile(p, 99)))
             fig.colorbar(art, ax=ax, label="p (Pa)", shrink=0.8)
             ax.set_aspect("equal")
             ax.set_title(f"S4, β = {beta}, t = 0.5 s")
