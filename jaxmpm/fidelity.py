@@ -34,7 +34,7 @@ __all__ = ["REFERENCE_S2", "REFERENCE_SOURCE", "SIGMA", "observe", "run_case", "
 #: The reference code's S2 observables at t = 0.4198 s (m): Matter (Blatny & Gaume, Geosci.
 #: Model Dev. 2025), 2D, float64, Poisson-disk sampling with about 6 particles per cell, the body
 #: half a cell above the floor; run by a project session on a 2-core machine and reported in
-#: the project's issue 9 (also in experiments_data/reference_code/S2_matter.csv).
+#: the project's issue 9 (numbers the issue quotes, to four digits; not a measurement).
 REFERENCE_S2 = {
     2.98e-3: {"left": 0.0731, "right": 0.0718, "top": 0.0354},
     1.50e-3: {"left": 0.0736, "right": 0.0736, "top": 0.0355},
