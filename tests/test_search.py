@@ -4,9 +4,7 @@ truth from no start, the same steps as single-start fits, minima within the nois
 default on a bound that no longer blocks a fit, and the command line's --starts. One tiny S4
 scene (dx = L/4, 144 particles, 0.1 s) and one compiled batch serve the module."""
 
-import contextlib
 import importlib
-import io
 import pathlib
 
 import numpy as np
@@ -155,16 +153,6 @@ def test_structural_noise_sees_the_white_part_only():
 
 
 # ---- the command line ----------------------------------------------------------------------------------
-def call(argv):
-    out, err = io.StringIO(), io.StringIO()
-    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
-        try:
-            code = main([str(a) for a in argv])
-        except SystemExit as exc:
-            code = exc.code
-    return code, out.getvalue(), err.getvalue()
-
-
 @pytest.mark.parametrize("extra, message", [
     (["--starts", "0"], "--starts must be >= 1, got 0"),
     (["--starts", "-3"], "--starts must be >= 1, got -3"),
@@ -173,16 +161,18 @@ def call(argv):
     (["--starts", "4", "--jacobian", "fd"], "--starts 4: --jacobian fd is not batched"),
     (["--starts", "4", "--out", "f.h5"], "--starts 4: --out keeps the resumable history of one start"),
 ])
-def test_bad_search_options_are_refused_before_any_work(monkeypatch, tmp_path, extra, message):
+def test_bad_search_options_are_refused_before_any_work(monkeypatch, tmp_path, capsys, extra, message):
     def tripwire(*args, **kwargs):
         raise AssertionError("the model was compiled: the input should have been refused before")
 
     monkeypatch.setattr(SEARCH_MODULE, "_batch_fn", tripwire)
     monkeypatch.setattr(Objective, "residuals_and_jacobian", tripwire)
     monkeypatch.chdir(tmp_path)
-    code, _, err = call(["fit", "--scene", "cohesive-collapse", "--data", S4, "--fit", "beta,mu1", *extra,
-                         "--dx", 0.089 / 4, "--no-progress", "--json"])
-    assert code == 2 and message in err, err
+    with pytest.raises(SystemExit) as exc:
+        main(["fit", "--scene", "cohesive-collapse", "--data", str(S4), "--fit", "beta,mu1", *extra,
+              "--dx", str(0.089 / 4), "--no-progress", "--json"])
+    err = capsys.readouterr().err
+    assert exc.value.code == 2 and message in err, err
 
 
 def test_the_default_is_a_search_without_init_and_one_start_with_it():
