@@ -2,18 +2,23 @@
 
 The data flow: ``data`` (profiles and front histories, validated) -> ``objective`` (a scene's
 residuals against them) -> ``fit`` (Levenberg–Marquardt or optax Adam, with bounds and a
-resumable history) -> ``uncertainty`` (Gauss–Newton covariance, identifiability); ``sweep``
-evaluates the loss over many parameter sets at once; ``twin`` fits data with known parameters.
+resumable history) -> ``uncertainty`` (Gauss–Newton covariance, identifiability, and the verdict
+whether a point is a fit of the data at all); ``search`` runs LM from many space-filling starts in
+one vmapped batch and reports every minimum within the noise of the best; ``lm`` is the LM step both
+share; ``sweep`` evaluates the loss over many parameter sets at once; ``twin`` fits data with known
+parameters.
 """
 
 from .bounds import DEFAULT_BOUNDS, FIT_KEYS, Bounds
 from .data import FrontHistory, Profile, RunoutLaw, list_datasets, load_front_history, load_profile, load_scaling_law
 from .fit import FitResult, fit, read_history
 from .objective import CompositeObjective, FrontTarget, Objective, ProfileTarget
-from .uncertainty import Uncertainty, gauss_newton_uncertainty
+from .search import Minimum, SearchResult, design_starts, search
+from .uncertainty import Uncertainty, Verdict, assess_fit, gauss_newton_uncertainty, structural_noise
 
 __all__ = [
     "DEFAULT_BOUNDS", "FIT_KEYS", "Bounds", "CompositeObjective", "FitResult", "FrontHistory", "FrontTarget",
-    "Objective", "Profile", "ProfileTarget", "RunoutLaw", "Uncertainty", "fit", "gauss_newton_uncertainty",
-    "list_datasets", "load_front_history", "load_profile", "load_scaling_law", "read_history",
+    "Minimum", "Objective", "Profile", "ProfileTarget", "RunoutLaw", "SearchResult", "Uncertainty", "Verdict",
+    "assess_fit", "design_starts", "fit", "gauss_newton_uncertainty", "list_datasets", "load_front_history",
+    "load_profile", "load_scaling_law", "read_history", "search", "structural_noise",
 ]

@@ -6,6 +6,13 @@
     python -m calibration twin --quick --noise 0.02 --json
     python -m calibration bench --json
 
+Without --init, ``fit`` is a global search: Levenberg–Marquardt from --starts K (default 8)
+space-filling starts in one vmapped batch (``calibration.search``); its JSON lists every distinct
+minimum with its loss and whether it lies within the noise of the best, the start the best came
+from, and the verdict (``calibration.uncertainty.assess_fit``): a point that is not a verified
+minimum, sits at a bound or leaves a misfit well above the noise is "not a fit of the data" and
+gets no interval. With --init (or --out, --resume, --method adam, --jacobian fd) one start runs.
+
 ``fit``, ``sweep`` and ``twin`` take the scene options of ``python -m jaxmpm run`` (--dx, --ppc,
 --t-end, --set key=value, ...). Invalid input exits with status 2 and a message naming the
 argument and what was wrong, before anything compiles: options, data (against the scene too),
@@ -110,24 +117,66 @@ def _guard(errors: dict, option: str, write):
         return None
 
 
+def _single_start_reason(args) -> str | None:
+    """Why ``fit`` runs one start (None: a global search is possible)."""
+    if args.init:
+        return "--init"
+    for option, given in (("--out", args.out), ("--resume", args.resume), ("--method adam", args.method == "adam"),
+                          ("--jacobian fd", args.jacobian == "fd")):
+        if given:
+            return option
+    return None
+
+
+def _starts(args) -> int:
+    """The number of starts: --starts, or the search's default when nothing asks for one start.
+    More than one start with an option that needs a single one is refused, naming both."""
+    single = _single_start_reason(args)
+    if args.starts is None:
+        from .search import DEFAULT_STARTS
+
+        return 1 if single else DEFAULT_STARTS
+    if args.starts > 1 and single not in (None, "--init"):
+        what = {"--out": "keeps the resumable history of one start", "--resume": "continues one start's history",
+                "--method adam": "is a single-start optimiser (the search is Levenberg–Marquardt)",
+                "--jacobian fd": "is not batched (the search uses forward-mode Jacobians)"}[single]
+        raise ValueError(f"--starts {args.starts}: {single} {what}; drop one of them")
+    return args.starts
+
+
 def _fit(args) -> int:
+    import numpy as np
+
     from .fit import fit
     from .uncertainty import gauss_newton_uncertainty
 
     keys = _keys(args.fit)
     init = _pairs(args.init, "--init")
+    starts = _starts(args)
     scene, objective = _scene_and_objective(args, keys)
     noise = args.noise
     steps = args.steps or (25 if args.method == "lm" else 150)
-    result = fit(objective, init, method=args.method, steps=steps, out=args.out, resume=args.resume,
-                 overwrite=args.overwrite, learning_rate=args.lr, progress=not args.no_progress, noise=noise,
-                 meta={"command": "python -m calibration " + " ".join(sys.argv[1:]), "data": args.data,
-                       "front": args.front})
-    result.uncertainty = gauss_newton_uncertainty(
-        result.jacobian, result.residuals, keys, [result.theta[k] for k in keys], objective.blocks,
-        objective.row_scale, noise=noise, reference_noise=args.reference_noise, threshold=args.threshold,
-        bounds=objective.bounds)
-    out = result.to_json()
+    found = None
+    if starts > 1:
+        from .search import search
+
+        found = search(objective, starts, seed=args.search_seed, init=init or None, steps=steps, noise=noise,
+                       progress=not args.no_progress)
+        result = found.best
+    else:
+        result = fit(objective, init, method=args.method, steps=steps, out=args.out, resume=args.resume,
+                     overwrite=args.overwrite, learning_rate=args.lr, progress=not args.no_progress, noise=noise,
+                     meta={"command": "python -m calibration " + " ".join(sys.argv[1:]), "data": args.data,
+                           "front": args.front})
+    if np.all(np.isfinite(result.jacobian)):
+        result.uncertainty = gauss_newton_uncertainty(
+            result.jacobian, result.residuals, keys, [result.theta[k] for k in keys], objective.blocks,
+            objective.row_scale, noise=noise, reference_noise=args.reference_noise, threshold=args.threshold,
+            bounds=objective.bounds, verdict=result.verdict)
+    out = found.to_json() if found is not None else result.to_json()
+    if found is None:
+        reason = _single_start_reason(args)
+        out["search"] = {"starts": 1, "why": f"a single start ({reason or '--starts 1'})"}
     out["scene"] = scene.name
     if args.out:
         out["out"] = str(args.out)
@@ -397,6 +446,10 @@ def build_parser() -> argparse.ArgumentParser:
                      help="LM Jacobian: forward-mode autodiff, or central differences for long violent runs")
     fit.add_argument("--noise", type=float, default=None,
                      help="known noise of the data (fraction of the peak height); default: estimated")
+    fit.add_argument("--starts", type=int, default=None, metavar="K",
+                     help="global search: Levenberg-Marquardt from K space-filling starts in one batch (default 8 "
+                          "without --init, --out, --resume, --method adam or --jacobian fd; else 1)")
+    fit.add_argument("--search-seed", type=int, default=0, help="seed of the starts' Sobol design (default 0)")
 
     sweep = sub.add_parser("sweep", help="the loss over a grid or a Latin hypercube of parameters")
     _common(sweep)
@@ -470,6 +523,8 @@ def _check_options(args) -> None:
     for option in ("init", "set"):
         if hasattr(args, option):
             _pairs(getattr(args, option), f"--{option}")  # malformed or repeated keys
+    if getattr(args, "command", None) == "fit":
+        _starts(args)  # --starts against the options that need a single start
 
 
 def _check_outputs(args) -> None:
@@ -513,7 +568,7 @@ def main(argv=None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     try:
-        for name in ("steps", "chunk", "lhs"):
+        for name in ("steps", "chunk", "lhs", "starts"):
             value = getattr(args, name, None)
             if value is not None and value < 1:
                 raise ValueError(f"--{name} must be >= 1, got {value}")
@@ -521,6 +576,8 @@ def main(argv=None) -> int:
             value = getattr(args, name, None)
             if value is not None and not (math.isfinite(value) and value >= 0):
                 raise ValueError(f"--{name.replace('_', '-')} must be >= 0, got {value}")
+        if getattr(args, "search_seed", 0) < 0:
+            raise ValueError(f"--search-seed must be >= 0, got {args.search_seed}")
         if getattr(args, "resume", False) and not args.out:
             raise ValueError("--resume needs --out (the history file to continue)")
         _check_options(args)

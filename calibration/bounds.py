@@ -16,10 +16,14 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-__all__ = ["DEFAULT_BOUNDS", "FIT_KEYS", "Bounds"]
+__all__ = ["DEFAULT_BOUNDS", "FIT_KEYS", "START_MARGIN", "Bounds"]
 
 #: The calibration targets of MODEL.md §4.
 FIT_KEYS = ("beta", "mu1", "mu2", "I0", "xi")
+
+#: Where a start the user did not choose moves when it lies on a bound: this fraction of the
+#: range inside it.
+START_MARGIN = 0.05
 
 #: Physical limits (lo, hi). β: tensile/compressive strength ratio (dry 0 … strongly cohesive);
 #: μ1, μ2: friction coefficients (tan 3° … tan 63°); I0: inertial number scale; ξ: hardening rate.
@@ -96,6 +100,20 @@ class Bounds:
         for k, v, lo, hi in zip(self.keys, theta, self.lower, self.upper):
             if not (math.isfinite(v) and lo < v < hi):
                 raise ValueError(f"{name}: {k} = {float(v)!r} must lie strictly inside its bounds ({lo}, {hi})")
+
+    def move_inside(self, theta, margin: float = START_MARGIN) -> tuple[np.ndarray, dict[str, tuple[float, float]]]:
+        """θ with every value on, outside or within ``near_bound`` of a bound moved to ``margin``
+        of the range inside that bound (β = 0 on (0, 1) becomes 0.05); returns the new θ and
+        ``{key: (old, new)}`` for what moved. For starts the user did not choose (scene values)."""
+        theta = np.array(theta, float)
+        near = set(self.near_bound(theta))  # also every value on or outside a bound
+        moved = {}
+        for i, (k, v, lo, hi) in enumerate(zip(self.keys, theta, self.lower, self.upper)):
+            if k in near or not math.isfinite(v):
+                new = hi - margin * (hi - lo) if v > 0.5 * (lo + hi) else lo + margin * (hi - lo)
+                moved[k] = (float(v), float(new))
+                theta[i] = new
+        return theta, moved
 
     def near_bound(self, theta, rel: float = 1e-3) -> list[str]:
         """Keys whose value sits within ``rel`` of the bound range of a bound."""

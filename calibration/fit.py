@@ -3,11 +3,18 @@
 Both optimisers work on unconstrained z (``calibration.bounds``), so every iterate is a
 physical parameter set. Each iteration is one model evaluation.
 
-- ``method="lm"``: Levenberg–Marquardt with Marquardt's diagonal scaling. Every evaluation
-  returns the residuals and their Jacobian together (forward mode, one batched tangent pass);
-  a trial step is accepted when the loss falls and the run has no status bits, and the damping
-  λ falls by 3 after a success and rises by 4 after a failure. A run that fails (status bits:
-  the flow left the grid, non-finite stress, ...) is a rejected trial, reported in the history.
+- ``method="lm"``: Levenberg–Marquardt with Marquardt's diagonal scaling (the step and the
+  stopping rules of ``calibration.lm``, shared with the batched ``calibration.search``). Every
+  evaluation returns the residuals and their Jacobian together (forward mode, one batched
+  tangent pass); a trial step is accepted when the loss falls and the run has no status bits.
+  A run that fails (status bits: the flow left the grid, non-finite stress, ...) is a rejected
+  trial, reported in the history.
+
+The result carries a ``Verdict`` (``calibration.uncertainty.assess_fit``): a point that is not a
+verified minimum (LM stopped on its rejection or step budget), sits at a bound, or leaves a misfit
+well above the noise is "not a fit of the data", and its uncertainty holds no interval. A scene
+value on a bound (S4's β = 0) is not a usable start: the fit starts inside (``start_theta``) and
+``start_note`` says where.
 - ``method="adam"``: optax Adam with gradient clipping and a cosine learning-rate schedule; the
   gradient comes from forward mode (``grad_mode="fwd"``, J_θᵀ r) or reverse mode through the
   checkpointed rollout (``"rev"``). The best iterate is returned.
@@ -42,9 +49,10 @@ import optax
 
 from jaxmpm import describe_status
 
-from .uncertainty import Uncertainty, gauss_newton_uncertainty
+from .lm import LAM0, LMOptions, judge, propose
+from .uncertainty import Uncertainty, Verdict, assess_fit, gauss_newton_uncertainty
 
-__all__ = ["FitResult", "fit", "read_history", "METHODS"]
+__all__ = ["METHODS", "FitResult", "fit", "read_history", "start_theta"]
 
 METHODS = ("lm", "adam")
 _HISTORY_FIELDS = ("theta", "z", "loss", "grad_norm", "status", "accepted", "lam", "wall_s")
@@ -65,14 +73,24 @@ class FitResult:
     jacobian: np.ndarray
     prediction: dict[str, Any]
     uncertainty: Uncertainty | None = None
+    start: dict[str, float] | None = None  # where the fit started (physical values)
+    start_note: str = ""  # why the start differs from the scene's values, if it does
+    verdict: Verdict | None = None
 
     def to_json(self) -> dict[str, Any]:
         out = {"params": self.theta, "loss": self.loss, "iterations": self.iterations,
                "wall_s": round(self.wall_s, 3), "method": self.method, "converged": self.converged,
                "message": self.message}
+        if self.start is not None:
+            out["start"] = self.start
+        if self.start_note:
+            out["start_note"] = self.start_note
+        if self.verdict is not None:
+            out["verdict"] = self.verdict.to_dict()
         if self.uncertainty is not None:
             u = self.uncertainty.to_dict()
-            out["stderr"] = u.pop("stderr")
+            if "stderr" in u:
+                out["stderr"] = u.pop("stderr")
             out.update(u)
         return out
 
@@ -167,17 +185,30 @@ def _status_text(status: int) -> str:
     return f"status {status}: {'; '.join(describe_status(status))}" if status else "status 0"
 
 
-def _as_theta(objective, init: Mapping[str, float] | None) -> np.ndarray:
-    values = {**objective.initial(), **dict(init or {})}
-    unknown = sorted(set(values) - set(objective.keys))
+def start_theta(objective, init: Mapping[str, float] | None) -> tuple[np.ndarray, str]:
+    """The start θ of a fit and a note saying where it differs from the scene's values.
+
+    A key in ``init`` (the user's choice) must lie strictly inside its bounds (an error names
+    it otherwise); a key left to the scene whose value sits on or next to a bound (S4's β = 0 on
+    (0, 1)) starts ``Bounds.move_inside`` that bound instead, and the note says so."""
+    init = dict(init or {})
+    unknown = sorted(set(init) - set(objective.keys))
     if unknown:
         raise ValueError(f"init: {unknown} are not fitted keys {objective.keys}")
-    theta = np.array([float(values[k]) for k in objective.keys])
-    objective.bounds.check(theta, "init")
+    bounds = objective.bounds
+    scene = objective.initial()
+    theta, moved = bounds.move_inside([float(scene[k]) for k in objective.keys])
+    for k, v in init.items():
+        theta[objective.keys.index(k)] = float(v)
+        moved.pop(k, None)
+    bounds.check(theta, "init")  # only the user's values can fail here
     check = getattr(objective, "check_thetas", None)
     if check is not None:  # the engine's rules (mu2 >= mu1, ...) on the full parameter set
         check(theta, "init")
-    return theta
+    note = "; ".join(f"{k}: the scene's value {old:g} lies on or next to its bound "
+                     f"({bounds.lower[objective.keys.index(k)]:g}, {bounds.upper[objective.keys.index(k)]:g}), "
+                     f"so the fit starts at {new:g}" for k, (old, new) in moved.items())
+    return theta, note
 
 
 def fit(objective, init: Mapping[str, float] | None = None, *, method: str = "lm", steps: int = 30,
@@ -230,6 +261,8 @@ def fit(objective, init: Mapping[str, float] | None = None, *, method: str = "lm
                "grad_mode": grad_mode, "xtol": xtol, "ftol": ftol}
 
     history = {k: [] for k in _HISTORY_FIELDS}
+    lm_options = LMOptions(xtol=xtol, ftol=ftol, stat_tol=stat_tol, max_rejections=max_rejections)
+    start_note = ""
     optimizer = None
     if method == "adam":
         schedule = optax.cosine_decay_schedule(learning_rate, decay_steps=steps, alpha=0.05)
@@ -266,8 +299,9 @@ def fit(objective, init: Mapping[str, float] | None = None, *, method: str = "lm
         done = bool(saved["resume"]["done"])
         message = str(attrs.get("message", ""))
     else:
-        z = bounds.to_unconstrained(_as_theta(objective, init))
-        lam = 1e-3
+        theta0, start_note = start_theta(objective, init)
+        z = bounds.to_unconstrained(theta0)
+        lam = LAM0
         opt_state = optimizer.init(jnp.asarray(z)) if optimizer is not None else None
         done, message = False, ""
     wall0 = history["wall_s"][-1] if history["wall_s"] else 0.0
@@ -357,37 +391,18 @@ def fit(objective, init: Mapping[str, float] | None = None, *, method: str = "lm
             else:
                 z_c, theta_c, loss_c, r_c, J_c, g_c, _ = current
                 dtheta_dz = np.asarray(bounds.jacobian_diag(jnp.asarray(z_c)))
-                Jz = J_c * dtheta_dz[None, :]
-                A = Jz.T @ Jz
-                d = np.maximum(np.diag(A), 1e-12 * max(float(np.max(np.diag(A))), 1e-300))
-                delta = np.linalg.solve(A + lam * np.diag(d), -Jz.T @ r_c)
-                predicted_drop = loss_c - float(np.sum((r_c + Jz @ delta) ** 2))
-                z_t = z_c + delta
+                delta, promised = propose(r_c[None], (J_c * dtheta_dz[None, :])[None], np.array([lam]))
+                z_t = z_c + delta[0]
                 theta, loss, r, J, g, pred = evaluate(z_t)
                 status = int(np.asarray(pred["status"]))
-                accepted = status == 0 and math.isfinite(loss) and loss < loss_c
-                rel_step = float(np.max(np.abs(theta - theta_c) / np.maximum(np.abs(theta_c), 1e-12)))
-                # What fitting pure noise would promise: n σ² with σ² = loss / (m − n).
-                noise_drop = stat_tol * len(keys) * loss_c / max(r_c.size - len(keys), 1)
+                accepted, lams, rej, stop, messages = judge(
+                    [loss_c], theta_c[None], [loss], theta[None], [status == 0], promised, [lam], [rejections],
+                    r_c.size, lm_options)
+                accepted, lam, rejections = bool(accepted[0]), float(lams[0]), int(rej[0])
                 if accepted:
-                    rejections = 0
-                    rel_drop = (loss_c - loss) / max(loss_c, 1e-300)
                     current = (z_t, theta, loss, r, J, g, pred)
-                    lam = max(lam / 3.0, 1e-9)
-                else:
-                    rejections += 1
-                    lam = lam * 4.0
-                if predicted_drop <= noise_drop:
-                    done, message = True, (f"converged: the linearised model promises a loss decrease of "
-                                           f"{predicted_drop:.2e}, below the residual noise level {noise_drop:.2e}")
-                elif accepted and (rel_drop < ftol or rel_step < xtol):
-                    done, message = True, (f"converged: relative loss decrease {rel_drop:.2e}, "
-                                           f"relative step {rel_step:.2e}")
-                elif not accepted and rel_step < xtol:
-                    done, message = True, f"converged: rejected steps shorter than xtol ({rel_step:.2e})"
-                elif rejections >= max_rejections:
-                    done, message = True, (f"stopped: {rejections} rejected steps in a row (no decrease within the "
-                                           f"runs' round-off and scatter)")
+                if stop[0]:
+                    done, message = True, messages[0]
                 record(z_t, theta, loss, g, status, accepted, lam)
             save(current[0], lam, None, done, message)
         else:
@@ -423,12 +438,17 @@ def fit(objective, init: Mapping[str, float] | None = None, *, method: str = "lm
         r_b, J_b, pred_b = objective.residuals_and_jacobian(theta_best)
         r_b, J_b = np.asarray(r_b, float), np.asarray(J_b, float)
         loss_b = float(np.sum(r_b * r_b))
+    converged = done and message.startswith("converged")
+    verdict = assess_fit(r_b, objective.row_scale, objective.blocks, theta_best, converged=converged, message=message,
+                         bounds=bounds, noise=noise)
     unc = None
     if uncertainty:
         unc = gauss_newton_uncertainty(J_b, r_b, keys, theta_best, objective.blocks, objective.row_scale,
-                                       noise=noise, bounds=bounds)
+                                       noise=noise, bounds=bounds, verdict=verdict)
     return FitResult(keys=keys, theta={k: float(v) for k, v in zip(keys, theta_best)}, loss=float(loss_b),
                      iterations=len(hist["loss"]), wall_s=float(hist["wall_s"][-1]) if len(hist["wall_s"]) else 0.0,
-                     method=method, converged=done and message.startswith("converged"), message=message,
+                     method=method, converged=converged, message=message,
                      history=hist, residuals=r_b, jacobian=J_b,
-                     prediction=jax.tree.map(np.asarray, pred_b), uncertainty=unc)
+                     prediction=jax.tree.map(np.asarray, pred_b), uncertainty=unc,
+                     start={k: float(v) for k, v in zip(keys, hist["theta"][0])}, start_note=start_note,
+                     verdict=verdict)

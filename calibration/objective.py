@@ -24,6 +24,7 @@ docs/calibration.md for the measured ratio against reverse mode).
 from __future__ import annotations
 
 import dataclasses
+import functools
 import hashlib
 import json
 import math
@@ -495,6 +496,12 @@ class CompositeObjective:
         self.blocks = {f"{i}/{name}": slice(offsets[i] + s.start, offsets[i] + s.stop)
                        for i, m in enumerate(members) for name, s in m.blocks.items()}
         self.row_scale = np.concatenate([m.row_scale for m in members])
+
+    def residual_fn(self, theta):
+        """Pure, unjitted θ -> (r, prediction), the members' concatenated: for ``jax.vmap``."""
+        outs = [m.residual_fn(theta) for m in self.members]
+        status = functools.reduce(jnp.bitwise_or, [o[1]["status"] for o in outs])
+        return jnp.concatenate([o[0] for o in outs]), {"status": status, "members": [o[1] for o in outs]}
 
     def residuals(self, theta):
         outs = [m.residuals(theta) for m in self.members]

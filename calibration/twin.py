@@ -92,14 +92,16 @@ def twin(*, quick: bool = False, noise: float = 0.0, keys: Sequence[str] = ("bet
     unc = gauss_newton_uncertainty(result.jacobian, result.residuals, keys,
                                    np.array([result.theta[k] for k in keys]), objective.blocks,
                                    objective.row_scale, reference_noise=max(reference_noise, noise),
-                                   threshold=threshold, bounds=objective.bounds)
+                                   threshold=threshold, bounds=objective.bounds, verdict=result.verdict)
     result.uncertainty = unc
     out_json = result.to_json()
     out_json["wall_s"] = round(time.perf_counter() - t0, 3)
     out_json["true"] = dict(zip(keys, truth.tolist()))
     out_json["start"] = start
     out_json["rel_error"] = {k: result.theta[k] / v - 1.0 for k, v in zip(keys, truth)}
-    out_json["in_ci95"] = {k: bool(lo <= v <= hi) for k, v, (lo, hi) in zip(keys, truth, unc.ci95)}
+    # No interval (None) when the verdict says the fit is not a fit of the data.
+    out_json["in_ci95"] = (None if unc.withheld else
+                           {k: bool(lo <= v <= hi) for k, v, (lo, hi) in zip(keys, truth, unc.ci95)})
     if noise > 0:
         # The likelihood-ratio view, which does not linearise: Δχ² of the truth against the fit,
         # with each block's residuals divided by its estimated noise, against χ²_n(0.95).

@@ -16,6 +16,21 @@ twin has s_b ≈ 0 and would call everything constrained). So a parameter is cal
 the estimated noise if larger), its 95 % half-width is at most ``threshold`` (10 %) of its
 scale (|θ|, or 1 % of its bound range when θ ≈ 0). The eigenvectors of the Fisher matrix in
 these relative units name the combinations the data fix well and the one they fix worst.
+
+**Not every minimum is a fit of the data** (``assess_fit``). A Gauss–Newton interval describes
+the curvature at a minimum of the data's misfit; it is withheld (``stderr``, ``ci95`` and ``cov``
+are None, the statement says why) when the point
+
+- is not a verified minimum: the optimiser stopped on its rejection or step budget without
+  meeting one of its convergence tests (``calibration.lm``);
+- sits at a bound (``Bounds.near_bound``): the minimum lies outside the physical range, or the
+  reparametrisation's flat tail stopped the optimiser;
+- leaves a misfit well above the noise: in some block, χ² = Σ e²/σ² exceeds the 99.9 % quantile
+  of χ² with that block's degrees of freedom. σ is the given noise, or is estimated from the
+  residuals' *structure*, not from their size: ``structural_noise`` takes the robust spread of
+  second differences of neighbouring residuals (the high-frequency part; a smooth misfit has
+  almost none). An estimated σ is itself uncertain, so the limit is then raised by three of the
+  estimate's standard deviations (``~4/sqrt(c)`` relative in σ², c second differences).
 """
 
 from __future__ import annotations
@@ -26,39 +41,161 @@ from typing import Any, Mapping, Sequence
 
 import numpy as np
 
-__all__ = ["Uncertainty", "gauss_newton_uncertainty"]
+__all__ = ["NOISE_FLOOR", "Uncertainty", "Verdict", "assess_fit", "block_noise", "chi2_of", "chi2_quantile",
+           "gauss_newton_uncertainty", "structural_noise"]
 
 Z95 = 1.959963984540054
+#: Noise (relative units) below which no misfit is told apart from the run's own round-off.
+NOISE_FLOOR = 1e-6
+#: A block's misfit is "well above the noise" beyond this quantile of χ².
+ABOVE_NOISE_P = 0.999
+#: Blocks with fewer residuals than this get no structural noise estimate.
+MIN_NOISE_POINTS = 5
+
+
+def chi2_quantile(p: float, dof: float) -> float:
+    """The ``p`` quantile of χ² with ``dof`` degrees of freedom (scipy ships with jax)."""
+    try:
+        from scipy.stats import chi2
+    except ImportError as err:  # pragma: no cover (jax depends on scipy)
+        raise ImportError("the χ² quantiles need scipy: pip install 'jaxmpm[sampling]'") from err
+    return float(chi2.ppf(p, dof))
+
+
+def structural_noise(e) -> tuple[float | None, int]:
+    """The noise σ of residuals ``e`` (in data order, e.g. along x) from their high-frequency
+    part: 1.4826 · median |e[i−1] − 2 e[i] + e[i+1]| / sqrt(6), a robust spread of second
+    differences (which remove any linear trend and nearly all of a smooth misfit). Triples that
+    are exactly zero (no material in model and data, beyond the front) carry no information and
+    are left out. Returns ``(σ, c)`` with c the number of second differences used; σ is None
+    when fewer than ``MIN_NOISE_POINTS`` remain."""
+    e = np.asarray(e, float)
+    if e.size < 3:
+        return None, 0
+    d2 = e[:-2] - 2.0 * e[1:-1] + e[2:]
+    informative = (e[:-2] != 0) | (e[1:-1] != 0) | (e[2:] != 0)
+    d2 = d2[informative]
+    if d2.size < MIN_NOISE_POINTS:
+        return None, int(d2.size)
+    return float(1.482602218505602 * np.median(np.abs(d2)) / math.sqrt(6.0)), int(d2.size)
+
+
+def block_noise(r, row_scale, blocks: Mapping[str, slice], noise: Mapping[str, float] | float | None = None
+                ) -> tuple[dict[str, float | None], dict[str, int], str]:
+    """σ of each block (relative units): the given ``noise`` (a float applies to every block),
+    or ``structural_noise`` of the block's residuals. Returns ``(sigma, counts, source)``, counts
+    the number of second differences behind each estimate (0 for given noise)."""
+    e = np.asarray(r, float) / np.asarray(row_scale, float)
+    if noise is not None:
+        if not isinstance(noise, Mapping):
+            noise = {name: float(noise) for name in blocks}
+        return {name: float(noise[name]) for name in blocks}, {name: 0 for name in blocks}, "given"
+    sigma, counts = {}, {}
+    for name, sl in blocks.items():
+        sigma[name], counts[name] = structural_noise(e[sl])
+    return sigma, counts, "estimated from the residuals' second differences"
+
+
+def chi2_of(r, row_scale, blocks: Mapping[str, slice], sigma: Mapping[str, float | None]) -> float:
+    """Σ_b Σ e_b² / σ_b² over the blocks with a noise level (σ floored at ``NOISE_FLOOR``)."""
+    e = np.asarray(r, float) / np.asarray(row_scale, float)
+    return sum(float(np.sum(e[sl] ** 2)) / max(sigma[name], NOISE_FLOOR) ** 2
+               for name, sl in blocks.items() if sigma.get(name) is not None)
+
+
+@dataclasses.dataclass(frozen=True)
+class Verdict:
+    """Whether a point is a fit of the data, and if not, why (see the module docstring)."""
+
+    is_fit: bool
+    reasons: tuple[str, ...]
+    verified: bool  # the optimiser met one of its convergence tests
+    at_bound: tuple[str, ...]
+    noise: dict[str, float | None]  # σ by block (None: not estimable)
+    noise_source: str
+    chi2: dict[str, float]  # by block with a noise level
+    chi2_limit: dict[str, float]
+    statement: str
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"is_fit": self.is_fit, "verdict": "a fit of the data" if self.is_fit else "not a fit of the data",
+                "reasons": list(self.reasons), "verified_minimum": self.verified, "at_bound": list(self.at_bound),
+                "noise": self.noise, "noise_source": self.noise_source, "chi2": self.chi2,
+                "chi2_limit": self.chi2_limit, "statement": self.statement}
+
+
+def assess_fit(r, row_scale, blocks: Mapping[str, slice], theta, *, converged: bool, message: str = "",
+               bounds=None, noise: Mapping[str, float] | float | None = None) -> Verdict:
+    """Judge the point θ with residuals ``r`` (the objective's weighted ones): a verified
+    minimum (``converged``, ``message`` the optimiser's), off the bounds, with a misfit within
+    the noise in every block (the given ``noise``, or the residuals' structural noise)."""
+    theta = np.asarray(theta, float)
+    e = np.asarray(r, float) / np.asarray(row_scale, float)
+    m, n = e.size, theta.size
+    reasons = []
+    if not converged:
+        reasons.append(f"not a verified minimum ({message or 'the optimiser did not converge'})")
+    at_bound = tuple(bounds.near_bound(theta)) if bounds is not None else ()
+    if at_bound:
+        reasons.append(f"{', '.join(at_bound)} at a bound (the misfit falls towards or beyond the physical range)")
+    sigma, counts, source = block_noise(r, row_scale, blocks, noise)
+    chi2, limit, unknown = {}, {}, []
+    for name, sl in blocks.items():
+        if sigma[name] is None:
+            unknown.append(f"{name} ({sl.stop - sl.start} residuals: too few to estimate its noise)")
+            continue
+        mb = sl.stop - sl.start
+        chi2[name] = float(np.sum(e[sl] ** 2)) / max(sigma[name], NOISE_FLOOR) ** 2
+        inflate = 1.0 if counts[name] == 0 else 1.0 + 3.0 * 4.0 / math.sqrt(counts[name])
+        limit[name] = chi2_quantile(ABOVE_NOISE_P, max(mb - n * mb / m, 1.0)) * inflate
+        if chi2[name] > limit[name]:
+            rms = math.sqrt(float(np.mean(e[sl] ** 2)))
+            reasons.append(f"{name} misfit well above the noise (rms {rms:.3g} against σ {sigma[name]:.3g} "
+                           f"{'given' if source == 'given' else 'estimated'}; χ² {chi2[name]:.3g} > {limit[name]:.3g})")
+    is_fit = not reasons
+    if is_fit:
+        statement = "A fit of the data: a verified minimum, off the bounds, with a misfit within the noise."
+    else:
+        statement = ("Not a fit of the data: " + "; ".join(reasons) + ". No Gauss–Newton interval is given: it "
+                     "describes the curvature at a minimum of the data's misfit, which this point is not.")
+    if unknown:
+        statement += " The noise test left out " + ", ".join(unknown) + "."
+    return Verdict(is_fit, tuple(reasons), bool(converged), at_bound, sigma, source, chi2, limit, statement)
 
 
 @dataclasses.dataclass(frozen=True)
 class Uncertainty:
     keys: tuple[str, ...]
     theta: np.ndarray
-    stderr: np.ndarray
-    cov: np.ndarray
+    stderr: np.ndarray | None  # None (with cov, ci95, ...): withheld, the point is not a fit of the data
+    cov: np.ndarray | None
     corr: np.ndarray
-    ci95: np.ndarray  # (n, 2)
+    ci95: np.ndarray | None  # (n, 2)
     noise: dict[str, float]  # the σ_b used, by block
     noise_estimated: dict[str, float]
-    reference_stderr: np.ndarray  # se at the reference noise (for identifiability)
-    relative_halfwidth: np.ndarray  # 1.96 se_ref / scale
+    reference_stderr: np.ndarray | None  # se at the reference noise (for identifiability)
+    relative_halfwidth: np.ndarray | None  # 1.96 se_ref / scale
     constrained: tuple[str, ...]
     eigenvalues: np.ndarray  # of the relative Fisher matrix, descending
     eigenvectors: np.ndarray  # columns
     statement: str
+    verdict: Verdict | None = None
+
+    @property
+    def withheld(self) -> bool:
+        """True when no interval is given (the verdict: not a fit of the data)."""
+        return self.stderr is None
 
     def to_dict(self) -> dict[str, Any]:
         by_key = lambda a: {k: float(v) for k, v in zip(self.keys, a)}  # noqa: E731
-        return {
-            "stderr": by_key(self.stderr),
-            "ci95": {k: [float(lo), float(hi)] for k, (lo, hi) in zip(self.keys, self.ci95)},
-            "corr": {a: by_key(row) for a, row in zip(self.keys, self.corr)},
-            "noise": self.noise, "noise_estimated": self.noise_estimated,
-            "relative_halfwidth_at_reference_noise": by_key(self.relative_halfwidth),
-            "constrained": list(self.constrained),
-            "statement": self.statement,
-        }
+        out = {"corr": {a: by_key(row) for a, row in zip(self.keys, self.corr)},
+               "noise": self.noise, "noise_estimated": self.noise_estimated,
+               "constrained": list(self.constrained), "statement": self.statement}
+        if not self.withheld:
+            out["stderr"] = by_key(self.stderr)
+            out["ci95"] = {k: [float(lo), float(hi)] for k, (lo, hi) in zip(self.keys, self.ci95)}
+            out["relative_halfwidth_at_reference_noise"] = by_key(self.relative_halfwidth)
+        return out
 
 
 def _combination(vec, keys, tol=0.2) -> str:
@@ -81,14 +218,17 @@ def _inverse(fisher, rcond: float = 1e-14):
 def gauss_newton_uncertainty(
     J, r, keys: Sequence[str], theta, blocks: Mapping[str, slice], row_scale,
     *, noise: Mapping[str, float] | float | None = None, reference_noise: float = 0.01,
-    threshold: float = 0.1, bounds=None,
+    threshold: float = 0.1, bounds=None, verdict: Verdict | None = None,
 ) -> Uncertainty:
     """Covariance, standard errors and identifiability at the optimum.
 
     ``J`` (m × n) and ``r`` (m) are the objective's weighted residuals and Jacobian in physical
     units; ``blocks`` and ``row_scale`` (the objective's) undo the weights. ``noise``: the known
     σ of each block in the block's relative units (a float applies to every block); None:
-    estimate it from the residuals.
+    estimate it from the residuals. ``verdict`` (from ``assess_fit``): when it says the point
+    is not a fit of the data, every interval (stderr, ci95, cov, the half-widths and the
+    constrained keys) is withheld and the statement says why; only the local geometry
+    (correlations, Fisher eigen-directions) is kept.
     """
     keys = tuple(keys)
     J = np.asarray(J, float)
@@ -156,5 +296,10 @@ def gauss_newton_uncertainty(
     strong = [(keys[i], keys[j], corr[i, j]) for i in range(n) for j in range(i + 1, n) if abs(corr[i, j]) > 0.9]
     for a, b, c in strong:
         lines.append(f"{a} and {b} are strongly correlated ({c:+.2f}): the data fix a combination, not each.")
+    if verdict is not None and not verdict.is_fit:
+        geometry = [line for line in lines if not line.startswith(("The data constrain", "They do not"))]
+        statement = " ".join([verdict.statement] + (["Local geometry only:"] + geometry if geometry else []))
+        return Uncertainty(keys, theta, None, None, corr, None, used, estimated, None, None, (), evals, evecs,
+                           statement, verdict)
     return Uncertainty(keys, theta, stderr, cov, corr, ci95, used, estimated, se_ref, rel, constrained,
-                       evals, evecs, " ".join(lines))
+                       evals, evecs, " ".join(lines), verdict)

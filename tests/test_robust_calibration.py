@@ -26,6 +26,7 @@ from jaxmpm import LEFT_GRID, scenes
 
 FIT_MODULE = importlib.import_module("calibration.fit")  # calibration.fit is also the function
 SWEEP_MODULE = importlib.import_module("calibration.sweep")
+SEARCH_MODULE = importlib.import_module("calibration.search")
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 S4 = ROOT / "experiments_data" / "synthetic" / "S4_beta0.25.csv"
 WPD = ROOT / "experiments_data" / "examples" / "wpd_example.csv"
@@ -68,6 +69,7 @@ def no_work(monkeypatch):
     for name in ("residuals", "residuals_and_jacobian", "value_and_grad"):
         monkeypatch.setattr(Objective, name, tripwire)
     monkeypatch.setattr(SWEEP_MODULE, "_Evaluator", tripwire)
+    monkeypatch.setattr(SEARCH_MODULE, "_batch_fn", tripwire)
 
 
 def listing(folder):
@@ -283,6 +285,7 @@ def test_loader_hints_name_the_command_line_options(no_work, tmp_path, monkeypat
         raise ValueError("fit reached")
 
     monkeypatch.setattr(FIT_MODULE, "fit", started)
+    monkeypatch.setattr(SEARCH_MODULE, "search", started)  # without --init, a fit is a global search
     for path, option in ((clicks, "--sort"), (noisy, "--clip-noise")):
         refused([*FIT, "--data", path, "--units", "mm", "--t-end", "0.5", option, *TINY], "fit reached")
 

@@ -1,0 +1,85 @@
+"""One Levenberg–Marquardt iteration in the unconstrained variables z, for a batch of starts.
+
+``fit`` (one start: a batch of one) and ``search`` (k starts at once) share these two functions,
+so both take exactly the same steps and stop by exactly the same rules:
+
+- ``propose(r, Jz, lam)``: the damped Gauss–Newton step with Marquardt's diagonal scaling,
+  (JᵀJ + λ diag JᵀJ) δ = −Jᵀr, and the loss decrease its linear model promises;
+- ``judge(...)``: accept a trial when its run has no status bits and its loss is lower; λ falls
+  by 3 after a success and rises by 4 after a failure; and the stopping tests: *converged* when
+  the promised decrease is below ``stat_tol`` × n σ² (σ² = loss / (m − n), what fitting pure
+  noise would promise), when an accepted step lowers the loss by less than ``ftol`` (relative)
+  or moves θ by less than ``xtol`` (relative), or when rejected steps are shorter than ``xtol``;
+  *stopped* (not a verified minimum) after ``max_rejections`` rejected steps in a row.
+
+Arrays carry a leading batch axis k; everything is numpy (the model runs are the cost).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+__all__ = ["LAM0", "LMOptions", "judge", "propose"]
+
+#: The damping of the first step.
+LAM0 = 1e-3
+
+
+@dataclasses.dataclass(frozen=True)
+class LMOptions:
+    xtol: float = 1e-6
+    ftol: float = 1e-7
+    stat_tol: float = 0.1
+    max_rejections: int = 6
+
+
+def propose(r, Jz, lam):
+    """Steps δ (k, n) and promised decreases (k,) from residuals r (k, m), their Jacobian in z,
+    Jz (k, m, n), and the damping λ (k,)."""
+    r, Jz, lam = np.asarray(r, float), np.asarray(Jz, float), np.asarray(lam, float)
+    A = np.einsum("kmi,kmj->kij", Jz, Jz)
+    diag = np.diagonal(A, axis1=1, axis2=2)
+    d = np.maximum(diag, 1e-12 * np.maximum(diag.max(axis=1, keepdims=True), 1e-300))
+    rhs = -np.einsum("kmi,km->ki", Jz, r)
+    delta = np.linalg.solve(A + lam[:, None, None] * (d[:, :, None] * np.eye(A.shape[1])), rhs[..., None])[..., 0]
+    loss = np.sum(r * r, axis=1)
+    promised = loss - np.sum((r + np.einsum("kmi,ki->km", Jz, delta)) ** 2, axis=1)
+    return delta, promised
+
+
+def judge(loss_c, theta_c, loss_t, theta_t, ok_t, promised, lam, rejections, m: int, options: LMOptions):
+    """Accept or reject k trials and apply the stopping tests.
+
+    ``loss_c``/``theta_c``: the current (accepted) points; ``loss_t``/``theta_t``/``ok_t``: the
+    trials (``ok_t``: the run has no status bits); ``promised``: from ``propose``; ``m``: the
+    number of residuals. Returns ``(accepted, lam, rejections, done, messages)``, ``messages``
+    a list with "" for the starts that go on; a finished start's message begins with
+    "converged" (a verified minimum) or "stopped"."""
+    loss_c, loss_t = np.asarray(loss_c, float), np.asarray(loss_t, float)
+    theta_c, theta_t = np.asarray(theta_c, float), np.asarray(theta_t, float)
+    n = theta_c.shape[1]
+    accepted = np.asarray(ok_t, bool) & np.isfinite(loss_t) & (loss_t < loss_c)
+    rel_step = np.max(np.abs(theta_t - theta_c) / np.maximum(np.abs(theta_c), 1e-12), axis=1)
+    rel_drop = (loss_c - loss_t) / np.maximum(loss_c, 1e-300)
+    noise_drop = options.stat_tol * n * loss_c / max(m - n, 1)
+    rejections = np.where(accepted, 0, np.asarray(rejections) + 1)
+    lam = np.where(accepted, np.maximum(np.asarray(lam) / 3.0, 1e-9), np.asarray(lam) * 4.0)
+    messages = []
+    for i in range(loss_c.size):
+        if promised[i] <= noise_drop[i]:
+            msg = (f"converged: the linearised model promises a loss decrease of {promised[i]:.2e}, below the "
+                   f"residual noise level {noise_drop[i]:.2e}")
+        elif accepted[i] and (rel_drop[i] < options.ftol or rel_step[i] < options.xtol):
+            msg = f"converged: relative loss decrease {rel_drop[i]:.2e}, relative step {rel_step[i]:.2e}"
+        elif not accepted[i] and rel_step[i] < options.xtol:
+            msg = f"converged: rejected steps shorter than xtol ({rel_step[i]:.2e})"
+        elif rejections[i] >= options.max_rejections:
+            msg = (f"stopped: {rejections[i]} rejected steps in a row (no decrease within the runs' round-off "
+                   "and scatter)")
+        else:
+            msg = ""
+        messages.append(msg)
+    done = np.array([bool(msg) for msg in messages])
+    return accepted, lam, rejections, done, messages

@@ -1,0 +1,366 @@
+"""Global search: multi-start Levenberg–Marquardt with every start in one vmapped batch.
+
+``search(objective, starts=8)`` draws k starts from a space-filling design over the bounded box
+(scrambled Sobol points, seeded, or scipy's Latin hypercube; rows that break the engine's rules,
+e.g. μ1 > μ2, are skipped), and runs LM from all of them at once, in the unconstrained variables
+z of ``calibration.bounds``: one ``jit(vmap(...))`` call per iteration evaluates the residuals
+and their forward-mode Jacobian dr/dz of every active start (the bounds map is inside the traced
+function, so autodiff applies its chain rule). The step and the stopping rules are those of
+``calibration.lm``, the same as the single-start ``fit`` uses, applied per start on the batch;
+a start that has stopped is frozen and leaves the batch, which shrinks to the next power of two
+that holds the active starts (at most log2 k + 1 compilations).
+
+The endpoints are then clustered: two are the same minimum when their values differ by at most
+``cluster_tol`` of the bound range in every parameter. Every distinct minimum is reported, with
+Δχ² against the best (σ given, or estimated from the best point's residual structure, see
+``calibration.uncertainty.structural_noise``), and called *within the noise of the best* when
+Δχ² is below the 95 % quantile of χ² with n (the number of fitted parameters) degrees of freedom.
+Several minima within the noise mean the data do not pick one: the answer is that set. The best
+point is judged by ``calibration.uncertainty.assess_fit`` and gets a Gauss–Newton interval only
+when it is a fit of the data.
+
+scipy (the ``sampling`` extra) provides the designs.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import sys
+import time
+from collections.abc import Mapping
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .fit import FitResult, start_theta
+from .lm import LAM0, LMOptions, judge, propose
+from .uncertainty import (
+    assess_fit,
+    block_noise,
+    chi2_of,
+    chi2_quantile,
+    gauss_newton_uncertainty,
+)
+
+__all__ = ["DEFAULT_STARTS", "DESIGNS", "WITHIN_NOISE_P", "Minimum", "SearchResult", "design_starts", "search"]
+
+DESIGNS = ("sobol", "lhs")
+#: Starts of a search when none are asked for (the command line's default without --init).
+DEFAULT_STARTS = 8
+#: A minimum is within the noise of the best when its Δχ² is below this quantile of χ²_n.
+WITHIN_NOISE_P = 0.95
+#: Starts are drawn this fraction of the range inside the bounds (the sigmoid's flat tails).
+DESIGN_MARGIN = 0.02
+
+
+def _qmc():
+    try:
+        from scipy.stats import qmc
+    except ImportError as err:  # pragma: no cover (jax depends on scipy)
+        raise ImportError("calibration.search draws its starts with scipy.stats.qmc: "
+                          "pip install 'jaxmpm[sampling]'") from err
+    return qmc
+
+
+def _check_int(name: str, value, low: int) -> int:
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)) or value < low:
+        raise ValueError(f"{name} must be an integer >= {low}, got {value!r}")
+    return int(value)
+
+
+def design_starts(objective, k: int, *, seed: int = 0, design: str = "sobol") -> np.ndarray:
+    """``k`` physical starts (k, n) in the objective's bounds, ``DESIGN_MARGIN`` inside them,
+    space-filling (scrambled Sobol or Latin hypercube, seeded), every one a valid parameter set
+    of the engine (``objective.check_thetas``): invalid rows are skipped and more are drawn."""
+    k = _check_int("starts", k, 1)
+    seed = _check_int("seed", seed, 0)
+    if design not in DESIGNS:
+        raise ValueError(f"design must be one of {DESIGNS}, got {design!r}")
+    qmc = _qmc()
+    bounds = objective.bounds
+    lo, hi = np.asarray(bounds.lower), np.asarray(bounds.upper)
+    check = getattr(objective, "check_thetas", None)
+    draw = max(2, 1 << (4 * k - 1).bit_length())  # a power of two, >= 4k: room for invalid rows
+    for _ in range(4):
+        if design == "sobol":
+            u = qmc.Sobol(bounds.n, scramble=True, seed=seed).random_base2(int(math.log2(draw)))
+        else:
+            u = qmc.LatinHypercube(bounds.n, seed=seed).random(draw)
+        thetas = lo + (hi - lo) * (DESIGN_MARGIN + (1 - 2 * DESIGN_MARGIN) * u)
+        valid = []
+        for theta in thetas:
+            try:
+                if check is not None:
+                    check(theta, "start")
+            except ValueError:
+                continue
+            valid.append(theta)
+            if len(valid) == k:
+                return np.asarray(valid)
+        draw *= 4
+    raise ValueError(f"starts: fewer than {k} of {draw // 4} design points in the bounds are valid parameter sets "
+                     "(the fixed parameters leave little room: narrow the bounds or fit fewer keys)")
+
+
+@dataclasses.dataclass(frozen=True)
+class Minimum:
+    """One distinct endpoint of the search (a cluster of starts)."""
+
+    theta: dict[str, float]
+    loss: float
+    delta_chi2: float  # against the best minimum
+    within_noise: bool  # Δχ² below the χ²_n quantile WITHIN_NOISE_P
+    starts: tuple[int, ...]  # the starts that ended here, best first
+    verified: bool  # the best of them met an LM convergence test
+    at_bound: tuple[str, ...]
+    message: str
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"params": self.theta, "loss": self.loss, "delta_chi2": self.delta_chi2,
+                "within_noise_of_best": self.within_noise, "starts": list(self.starts),
+                "verified_minimum": self.verified, "at_bound": list(self.at_bound), "message": self.message}
+
+
+@dataclasses.dataclass
+class SearchResult:
+    keys: tuple[str, ...]
+    starts: np.ndarray  # (k, n) physical starts
+    design: str
+    seed: int
+    minima: list[Minimum]  # by loss, best first
+    best: FitResult  # the best start's fit (history, residuals, Jacobian, verdict, uncertainty)
+    best_start: int
+    finals: np.ndarray  # (k, n) every start's endpoint
+    losses: np.ndarray  # (k,) their losses (NaN: the start failed)
+    residuals: np.ndarray  # (k, m) their residuals
+    histories: list[dict[str, np.ndarray]]  # every start's, in the fields of FitResult.history
+    messages: list[str]
+    delta_chi2_limit: float
+    iterations: int  # batched iterations (model evaluations per active start)
+    evaluations: int  # single-run evaluations (batch members, padding included)
+    wall_s: float
+    compile_s: float
+    start_note: str = ""
+
+    @property
+    def within_noise(self) -> list[Minimum]:
+        return [m for m in self.minima if m.within_noise]
+
+    def to_json(self) -> dict[str, Any]:
+        out = self.best.to_json()
+        out["method"] = "lm-search"
+        out["search"] = {
+            "starts": len(self.starts), "design": self.design, "seed": self.seed, "best_start": self.best_start,
+            "start_used": dict(zip(self.keys, self.starts[self.best_start].tolist())),
+            "iterations": self.iterations, "evaluations": self.evaluations, "wall_s": round(self.wall_s, 3),
+            "compile_s": round(self.compile_s, 3), "delta_chi2_limit": self.delta_chi2_limit,
+            "minima": [m.to_dict() for m in self.minima],
+            "n_within_noise": len(self.within_noise),
+            "failed_starts": [i for i, v in enumerate(self.losses) if not np.isfinite(v)],
+        }
+        if self.start_note:
+            out["search"]["start_note"] = self.start_note
+        if len(self.within_noise) > 1:
+            out["search"]["statement"] = (
+                f"{len(self.within_noise)} distinct minima lie within the noise of the best (Δχ² < "
+                f"{self.delta_chi2_limit:.3g}): the data do not tell them apart; the answer is the set, and an "
+                "interval at the best alone understates what is unknown.")
+        return out
+
+
+_CACHE: dict = {}
+
+
+def _batch_fn(objective):
+    """jit(vmap(z -> (r, dr/dz, prediction))) for the objective, cached on it."""
+    hit = _CACHE.get(id(objective))
+    if hit is not None and hit[0] is objective:
+        return hit[1]
+    residual_fn = getattr(objective, "residual_fn", None)
+    if residual_fn is None:
+        raise ValueError("search needs an objective with a pure residual_fn(theta) (Objective, CompositeObjective)")
+    if getattr(objective, "jacobian", "ad") != "ad":
+        raise ValueError("search uses forward-mode Jacobians: the objective's jacobian='fd' is not supported "
+                         "(a single-start fit is)")
+    bounds = objective.bounds
+
+    def of_z(z):
+        r, pred = residual_fn(bounds.to_physical(z))
+        return r, (r, pred)
+
+    def member(z):
+        Jz, (r, pred) = jax.jacfwd(of_z, has_aux=True)(z)
+        return r, Jz, pred
+
+    fn = jax.jit(jax.vmap(member))
+    _CACHE.clear()  # one objective at a time: compiled rollouts are large
+    _CACHE[id(objective)] = (objective, fn)
+    return fn
+
+
+def search(objective, starts: int | np.ndarray = DEFAULT_STARTS, *, seed: int = 0, design: str = "sobol",
+           init: Mapping[str, float] | None = None, steps: int = 30, xtol: float = 1e-6, ftol: float = 1e-7,
+           stat_tol: float = 0.1, max_rejections: int = 6, cluster_tol: float = 0.01,
+           noise: Mapping[str, float] | float | None = None, uncertainty: bool = True, shrink: bool = True,
+           progress: bool = False) -> SearchResult:
+    """Multi-start LM from ``starts`` design points (an int k) or from given physical starts
+    ((k, n) array). ``init`` (physical values by key, as for ``fit``): one more start, placed
+    first. ``steps``: the maximum number of model evaluations per start, as in ``fit``.
+    ``cluster_tol``: endpoints closer than this fraction of every bound range are one minimum.
+    ``noise``: the known noise per block (None: estimated from the best point's residual
+    structure). ``shrink``: evaluate only the active starts (padded to a power of two)."""
+    clock0 = time.perf_counter()
+    steps = _check_int("steps", steps, 1)
+    if not (math.isfinite(cluster_tol) and 0 < cluster_tol < 1):
+        raise ValueError(f"cluster_tol must be in (0, 1), got {cluster_tol!r}")
+    keys, bounds = objective.keys, objective.bounds
+    start_note = ""
+    if isinstance(starts, (int, np.integer)) and not isinstance(starts, (bool, np.bool_)):
+        k_design = _check_int("starts", starts, 1) - (1 if init else 0)
+        thetas = design_starts(objective, k_design, seed=seed, design=design) if k_design else np.zeros((0, len(keys)))
+    else:
+        thetas = np.asarray(starts, float)
+        if thetas.ndim != 2 or thetas.shape[1] != len(keys) or thetas.shape[0] < 1:
+            raise ValueError(f"starts must be an integer or an array (k, {len(keys)}), got shape {thetas.shape}")
+        for i, theta in enumerate(thetas):
+            bounds.check(theta, f"starts[{i}]")
+        if getattr(objective, "check_thetas", None) is not None:
+            objective.check_thetas(thetas, "starts")
+    if init:
+        theta0, start_note = start_theta(objective, init)
+        thetas = np.concatenate([theta0[None], thetas])
+    k, n = thetas.shape
+    m = objective.n_residuals
+    options = LMOptions(xtol=xtol, ftol=ftol, stat_tol=stat_tol, max_rejections=max_rejections)
+    batch = _batch_fn(objective)
+    dtype = objective.dtype
+    compile_s = 0.0
+    compiled_sizes: set[int] = set()
+    evaluations = 0
+
+    def evaluate(Z):
+        """r (b, m), Jz (b, m, n), predictions (numpy), for the rows of Z, in one batched call."""
+        nonlocal compile_s, evaluations
+        b = Z.shape[0]
+        size = min(k, 1 << (b - 1).bit_length()) if shrink else k
+        padded = np.concatenate([Z, np.repeat(Z[:1], size - b, axis=0)]) if size > b else Z
+        clock = time.perf_counter()
+        r, Jz, pred = jax.tree.map(np.asarray, batch(jnp.asarray(padded, dtype)))
+        if size not in compiled_sizes:
+            compiled_sizes.add(size)
+            compile_s += time.perf_counter() - clock  # the first call of a shape: compile + one run
+        evaluations += size
+        return (np.array(r[:b], float), np.array(Jz[:b], float), jax.tree.map(lambda a: a[:b], pred))
+
+    def statuses(pred):
+        return np.asarray(pred["status"], int).reshape(-1)
+
+    def grad_norm(z, Jz_, r_):  # |dloss/dθ|, as fit records it (inf at a bound, where dθ/dz = 0)
+        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+            return float(np.linalg.norm(2.0 * (Jz_ / np.asarray(bounds.jacobian_diag(jnp.asarray(z)), float)).T
+                                        @ r_))
+
+    Z = np.stack([bounds.to_unconstrained(t) for t in thetas])
+    r, Jz, pred = evaluate(Z)
+    status = statuses(pred)
+    loss = np.sum(r * r, axis=1)
+    ok = (status == 0) & np.isfinite(loss)
+    theta_c = np.array(bounds.to_physical(jnp.asarray(Z)), float)
+    cur = {"z": Z.copy(), "theta": theta_c, "r": r, "Jz": Jz, "loss": np.where(ok, loss, np.nan),
+           "pred": [jax.tree.map(lambda a, i=i: a[i], pred) for i in range(k)]}
+    lam = np.full(k, LAM0)
+    rejections = np.zeros(k, int)
+    done = ~ok
+    messages = ["" if ok[i] else f"stopped: the run at the start fails (status {status[i]}; loss {loss[i]})"
+                for i in range(k)]
+    if not ok.any():
+        raise ValueError(f"search: the runs at all {k} starts fail (statuses {sorted(set(status.tolist()))})")
+    histories = [{"z": [Z[i].copy()], "theta": [theta_c[i].copy()], "loss": [loss[i]], "status": [int(status[i])],
+                "accepted": [bool(ok[i])], "lam": [LAM0], "wall_s": [time.perf_counter() - clock0],
+                "grad_norm": [grad_norm(Z[i], Jz[i], r[i])]} for i in range(k)]
+    iterations = 1
+    while iterations < steps and not done.all():
+        active = np.flatnonzero(~done)
+        delta, promised = propose(cur["r"][active], cur["Jz"][active], lam[active])
+        Z_t = cur["z"][active] + delta
+        r_t, Jz_t, pred_t = evaluate(Z_t)
+        status_t = statuses(pred_t)
+        loss_t = np.sum(r_t * r_t, axis=1)
+        theta_t = np.asarray(bounds.to_physical(jnp.asarray(Z_t)), float)
+        accepted, lam[active], rejections[active], stop, msgs = judge(
+            cur["loss"][active], cur["theta"][active], loss_t, theta_t, status_t == 0, promised, lam[active],
+            rejections[active], m, options)
+        for j, i in enumerate(active):
+            if accepted[j]:
+                cur["z"][i], cur["theta"][i], cur["r"][i], cur["Jz"][i] = Z_t[j], theta_t[j], r_t[j], Jz_t[j]
+                cur["loss"][i] = loss_t[j]
+                cur["pred"][i] = jax.tree.map(lambda a, j=j: a[j], pred_t)
+            if stop[j]:
+                done[i], messages[i] = True, msgs[j]
+            h = histories[i]
+            for field, value in (("z", Z_t[j]), ("theta", theta_t[j]), ("loss", loss_t[j]),
+                                 ("status", int(status_t[j])), ("accepted", bool(accepted[j])), ("lam", lam[i]),
+                                 ("wall_s", time.perf_counter() - clock0),
+                                 ("grad_norm", grad_norm(Z_t[j], Jz_t[j], r_t[j]))):
+                h[field].append(value)
+        iterations += 1
+        if progress:
+            best = np.nanmin(cur["loss"])
+            print(f"search: iteration {iterations}/{steps}, {len(active)} active of {k}, best loss {best:.3e}",
+                  file=sys.stderr, flush=True)
+    for i in np.flatnonzero(~done):
+        messages[i] = f"stopped after {len(histories[i]['loss'])} iterations (steps = {steps})"
+
+    # ---- the best start, judged; its noise sets the scale of Δχ² ----------------------------------
+    valid = np.flatnonzero(np.isfinite(cur["loss"]))
+    order = valid[np.argsort(cur["loss"][valid], kind="stable")]
+    i_best = int(order[0])
+    converged = [msg.startswith("converged") for msg in messages]
+    theta_b, z_b, r_b = cur["theta"][i_best], cur["z"][i_best], cur["r"][i_best]
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        J_b = cur["Jz"][i_best] / np.asarray(bounds.jacobian_diag(jnp.asarray(z_b)), float)[None, :]
+    verdict = assess_fit(r_b, objective.row_scale, objective.blocks, theta_b, converged=converged[i_best],
+                         message=messages[i_best], bounds=bounds, noise=noise)
+    unc = None
+    if uncertainty and np.all(np.isfinite(J_b)):
+        unc = gauss_newton_uncertainty(J_b, r_b, keys, theta_b, objective.blocks, objective.row_scale, noise=noise,
+                                       bounds=bounds, verdict=verdict)
+    wall = time.perf_counter() - clock0
+    histories = [{f: np.asarray(v) for f, v in h.items()} for h in histories]
+    hist = histories[i_best]
+    best = FitResult(keys=keys, theta=dict(zip(keys, map(float, theta_b))), loss=float(cur["loss"][i_best]),
+                     iterations=len(hist["loss"]), wall_s=wall, method="lm", converged=converged[i_best],
+                     message=messages[i_best], history=hist, residuals=r_b, jacobian=J_b,
+                     prediction=cur["pred"][i_best], uncertainty=unc,
+                     start=dict(zip(keys, map(float, thetas[i_best]))),
+                     start_note=start_note if i_best == 0 and init else "", verdict=verdict)
+
+    # ---- distinct minima, and which lie within the noise of the best -------------------------------
+    sigma, _, _ = block_noise(r_b, objective.row_scale, objective.blocks, noise)
+    chi2 = {int(i): chi2_of(cur["r"][i], objective.row_scale, objective.blocks, sigma) for i in valid}
+    limit = chi2_quantile(WITHIN_NOISE_P, n)
+    span = np.asarray(bounds.upper) - np.asarray(bounds.lower)
+    clusters: list[list[int]] = []
+    for i in order:
+        for members in clusters:
+            if np.max(np.abs(cur["theta"][i] - cur["theta"][members[0]]) / span) <= cluster_tol:
+                members.append(int(i))
+                break
+        else:
+            clusters.append([int(i)])
+    minima = []
+    for members in clusters:
+        i = members[0]
+        delta_chi2 = chi2[i] - chi2[i_best]
+        minima.append(Minimum(theta=dict(zip(keys, map(float, cur["theta"][i]))), loss=float(cur["loss"][i]),
+                              delta_chi2=float(delta_chi2), within_noise=bool(delta_chi2 <= limit),
+                              starts=tuple(members), verified=converged[i],
+                              at_bound=tuple(bounds.near_bound(cur["theta"][i])), message=messages[i]))
+    return SearchResult(keys=keys, starts=thetas, design=design, seed=int(seed), minima=minima, best=best,
+                        best_start=i_best, finals=cur["theta"].copy(), losses=cur["loss"].copy(), residuals=cur["r"].copy(), histories=histories,
+                        messages=messages, delta_chi2_limit=limit, iterations=iterations, evaluations=evaluations,
+                        wall_s=wall, compile_s=compile_s, start_note=start_note)
+

@@ -1,0 +1,186 @@
+"""The batched global search (issue 10): multi-start LM in one vmapped batch that finds a twin's
+truth from no start, the same steps as single-start fits, minima within the noise, the verdict
+"not a fit of the data" (no Gauss–Newton interval) at a bound or an unverified point, a scene
+default on a bound that no longer blocks a fit, and the command line's --starts. One tiny S4
+scene (dx = L/4, 144 particles, 0.1 s) and one compiled batch serve the module."""
+
+import importlib
+import pathlib
+
+import numpy as np
+import pytest
+
+from calibration import Bounds, Objective, ProfileTarget, assess_fit, fit, gauss_newton_uncertainty, search
+from calibration.__main__ import build_parser, main
+from calibration.bounds import START_MARGIN
+from calibration.search import design_starts
+from calibration.uncertainty import structural_noise
+from jaxmpm import scenes
+
+SEARCH_MODULE = importlib.import_module("calibration.search")
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+S4 = ROOT / "experiments_data" / "synthetic" / "S4_beta0.25.csv"
+KEYS = ("beta", "mu1")
+TRUTH = np.array([0.4, 0.45])  # far from the scene's β = 0, μ1 = 0.38
+K = 4
+
+
+@pytest.fixture(scope="module")
+def objective():
+    scene = scenes.cohesive_collapse(dx=0.089 / 4, t_end=0.1)
+    xs = np.linspace(0.0, 0.2, 25)
+    gen = Objective(scene, KEYS, profile=ProfileTarget(xs, np.ones_like(xs)), check_data=False)  # placeholder
+    _, pred = gen.residuals(TRUTH)
+    assert int(pred["status"]) == 0
+    return Objective(scene, KEYS, profile=ProfileTarget(xs, np.asarray(pred["h"])))
+
+
+@pytest.fixture(scope="module")
+def found(objective):
+    return search(objective, K, seed=0, steps=7, shrink=False)
+
+
+def test_the_search_finds_the_truth_of_a_twin_from_no_start(found):
+    assert found.starts.shape == (K, 2) and found.iterations == 7
+    assert found.evaluations == K * found.iterations  # every iteration: one batch of all K starts
+    best = np.array([found.best.theta[k] for k in KEYS])
+    np.testing.assert_allclose(best, TRUTH, rtol=1e-6)
+    assert found.best.verdict.is_fit and found.best.verdict.verified
+    assert not found.best.uncertainty.withheld
+    # The truth is the only minimum within the noise of the best (noise-free data).
+    within = found.within_noise
+    assert len(within) == 1 and np.allclose(list(within[0].theta.values()), TRUTH, rtol=1e-6)
+    assert len(found.minima) > 1 and all(m.delta_chi2 > found.delta_chi2_limit for m in found.minima[1:])
+    out = found.to_json()
+    assert out["method"] == "lm-search" and out["search"]["n_within_noise"] == 1
+    assert out["search"]["start_used"] == dict(zip(KEYS, found.starts[found.best_start].tolist()))
+    assert {"params", "loss", "within_noise_of_best", "verified_minimum", "at_bound"} <= set(out["search"]["minima"][0])
+    assert out["verdict"]["verdict"] == "a fit of the data" and "ci95" in out
+
+
+def test_a_batch_of_starts_takes_the_steps_of_single_fits(found, objective):
+    """The batch shares calibration.lm with fit(): each start's iterates equal a single fit's."""
+    for i in (0, 1):
+        single = fit(objective, dict(zip(KEYS, found.starts[i])), steps=4, uncertainty=False)
+        batch = found.histories[i]
+        np.testing.assert_allclose(batch["theta"][:4], single.history["theta"], rtol=1e-9, atol=1e-12)
+        np.testing.assert_allclose(batch["loss"][:4], single.history["loss"], rtol=1e-7, atol=1e-18)
+        np.testing.assert_array_equal(batch["accepted"][:4], single.history["accepted"])
+
+
+def test_points_at_a_bound_or_unverified_get_no_interval(found, objective):
+    at_bound = [m for m in found.minima if m.at_bound]
+    assert at_bound, [m.theta for m in found.minima]  # seed 0: one start runs into β = 0
+    i = at_bound[0].starts[0]
+    verdict = assess_fit(found.residuals[i], objective.row_scale, objective.blocks, found.finals[i],
+                         converged=True, bounds=objective.bounds)
+    assert not verdict.is_fit and "beta at a bound" in verdict.statement
+    # Two iterations are not a verified minimum: no interval, whatever the misfit.
+    short = fit(objective, {"beta": 0.3, "mu1": 0.5}, steps=2)
+    assert not short.verdict.is_fit and "not a verified minimum" in short.verdict.reasons[0]
+    assert short.uncertainty.stderr is None and short.uncertainty.ci95 is None and short.uncertainty.cov is None
+    out = short.to_json()
+    assert "stderr" not in out and "ci95" not in out
+    assert out["verdict"]["verdict"] == "not a fit of the data" and "No Gauss–Newton interval" in out["statement"]
+
+
+def test_a_scene_default_on_a_bound_starts_inside_and_says_where(objective):
+    assert float(objective.initial()["beta"]) == 0.0  # S4's default: on the bound of (0, 1)
+    result = fit(objective, steps=1, uncertainty=False)
+    assert result.start["beta"] == pytest.approx(START_MARGIN) and result.start["mu1"] == objective.initial()["mu1"]
+    assert "beta: the scene's value 0 lies on or next to its bound (0, 1)" in result.start_note
+    assert result.to_json()["start"]["beta"] == pytest.approx(START_MARGIN)
+    with pytest.raises(ValueError, match=r"init: beta = 0.0 must lie strictly inside its bounds \(0.0, 1.0\)"):
+        fit(objective, {"beta": 0.0}, steps=1)
+
+
+def test_move_inside_and_design_starts(objective):
+    b = Bounds.create(("beta", "mu1", "xi"))
+    theta, moved = b.move_inside([0.0, 0.38, 500.0])
+    np.testing.assert_allclose(theta, [0.05, 0.38, 475.0])
+    assert moved == {"beta": (0.0, 0.05), "xi": (500.0, 475.0)}
+    # Starts fill the box, are seeded, and are valid parameter sets (μ1 <= the scene's μ2).
+    one = Objective(objective.scene, ("mu1",), profile=objective.profiles[0])
+    starts = design_starts(one, 8, seed=3)
+    assert starts.shape == (8, 1) and np.all(starts[:, 0] <= float(objective.scene.params.mu2))
+    assert len(np.unique(starts)) == 8
+    np.testing.assert_array_equal(starts, design_starts(one, 8, seed=3))
+    assert not np.array_equal(starts, design_starts(one, 8, seed=4))
+    lhs = design_starts(objective, 5, design="lhs")
+    assert lhs.shape == (5, 2) and np.all(lhs > np.asarray(objective.bounds.lower))
+    for kwargs, message in (({"starts": 0}, "starts must be an integer >= 1"),
+                            ({"cluster_tol": 0.0}, "cluster_tol must be in"),
+                            ({"design": "grid"}, "design must be one of")):
+        with pytest.raises(ValueError, match=message):
+            search(objective, **kwargs)
+
+
+def test_verdict_and_intervals_of_a_linear_model():
+    """At a bound, or with a misfit well above a given noise, no interval; within it, one."""
+    rng = np.random.default_rng(0)
+    m = 200
+    x = np.linspace(0, 1, m)
+    J = np.column_stack([np.ones(m), x])
+    blocks, scale = {"profile": slice(0, m)}, np.ones(m)
+    noise = 0.01 * rng.standard_normal(m)
+    bounds = Bounds.create(("beta", "mu1"))
+    inside = np.array([0.3, 0.5])
+    ok = assess_fit(noise, scale, blocks, inside, converged=True, bounds=bounds, noise=0.01)
+    assert ok.is_fit and ok.noise_source == "given"
+    assert gauss_newton_uncertainty(J, noise, KEYS, inside, blocks, scale, noise=0.01, verdict=ok).ci95 is not None
+    misfit = noise + 0.05 * np.sin(3 * x)  # a smooth misfit five times the noise
+    above = assess_fit(misfit, scale, blocks, inside, converged=True, bounds=bounds, noise=0.01)
+    assert not above.is_fit and "misfit well above the noise" in above.reasons[0]
+    unc = gauss_newton_uncertainty(J, misfit, KEYS, inside, blocks, scale, noise=0.01, verdict=above)
+    assert unc.withheld and "ci95" not in unc.to_dict() and unc.statement.startswith("Not a fit of the data")
+    # Estimated from the residuals' structure, the noise is the white part, not the misfit.
+    estimated = assess_fit(misfit, scale, blocks, inside, converged=True, bounds=bounds)
+    assert estimated.noise["profile"] == pytest.approx(0.01, rel=0.2) and not estimated.is_fit
+    edge = assess_fit(noise, scale, blocks, np.array([1e-5, 0.5]), converged=True, bounds=bounds, noise=0.01)
+    assert not edge.is_fit and edge.at_bound == ("beta",)
+
+
+def test_structural_noise_sees_the_white_part_only():
+    rng = np.random.default_rng(1)
+    x = np.linspace(0, 1, 400)
+    smooth = 0.05 * np.sin(4 * x)
+    sigma, count = structural_noise(smooth + 0.01 * rng.standard_normal(x.size))
+    assert sigma == pytest.approx(0.01, rel=0.15) and count == 398
+    assert structural_noise(smooth)[0] < 1e-4
+    tail = np.concatenate([0.01 * rng.standard_normal(50), np.zeros(100)])  # nothing beyond the front
+    assert structural_noise(tail)[0] == pytest.approx(0.01, rel=0.35) and structural_noise(tail)[1] == 50
+    assert structural_noise(np.zeros(3))[0] is None
+
+
+# ---- the command line ----------------------------------------------------------------------------------
+@pytest.mark.parametrize("extra, message", [
+    (["--starts", "0"], "--starts must be >= 1, got 0"),
+    (["--starts", "-3"], "--starts must be >= 1, got -3"),
+    (["--search-seed", "-1"], "--search-seed must be >= 0, got -1"),
+    (["--starts", "4", "--method", "adam"], "--starts 4: --method adam is a single-start optimiser"),
+    (["--starts", "4", "--jacobian", "fd"], "--starts 4: --jacobian fd is not batched"),
+    (["--starts", "4", "--out", "f.h5"], "--starts 4: --out keeps the resumable history of one start"),
+])
+def test_bad_search_options_are_refused_before_any_work(monkeypatch, tmp_path, capsys, extra, message):
+    def tripwire(*args, **kwargs):
+        raise AssertionError("the model was compiled: the input should have been refused before")
+
+    monkeypatch.setattr(SEARCH_MODULE, "_batch_fn", tripwire)
+    monkeypatch.setattr(Objective, "residuals_and_jacobian", tripwire)
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(SystemExit) as exc:
+        main(["fit", "--scene", "cohesive-collapse", "--data", str(S4), "--fit", "beta,mu1", *extra,
+              "--dx", str(0.089 / 4), "--no-progress", "--json"])
+    err = capsys.readouterr().err
+    assert exc.value.code == 2 and message in err, err
+
+
+def test_the_default_is_a_search_without_init_and_one_start_with_it():
+    from calibration.__main__ import _starts
+
+    base = ["fit", "--scene", "cohesive-collapse", "--data", str(S4), "--fit", "beta"]
+    parse = build_parser().parse_args
+    assert _starts(parse(base)) == SEARCH_MODULE.DEFAULT_STARTS
+    assert _starts(parse([*base, "--init", "beta=0.2"])) == 1
+    assert _starts(parse([*base, "--out", "f.h5"])) == 1
+    assert _starts(parse([*base, "--init", "beta=0.2", "--starts", "3"])) == 3
