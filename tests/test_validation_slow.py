@@ -35,7 +35,7 @@ def bagnold():
 
 def test_bagnold_surface_velocity_within_3_percent_and_better_than_coarse(bagnold):
     """The issue's criterion on the surface velocity at 22°, 24° and 26° (docs/validation.md
-    section 1): within 3 % at the finest dx, and smaller there than at the coarsest."""
+    section 2): within 3 % at the finest dx, and smaller there than at the coarsest."""
     for slope in (22.0, 24.0, 26.0):
         rows = sorted((c for c in bagnold["all_cases"] if c["slope_deg"] == slope), key=lambda c: -c["dx"])
         assert all(c["status"] == 0 for c in rows)
