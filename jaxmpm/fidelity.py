@@ -29,7 +29,7 @@ from . import scenes
 from .observables import deposit_profile, front_from_profile, particle_volumes
 from .simulate import simulate
 
-__all__ = ["REFERENCE_S2", "REFERENCE_SOURCE", "SIGMA", "observe", "run_case", "resolution", "cross_code"]
+__all__ = ["REFERENCE_S2", "REFERENCE_SOURCE", "SIGMA", "cross_code", "observe", "resolution", "run_case"]
 
 #: The reference code's S2 observables at t = 0.4198 s (m): Matter (Blatny & Gaume, Geosci.
 #: Model Dev. 2025), 2D, float64, Poisson-disk sampling with about 6 particles per cell, the body

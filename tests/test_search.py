@@ -10,7 +10,15 @@ import pathlib
 import numpy as np
 import pytest
 
-from calibration import Bounds, Objective, ProfileTarget, assess_fit, fit, gauss_newton_uncertainty, search
+from calibration import (
+    Bounds,
+    Objective,
+    ProfileTarget,
+    assess_fit,
+    fit,
+    gauss_newton_uncertainty,
+    search,
+)
 from calibration.__main__ import build_parser, main
 from calibration.bounds import START_MARGIN
 from calibration.search import design_starts
