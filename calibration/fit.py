@@ -50,7 +50,7 @@ import optax
 from jaxmpm import describe_status
 
 from .lm import LAM0, LMOptions, judge, propose
-from .uncertainty import Uncertainty, Verdict, assess_fit, gauss_newton_uncertainty
+from .uncertainty import Uncertainty, Verdict, judge_point
 
 __all__ = ["METHODS", "FitResult", "fit", "read_history", "start_theta"]
 
@@ -439,12 +439,8 @@ def fit(objective, init: Mapping[str, float] | None = None, *, method: str = "lm
         r_b, J_b = np.asarray(r_b, float), np.asarray(J_b, float)
         loss_b = float(np.sum(r_b * r_b))
     converged = done and message.startswith("converged")
-    verdict = assess_fit(r_b, objective.row_scale, objective.blocks, theta_best, converged=converged, message=message,
-                         bounds=bounds, noise=noise)
-    unc = None
-    if uncertainty:
-        unc = gauss_newton_uncertainty(J_b, r_b, keys, theta_best, objective.blocks, objective.row_scale,
-                                       noise=noise, bounds=bounds, verdict=verdict)
+    verdict, unc = judge_point(objective, r_b, J_b, theta_best, converged=converged, message=message, noise=noise,
+                               uncertainty=uncertainty)
     return FitResult(keys=keys, theta={k: float(v) for k, v in zip(keys, theta_best)}, loss=float(loss_b),
                      iterations=len(hist["loss"]), wall_s=float(hist["wall_s"][-1]) if len(hist["wall_s"]) else 0.0,
                      method=method, converged=converged, message=message,

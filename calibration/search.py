@@ -37,13 +37,7 @@ import numpy as np
 
 from .fit import FitResult, start_theta
 from .lm import LAM0, LMOptions, judge, propose
-from .uncertainty import (
-    assess_fit,
-    block_noise,
-    chi2_of,
-    chi2_quantile,
-    gauss_newton_uncertainty,
-)
+from .uncertainty import block_noise, chi2_of, chi2_quantile, judge_point
 
 __all__ = ["DEFAULT_STARTS", "DESIGNS", "WITHIN_NOISE_P", "Minimum", "SearchResult", "design_starts", "search"]
 
@@ -322,12 +316,8 @@ def search(objective, starts: int | np.ndarray = DEFAULT_STARTS, *, seed: int = 
     theta_b, z_b, r_b = cur["theta"][i_best], cur["z"][i_best], cur["r"][i_best]
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
         J_b = cur["Jz"][i_best] / np.asarray(bounds.jacobian_diag(jnp.asarray(z_b)), float)[None, :]
-    verdict = assess_fit(r_b, objective.row_scale, objective.blocks, theta_b, converged=converged[i_best],
-                         message=messages[i_best], bounds=bounds, noise=noise)
-    unc = None
-    if uncertainty and np.all(np.isfinite(J_b)):
-        unc = gauss_newton_uncertainty(J_b, r_b, keys, theta_b, objective.blocks, objective.row_scale, noise=noise,
-                                       bounds=bounds, verdict=verdict)
+    verdict, unc = judge_point(objective, r_b, J_b, theta_b, converged=converged[i_best], message=messages[i_best],
+                               noise=noise, uncertainty=uncertainty and bool(np.all(np.isfinite(J_b))))
     wall = time.perf_counter() - clock0
     histories = [{f: np.asarray(v) for f, v in h.items()} for h in histories]
     hist = histories[i_best]

@@ -42,7 +42,7 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 
 __all__ = ["NOISE_FLOOR", "Uncertainty", "Verdict", "assess_fit", "block_noise", "chi2_of", "chi2_quantile",
-           "gauss_newton_uncertainty", "structural_noise"]
+           "gauss_newton_uncertainty", "judge_point", "structural_noise"]
 
 Z95 = 1.959963984540054
 #: Noise (relative units) below which no misfit is told apart from the run's own round-off.
@@ -303,3 +303,18 @@ def gauss_newton_uncertainty(
                            statement, verdict)
     return Uncertainty(keys, theta, stderr, cov, corr, ci95, used, estimated, se_ref, rel, constrained,
                        evals, evecs, " ".join(lines), verdict)
+
+
+def judge_point(objective, r, J, theta, *, converged: bool, message: str,
+                noise: Mapping[str, float] | float | None = None, uncertainty: bool = True):
+    """The verdict on a fit's end point and, when ``uncertainty``, its Gauss–Newton uncertainty
+    (intervals withheld unless the verdict is a fit): what ``fit`` and ``search`` report for
+    their best point. Returns ``(verdict, uncertainty or None)``."""
+    verdict = assess_fit(r, objective.row_scale, objective.blocks, theta, converged=converged, message=message,
+                         bounds=objective.bounds, noise=noise)
+    unc = None
+    if uncertainty:
+        unc = gauss_newton_uncertainty(J, r, objective.keys, theta, objective.blocks, objective.row_scale,
+                                       noise=noise, bounds=objective.bounds, verdict=verdict)
+    return verdict, unc
+
