@@ -27,6 +27,24 @@ from .state import (
 from .sampling import SAMPLINGS, seed_box
 from .step import make_step
 
+def _warn_known_bad_jaxlib():
+    import warnings
+
+    try:
+        version = _metadata.version("jaxlib")
+    except _metadata.PackageNotFoundError:
+        return
+    if version == "0.10.2":
+        warnings.warn(
+            "jaxlib 0.10.2 miscompiles jaxmpm's step on the CPU under forward-mode Jacobians "
+            "(jacfwd in one parameter returns NaN tangents at random; jax-ml/jax#39103 is another "
+            "CPU miscompile of that release). Install jax/jaxlib 0.10.1 or a release after 0.10.2.",
+            RuntimeWarning, stacklevel=2,
+        )
+
+
+_warn_known_bad_jaxlib()
+
 try:
     __version__ = _metadata.version("jaxmpm")
 except _metadata.PackageNotFoundError:  # running from a source tree

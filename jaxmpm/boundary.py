@@ -31,9 +31,9 @@ from __future__ import annotations
 import dataclasses
 import math
 
+import jax
 import jax.numpy as jnp
 
-from .linalg import safe_div, safe_sqrt
 
 __all__ = ["Wall", "KINDS", "KIND_ALIASES", "apply_walls"]
 
@@ -105,11 +105,20 @@ class Wall:
 
 
 def _coulomb(vt, vn, friction):
-    """|v_t| <- max(0, |v_t| - μ_w |v_n|) along v_t's own direction."""
+    """|v_t| <- max(0, |v_t| - μ_w |v_n|) along v_t's own direction.
+
+    Written with selects, not max(0, ·) of a ratio: JAX differentiates max by multiplying with
+    a 0/1 mask, so a ratio whose derivative overflows where |v_t| -> 0 (stuck nodes) would turn
+    0 · inf into a NaN tangent. Here a stuck node's tangent is exactly 0 and the ratio is only
+    formed where |v_t| > (smallest normal)^(1/4), where its derivative is finite."""
     if friction == 0.0:
         return vt
-    vt_norm = safe_sqrt(jnp.sum(vt * vt, axis=0, keepdims=True))
-    return vt * jnp.maximum(0.0, 1.0 - safe_div(friction * jnp.abs(vn), vt_norm, fill=1.0))
+    vt2 = jnp.sum(vt * vt, axis=0, keepdims=True)
+    limit = friction * jnp.abs(vn)
+    slides = vt2 > limit * limit
+    safe = slides & (vt2 > jnp.sqrt(jnp.finfo(vt.dtype).tiny))
+    scale = 1.0 - limit * jax.lax.rsqrt(jnp.where(safe, vt2, 1.0))
+    return vt * jnp.where(safe, scale, jnp.where(slides, 1.0, 0.0))
 
 
 def _contact_velocity(wall: Wall, v_rel, normal):

@@ -55,8 +55,15 @@ def det(a):
     )
 
 
-def safe_sqrt(x, eps=0.0):
-    """sqrt(x) for x > eps, else 0, with a zero (not NaN/inf) derivative where x <= eps."""
+def safe_sqrt(x, eps=None):
+    """sqrt(x) for x > eps, else 0, with a zero (not NaN/inf) derivative where x <= eps.
+
+    ``eps`` defaults to the smallest normal number of x's type: a subnormal x may be flushed to
+    zero inside a fused kernel (XLA's CPU backend does so in float32), and sqrt(0) would then
+    make the derivative 1/(2 sqrt x) infinite (inf · 0 = NaN in forward mode)."""
+    x = jnp.asarray(x)
+    if eps is None:
+        eps = jnp.finfo(jnp.result_type(x, float)).tiny
     ok = x > eps
     return jnp.where(ok, jnp.sqrt(jnp.where(ok, x, 1.0)), 0.0)
 

@@ -31,10 +31,10 @@ def time_step(config: Config, state, params):
     """The adaptive step size before clipping to output times (MODEL.md §5)."""
     dx = config.grid.dx
     speed2 = jnp.max(jnp.sum(state.v * state.v, axis=-1))
-    moving = speed2 > 0
-    dt_v = jnp.where(moving, config.cfl * dx * jax.lax.rsqrt(jnp.where(moving, speed2, 1.0)), jnp.inf)
     dt_e = config.cfl_elastic * dx / config.material.wave_speed(params)
-    return jnp.minimum(dt_v, dt_e)
+    binds = (config.cfl * dx / dt_e) ** 2
+    dt_v = config.cfl * dx * jax.lax.rsqrt(jnp.maximum(speed2, binds))
+    return jnp.where(speed2 > binds, jnp.minimum(dt_v, dt_e), dt_e)
 
 
 def step_budget(material, params, dx: float, t_end: float, cfl_elastic: float = 0.5, margin: float = 1.25,
