@@ -36,6 +36,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .fit import FitResult, start_theta
+from .objective import jacobian_by_columns
 from .lm import LAM0, LMOptions, judge, propose
 from .uncertainty import block_noise, chi2_of, chi2_quantile, judge_point
 
@@ -181,12 +182,8 @@ def _batch_fn(objective):
                          "(a single-start fit is)")
     bounds = objective.bounds
 
-    def of_z(z):
-        r, pred = residual_fn(bounds.to_physical(z))
-        return r, (r, pred)
-
     def member(z):
-        Jz, (r, pred) = jax.jacfwd(of_z, has_aux=True)(z)
+        Jz, (r, pred) = jacobian_by_columns(lambda z_: residual_fn(bounds.to_physical(z_)), z)
         return r, Jz, pred
 
     fn = jax.jit(jax.vmap(member))

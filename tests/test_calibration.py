@@ -307,3 +307,21 @@ def test_gauss_newton_covariance_of_a_linear_model():
     # estimated noise ~ sigma
     u2 = gauss_newton_uncertainty(J, r, ("a", "b", "c"), np.ones(3), blocks, np.ones(m))
     assert abs(u2.noise["profile"] / sigma - 1) < 0.1
+
+
+def test_jacobian_by_columns_equals_jacfwd():
+    """The column passes give jax.jacfwd's Jacobian, the primal output and the aux of one pass."""
+    import jax
+    import jax.numpy as jnp
+
+    from calibration.objective import jacobian_by_columns
+
+    def fn(x):
+        y = jnp.stack([jnp.sin(x[0]) * x[1], x[0] ** 2, jnp.exp(x[1] - x[2])])
+        return y, {"status": jnp.int32(3), "sum": jnp.sum(y)}
+
+    x = jnp.asarray([0.3, -1.2, 0.5])
+    J, (y, aux) = jacobian_by_columns(fn, x)
+    np.testing.assert_allclose(J, jax.jacfwd(lambda x: fn(x)[0])(x), rtol=1e-13)
+    np.testing.assert_allclose(y, fn(x)[0], rtol=1e-15)
+    assert int(aux["status"]) == 3 and J.shape == (3, 3)
