@@ -13,12 +13,12 @@ from .bounds import DEFAULT_BOUNDS, FIT_KEYS, Bounds
 from .data import FrontHistory, Profile, RunoutLaw, list_datasets, load_front_history, load_profile, load_scaling_law
 from .fit import FitResult, fit, read_history
 from .objective import CompositeObjective, FrontTarget, Objective, ProfileTarget
-from .search import Minimum, SearchResult, design_starts, search
+from .search import Minimum, SearchResult, coarse_to_fine, design_starts, search
 from .uncertainty import Uncertainty, Verdict, assess_fit, gauss_newton_uncertainty, structural_noise
 
 __all__ = [
     "DEFAULT_BOUNDS", "FIT_KEYS", "Bounds", "CompositeObjective", "FitResult", "FrontHistory", "FrontTarget",
     "Minimum", "Objective", "Profile", "ProfileTarget", "RunoutLaw", "SearchResult", "Uncertainty", "Verdict",
     "assess_fit", "design_starts", "fit", "gauss_newton_uncertainty", "list_datasets", "load_front_history",
-    "load_profile", "load_scaling_law", "read_history", "search", "structural_noise",
+    "coarse_to_fine", "load_profile", "load_scaling_law", "read_history", "search", "structural_noise",
 ]

@@ -24,6 +24,7 @@ is valid JSON: a non-finite number is printed as null and its path listed under 
 from __future__ import annotations
 
 import argparse
+import copy
 import json
 import math
 import pathlib
@@ -160,8 +161,18 @@ def _fit(args) -> int:
     if starts > 1:
         from .search import search
 
-        found = search(objective, starts, seed=args.search_seed, init=init or None, steps=steps, noise=noise,
-                       progress=not args.no_progress)
+        if args.coarse is not None:
+            from .search import coarse_to_fine
+
+            coarse_args = copy.copy(args)
+            coarse_args.dx = scene.config.grid.dx * args.coarse
+            _, coarse = _scene_and_objective(coarse_args, keys)
+            found = coarse_to_fine(objective, coarse, starts, refine=args.refine, seed=args.search_seed,
+                                   init=init or None, coarse_steps=steps, steps=steps, noise=noise,
+                                   progress=not args.no_progress)
+        else:
+            found = search(objective, starts, seed=args.search_seed, init=init or None, steps=steps, noise=noise,
+                           progress=not args.no_progress)
         result = found.best
     else:
         result = fit(objective, init, method=args.method, steps=steps, out=args.out, resume=args.resume,
@@ -386,7 +397,8 @@ def _bench(args) -> int:
     if args.dtype == "float64":
         jax.config.update("jax_enable_x64", True)
     kw = {"dx": 0.089 / 8, "t_end": 0.2} if args.quick else {"dx": args.dx}
-    out = bench(_keys(args.fit), repeat=args.repeat, dtype=args.dtype, **kw)
+    values = {k: float(v) for k, v in _pairs(args.set, "--set").items()}
+    out = bench(_keys(args.fit), repeat=args.repeat, dtype=args.dtype, values=values, **kw)
     return 1 if _emit(out, args.json) else 0
 
 
@@ -450,6 +462,12 @@ def build_parser() -> argparse.ArgumentParser:
                      help="global search: Levenberg-Marquardt from K space-filling starts in one batch (default 8 "
                           "without --init, --out, --resume, --method adam or --jacobian fd; else 1)")
     fit.add_argument("--search-seed", type=int, default=0, help="seed of the starts' Sobol design (default 0)")
+    fit.add_argument("--coarse", type=float, default=None, metavar="F",
+                     help="coarse-to-fine search: the starts run first at F times the grid spacing, then the best "
+                          "--refine minima are refined at the requested one (F > 1; needs a search)")
+    fit.add_argument("--refine", type=int, default=2, metavar="N",
+                     help="coarse minima refined at the requested resolution (default 2; all within the noise of "
+                          "the best if more)")
 
     sweep = sub.add_parser("sweep", help="the loss over a grid or a Latin hypercube of parameters")
     _common(sweep)
@@ -469,6 +487,8 @@ def build_parser() -> argparse.ArgumentParser:
     be.add_argument("--dx", type=float, default=0.089 / 16, help="grid spacing of the S4 scene, m")
     be.add_argument("--quick", action="store_true", help="dx = L/8 and 0.2 s")
     be.add_argument("--repeat", type=int, default=2)
+    be.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                    help="a scene parameter (issue 10's case: --set pc0=500 --set xi=50)")
     be.add_argument("--dtype", choices=("float32", "float64"), default="float32")
     be.add_argument("--json", action="store_true", help="print one line of JSON")
 
@@ -524,7 +544,15 @@ def _check_options(args) -> None:
         if hasattr(args, option):
             _pairs(getattr(args, option), f"--{option}")  # malformed or repeated keys
     if getattr(args, "command", None) == "fit":
-        _starts(args)  # --starts against the options that need a single start
+        starts = _starts(args)  # --starts against the options that need a single start
+        if args.coarse is not None:
+            if not (math.isfinite(args.coarse) and args.coarse > 1):
+                raise ValueError(f"--coarse must be a finite factor > 1 of the grid spacing, got {args.coarse}")
+            if starts < 2:
+                raise ValueError("--coarse is a stage of the global search: it needs two starts or more (the "
+                                 "default without --init; with --init give --starts K)")
+        if args.refine < 1:
+            raise ValueError(f"--refine must be an integer >= 1, got {args.refine}")
 
 
 def _check_outputs(args) -> None:

@@ -46,8 +46,9 @@ def _temp_bytes(jitted, *args) -> int | None:
 
 
 def bench(keys=("beta", "mu1", "mu2", "I0", "xi"), dx: float = 0.089 / 16, t_end: float = 0.5, repeat: int = 2,
-          dtype=None) -> dict:
-    scene = build_scene("cohesive-collapse", dx=dx, t_end=t_end, dtype=dtype, values={"beta": 0.25})
+          dtype=None, values=None) -> dict:
+    """``values``: scene parameters by key over the bench's own (β = 0.25)."""
+    scene = build_scene("cohesive-collapse", dx=dx, t_end=t_end, dtype=dtype, values={"beta": 0.25, **dict(values or {})})
     xs = np.linspace(0.0, 0.2, 50)
     times = np.linspace(0.05, t_end, 10)
     obj = Objective(scene, keys, profile=ProfileTarget(xs, np.ones_like(xs)),
@@ -57,7 +58,7 @@ def bench(keys=("beta", "mu1", "mu2", "I0", "xi"), dx: float = 0.089 / 16, t_end
     out = {"scene": scene.name, "keys": list(keys), "n_params": len(keys), "n_residuals": obj.n_residuals,
            "n_particles": int(scene.state.x.shape[0]), "max_steps": obj.config.max_steps, "dx": dx,
            "dtype": str(obj.dtype), "machine": platform.machine(), "backend": jax.default_backend(),
-           "devices": len(jax.devices())}
+           "devices": len(jax.devices()), "values": {k: float(getattr(scene.params, k)) for k in ("beta", "mu1", "pc0", "xi")}}
     # The vmapped batch of all tangents, for comparison with the column passes the objective uses.
     batch = jax.jit(jax.jacfwd(lambda t, s, b: obj._residual_fn(t, s, b), has_aux=True))
     for name, fn, jitted in (("forward", lambda: obj.residuals(theta), obj._residuals),

@@ -40,7 +40,8 @@ from .objective import jacobian_by_columns
 from .lm import LAM0, LMOptions, judge, propose
 from .uncertainty import block_noise, chi2_of, chi2_quantile, judge_point
 
-__all__ = ["DEFAULT_STARTS", "DESIGNS", "WITHIN_NOISE_P", "Minimum", "SearchResult", "design_starts", "search"]
+__all__ = ["DEFAULT_STARTS", "DESIGNS", "WITHIN_NOISE_P", "Minimum", "SearchResult", "coarse_to_fine", "design_starts",
+           "search"]
 
 DESIGNS = ("sobol", "lhs")
 #: Starts of a search when none are asked for (the command line's default without --init).
@@ -139,6 +140,7 @@ class SearchResult:
     wall_s: float
     compile_s: float
     start_note: str = ""
+    coarse: "SearchResult | None" = None  # the coarse stage of coarse_to_fine, if there was one
 
     @property
     def within_noise(self) -> list[Minimum]:
@@ -158,6 +160,13 @@ class SearchResult:
         }
         if self.start_note:
             out["search"]["start_note"] = self.start_note
+        if self.coarse is not None:
+            c = self.coarse
+            out["search"]["coarse"] = {
+                "starts": len(c.starts), "iterations": c.iterations, "evaluations": c.evaluations,
+                "wall_s": round(c.wall_s, 3), "compile_s": round(c.compile_s, 3),
+                "minima": [m.to_dict() for m in c.minima],
+                "refined_from": [dict(zip(self.keys, t.tolist())) for t in self.starts]}
         if len(self.within_noise) > 1:
             out["search"]["statement"] = (
                 f"{len(self.within_noise)} distinct minima lie within the noise of the best (Δχ² < "
@@ -351,3 +360,48 @@ def search(objective, starts: int | np.ndarray = DEFAULT_STARTS, *, seed: int = 
                         messages=messages, delta_chi2_limit=limit, iterations=iterations, evaluations=evaluations,
                         wall_s=wall, compile_s=compile_s, start_note=start_note)
 
+
+
+def coarse_to_fine(objective, coarse, starts: int | np.ndarray = DEFAULT_STARTS, *, refine: int = 2, seed: int = 0,
+                   design: str = "sobol", init: Mapping[str, float] | None = None, coarse_steps: int = 30,
+                   progress: bool = False, **options) -> SearchResult:
+    """A global search in two stages: ``search`` on ``coarse`` (the same keys, bounds and data
+    on a cheaper resolution) finds the basins; the best ``refine`` distinct minima it reports
+    (by loss; every one within the noise of its best is kept if there are more; endpoints that break
+    a rule of the engine, such as μ1 > μ2, are passed over) are then refined
+    by a batched ``search`` on ``objective`` from those points. ``options`` (steps, noise, ...)
+    go to the fine stage. The result is the fine stage's, with the coarse one as ``.coarse``.
+
+    The coarse stage only places the starts of the fine one, so nothing it gets wrong by its
+    resolution survives into the answer, except a basin it never found: the fine stage sees
+    only the basins the coarse one reached."""
+    refine = _check_int("refine", refine, 1)
+    if tuple(coarse.keys) != tuple(objective.keys):
+        raise ValueError(f"coarse: fits {tuple(coarse.keys)}, the objective {tuple(objective.keys)}; they must agree")
+    b_c, b_f = coarse.bounds, objective.bounds
+    if not (np.allclose(b_c.lower, b_f.lower) and np.allclose(b_c.upper, b_f.upper)):
+        raise ValueError("coarse: its bounds differ from the objective's; the two stages must search the same box")
+    first = search(coarse, starts, seed=seed, design=design, init=init, steps=coarse_steps, uncertainty=False,
+                   noise=options.get("noise"), progress=progress)
+    check = getattr(objective, "check_thetas", None)
+
+    def valid(theta):  # an LM endpoint may break a rule of the engine's (μ1 > μ2): not a start
+        try:
+            if check is not None:
+                check(theta[None], "coarse minimum")
+        except ValueError:
+            return False
+        return True
+
+    candidates = [b_f.move_inside([m.theta[k] for k in objective.keys])[0] for m in first.minima]
+    usable = [(m, t) for m, t in zip(first.minima, candidates) if valid(t)]
+    if not usable:
+        raise ValueError("coarse_to_fine: no coarse minimum is a valid parameter set of the engine")
+    within = [t for m, t in usable if m.within_noise]
+    thetas = np.stack(within if len(within) > refine else [t for _, t in usable[:refine]])
+    if progress:
+        print(f"coarse_to_fine: refining {len(thetas)} of {len(first.minima)} coarse minima", file=sys.stderr, flush=True)
+    result = search(objective, thetas, seed=seed, design=design, progress=progress, **options)
+    result.coarse = first
+    result.wall_s += first.wall_s
+    return result

@@ -168,6 +168,9 @@ def test_structural_noise_sees_the_white_part_only():
     (["--starts", "4", "--method", "adam"], "--starts 4: --method adam is a single-start optimiser"),
     (["--starts", "4", "--jacobian", "fd"], "--starts 4: --jacobian fd is not batched"),
     (["--starts", "4", "--out", "f.h5"], "--starts 4: --out keeps the resumable history of one start"),
+    (["--coarse", "0.5"], "--coarse must be a finite factor > 1 of the grid spacing, got 0.5"),
+    (["--coarse", "2", "--init", "beta=0.2"], "--coarse is a stage of the global search"),
+    (["--refine", "0"], "--refine must be an integer >= 1, got 0"),
 ])
 def test_bad_search_options_are_refused_before_any_work(monkeypatch, tmp_path, capsys, extra, message):
     def tripwire(*args, **kwargs):
@@ -192,3 +195,22 @@ def test_the_default_is_a_search_without_init_and_one_start_with_it():
     assert _starts(parse([*base, "--init", "beta=0.2"])) == 1
     assert _starts(parse([*base, "--out", "f.h5"])) == 1
     assert _starts(parse([*base, "--init", "beta=0.2", "--starts", "3"])) == 3
+
+
+def test_coarse_to_fine_refines_the_coarse_minima_and_finds_the_truth(objective):
+    """The coarse stage (dx = L/3, the same data) places the starts of the fine one (L/4), which
+    recovers the twin's truth; the report keeps the coarse stage. Mismatched stages are refused."""
+    from calibration import coarse_to_fine
+
+    coarse = Objective(scenes.cohesive_collapse(dx=0.089 / 3, t_end=0.1), KEYS,
+                       profile=ProfileTarget(objective.profiles[0].x, objective.profiles[0].h))
+    result = coarse_to_fine(objective, coarse, K, refine=2, seed=0, coarse_steps=5, steps=8)
+    assert result.coarse is not None and len(result.coarse.starts) == K
+    assert 1 <= len(result.starts) <= max(2, len(result.coarse.within_noise))
+    for theta in result.starts:  # the fine starts are coarse minima
+        assert any(np.allclose(theta, list(m.theta.values()), rtol=0.06) for m in result.coarse.minima)
+    np.testing.assert_allclose([result.best.theta[k] for k in KEYS], TRUTH, rtol=1e-4)
+    out = result.to_json()["search"]["coarse"]
+    assert out["starts"] == K and out["refined_from"] and out["minima"]
+    with pytest.raises(ValueError, match="coarse: fits"):
+        coarse_to_fine(objective, Objective(coarse.scene, ("mu1",), profile=coarse.profiles[0]), K)
