@@ -168,7 +168,7 @@ def _fit(args) -> int:
             coarse_args.dx = scene.config.grid.dx * args.coarse
             _, coarse = _scene_and_objective(coarse_args, keys)
             found = coarse_to_fine(objective, coarse, starts, refine=args.refine, seed=args.search_seed,
-                                   init=init or None, coarse_steps=steps, steps=steps, noise=noise,
+                                   init=init or None, steps=steps, noise=noise,
                                    progress=not args.no_progress)
         else:
             found = search(objective, starts, seed=args.search_seed, init=init or None, steps=steps, noise=noise,

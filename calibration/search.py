@@ -40,7 +40,7 @@ from .objective import jacobian_by_columns
 from .lm import LAM0, LMOptions, judge, propose
 from .uncertainty import block_noise, chi2_of, chi2_quantile, judge_point
 
-__all__ = ["DEFAULT_STARTS", "DESIGNS", "WITHIN_NOISE_P", "Minimum", "SearchResult", "coarse_to_fine", "design_starts",
+__all__ = ["COARSE_OPTIONS", "DEFAULT_STARTS", "DESIGNS", "WITHIN_NOISE_P", "Minimum", "SearchResult", "coarse_to_fine", "design_starts",
            "search"]
 
 DESIGNS = ("sobol", "lhs")
@@ -48,6 +48,8 @@ DESIGNS = ("sobol", "lhs")
 DEFAULT_STARTS = 8
 #: A minimum is within the noise of the best when its Δχ² is below this quantile of χ²_n.
 WITHIN_NOISE_P = 0.95
+#: The coarse stage of ``coarse_to_fine``: a few iterations, stopped at 0.1 % steps or 0.01 % gains.
+COARSE_OPTIONS = {"steps": 12, "xtol": 1e-3, "ftol": 1e-4}
 #: Starts are drawn this fraction of the range inside the bounds (the sigmoid's flat tails).
 DESIGN_MARGIN = 0.02
 
@@ -363,14 +365,18 @@ def search(objective, starts: int | np.ndarray = DEFAULT_STARTS, *, seed: int = 
 
 
 def coarse_to_fine(objective, coarse, starts: int | np.ndarray = DEFAULT_STARTS, *, refine: int = 2, seed: int = 0,
-                   design: str = "sobol", init: Mapping[str, float] | None = None, coarse_steps: int = 30,
-                   progress: bool = False, **options) -> SearchResult:
+                   design: str = "sobol", init: Mapping[str, float] | None = None,
+                   coarse_options: Mapping[str, Any] | None = None, progress: bool = False,
+                   **options) -> SearchResult:
     """A global search in two stages: ``search`` on ``coarse`` (the same keys, bounds and data
     on a cheaper resolution) finds the basins; the best ``refine`` distinct minima it reports
     (by loss; every one within the noise of its best is kept if there are more; endpoints that break
-    a rule of the engine, such as μ1 > μ2, are passed over) are then refined
+    a rule of the engine, such as μ1 > μ2, are replaced by the last valid point on the line from
+    their start) are then refined
     by a batched ``search`` on ``objective`` from those points. ``options`` (steps, noise, ...)
-    go to the fine stage. The result is the fine stage's, with the coarse one as ``.coarse``.
+    go to the fine stage; ``coarse_options`` override ``COARSE_OPTIONS`` for the coarse one, whose
+    loose tolerances stop it once it knows the basin (its own model error, not the data's noise,
+    limits how well it can place a minimum). The result is the fine stage's, with the coarse one as ``.coarse``.
 
     The coarse stage only places the starts of the fine one, so nothing it gets wrong by its
     resolution survives into the answer, except a basin it never found: the fine stage sees
@@ -381,8 +387,9 @@ def coarse_to_fine(objective, coarse, starts: int | np.ndarray = DEFAULT_STARTS,
     b_c, b_f = coarse.bounds, objective.bounds
     if not (np.allclose(b_c.lower, b_f.lower) and np.allclose(b_c.upper, b_f.upper)):
         raise ValueError("coarse: its bounds differ from the objective's; the two stages must search the same box")
-    first = search(coarse, starts, seed=seed, design=design, init=init, steps=coarse_steps, uncertainty=False,
-                   noise=options.get("noise"), progress=progress)
+    opts = {**COARSE_OPTIONS, **dict(coarse_options or {})}
+    first = search(coarse, starts, seed=seed, design=design, init=init, uncertainty=False,
+                   noise=options.get("noise"), progress=progress, **opts)
     check = getattr(objective, "check_thetas", None)
 
     def valid(theta):  # an LM endpoint may break a rule of the engine's (μ1 > μ2): not a start
@@ -393,15 +400,31 @@ def coarse_to_fine(objective, coarse, starts: int | np.ndarray = DEFAULT_STARTS,
             return False
         return True
 
-    candidates = [b_f.move_inside([m.theta[k] for k in objective.keys])[0] for m in first.minima]
-    usable = [(m, t) for m, t in zip(first.minima, candidates) if valid(t)]
-    if not usable:
-        raise ValueError("coarse_to_fine: no coarse minimum is a valid parameter set of the engine")
-    within = [t for m, t in usable if m.within_noise]
-    thetas = np.stack(within if len(within) > refine else [t for _, t in usable[:refine]])
+    def placed(m):
+        """The minimum, moved inside the bounds; if it breaks an engine rule, the last valid point
+        on the straight line from its (valid) start to it (bisection)."""
+        theta = b_f.move_inside([m.theta[k] for k in objective.keys])[0]
+        if valid(theta):
+            return theta, False
+        start = first.starts[m.starts[0]]
+        lo, hi = 0.0, 1.0
+        for _ in range(30):
+            mid = 0.5 * (lo + hi)
+            lo, hi = (mid, hi) if valid(start + mid * (theta - start)) else (lo, mid)
+        return start + lo * (theta - start), True
+
+    usable = [(m, *placed(m)) for m in first.minima]
+    within = [(t, moved) for m, t, moved in usable if m.within_noise]
+    chosen = within if len(within) > refine else [(t, moved) for _, t, moved in usable[:refine]]
+    thetas = np.stack([t for t, _ in chosen])
+    moved = sum(1 for _, mv in chosen if mv)
     if progress:
         print(f"coarse_to_fine: refining {len(thetas)} of {len(first.minima)} coarse minima", file=sys.stderr, flush=True)
     result = search(objective, thetas, seed=seed, design=design, progress=progress, **options)
     result.coarse = first
+    if moved:
+        note = (f"{moved} coarse minimum(s) broke a rule of the engine's (such as mu1 <= mu2) and were refined from "
+                "the last valid point on the line from their start")
+        result.start_note = f"{result.start_note}; {note}" if result.start_note else note
     result.wall_s += first.wall_s
     return result
