@@ -36,12 +36,12 @@ import jax.numpy as jnp
 import numpy as np
 
 from .fit import FitResult, start_theta
-from .objective import jacobian_by_columns
 from .lm import LAM0, LMOptions, judge, propose
+from .objective import jacobian_by_columns
 from .uncertainty import block_noise, chi2_of, chi2_quantile, judge_point
 
-__all__ = ["COARSE_OPTIONS", "DEFAULT_STARTS", "DESIGNS", "WITHIN_NOISE_P", "Minimum", "SearchResult", "coarse_to_fine", "design_starts",
-           "search"]
+__all__ = ["COARSE_OPTIONS", "DEFAULT_STARTS", "DESIGNS", "WITHIN_NOISE_P", "Minimum", "SearchResult",
+           "coarse_to_fine", "design_starts", "search"]
 
 DESIGNS = ("sobol", "lhs")
 #: Starts of a search when none are asked for (the command line's default without --init).
@@ -363,7 +363,6 @@ def search(objective, starts: int | np.ndarray = DEFAULT_STARTS, *, seed: int = 
                         wall_s=wall, compile_s=compile_s, start_note=start_note)
 
 
-
 def coarse_to_fine(objective, coarse, starts: int | np.ndarray = DEFAULT_STARTS, *, refine: int = 2, seed: int = 0,
                    design: str = "sobol", init: Mapping[str, float] | None = None,
                    coarse_options: Mapping[str, Any] | None = None, progress: bool = False,
@@ -372,11 +371,11 @@ def coarse_to_fine(objective, coarse, starts: int | np.ndarray = DEFAULT_STARTS,
     on a cheaper resolution) finds the basins; the best ``refine`` distinct minima it reports
     (by loss; every one within the noise of its best is kept if there are more; endpoints that break
     a rule of the engine, such as μ1 > μ2, are replaced by the last valid point on the line from
-    their start) are then refined
-    by a batched ``search`` on ``objective`` from those points. ``options`` (steps, noise, ...)
+    their start) are then refined by a batched ``search`` on ``objective`` from those points. ``options`` (steps, noise, ...)
     go to the fine stage; ``coarse_options`` override ``COARSE_OPTIONS`` for the coarse one, whose
     loose tolerances stop it once it knows the basin (its own model error, not the data's noise,
-    limits how well it can place a minimum). The result is the fine stage's, with the coarse one as ``.coarse``.
+    limits how well it can place a minimum). The result is the fine stage's, with the coarse one
+    as ``.coarse``.
 
     The coarse stage only places the starts of the fine one, so nothing it gets wrong by its
     resolution survives into the answer, except a basin it never found: the fine stage sees

@@ -27,6 +27,7 @@ from .state import (
 from .sampling import SAMPLINGS, seed_box
 from .step import make_step
 
+
 def _warn_known_bad_jaxlib():
     import warnings
 

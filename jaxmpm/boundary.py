@@ -34,7 +34,6 @@ import math
 import jax
 import jax.numpy as jnp
 
-
 __all__ = ["Wall", "KINDS", "KIND_ALIASES", "apply_walls"]
 
 KINDS = ("no-slip", "non-separable", "separable")
