@@ -149,7 +149,6 @@ def _fit(args) -> int:
     import numpy as np
 
     from .fit import fit
-    from .uncertainty import gauss_newton_uncertainty
 
     keys = _keys(args.fit)
     init = _pairs(args.init, "--init")
@@ -157,6 +156,8 @@ def _fit(args) -> int:
     scene, objective = _scene_and_objective(args, keys)
     noise = args.noise
     steps = args.steps or (25 if args.method == "lm" else 150)
+    judging = {"roundoff_samples": args.roundoff_samples, "reference_noise": args.reference_noise,
+               "threshold": args.threshold}
     found = None
     if starts > 1:
         from .search import search
@@ -168,23 +169,20 @@ def _fit(args) -> int:
             coarse_args.dx = scene.config.grid.dx * args.coarse
             _, coarse = _scene_and_objective(coarse_args, keys)
             found = coarse_to_fine(objective, coarse, starts, refine=args.refine, seed=args.search_seed,
-                                   init=init or None, steps=steps, noise=noise,
-                                   progress=not args.no_progress)
+                                   init=init or None, steps=steps, noise=noise, progress=not args.no_progress,
+                                   **judging)
         else:
             found = search(objective, starts, seed=args.search_seed, init=init or None, steps=steps, noise=noise,
-                           progress=not args.no_progress)
+                           progress=not args.no_progress, **judging)
         result = found.best
     else:
         result = fit(objective, init, method=args.method, steps=steps, out=args.out, resume=args.resume,
                      overwrite=args.overwrite, learning_rate=args.lr, progress=not args.no_progress, noise=noise,
                      meta={"command": "python -m calibration " + " ".join(sys.argv[1:]), "data": args.data,
-                           "front": args.front})
-    if np.all(np.isfinite(result.jacobian)):
-        result.uncertainty = gauss_newton_uncertainty(
-            result.jacobian, result.residuals, keys, [result.theta[k] for k in keys], objective.blocks,
-            objective.row_scale, noise=noise, reference_noise=args.reference_noise, threshold=args.threshold,
-            bounds=objective.bounds, verdict=result.verdict)
+                           "front": args.front}, **judging)
     out = found.to_json() if found is not None else result.to_json()
+    if objective.bound_notes:
+        out["bound_notes"] = list(objective.bound_notes)
     if found is None:
         reason = _single_start_reason(args)
         out["search"] = {"starts": 1, "why": f"a single start ({reason or '--starts 1'})"}
@@ -442,6 +440,9 @@ def _fit_options(p, default_keys: str | None) -> None:
                    help="noise (fraction of the data scale) at which identifiability is judged (default 0.01)")
     p.add_argument("--threshold", type=float, default=0.1,
                    help="a parameter is constrained if its 95%% half-width is below this fraction (default 0.1)")
+    p.add_argument("--roundoff-samples", type=int, default=8, metavar="N",
+                   help="perturbed runs at the end point that measure the run's own round-off scatter, for the "
+                        "verdict and the interval (default 8, one forward run each; 0: not measured)")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -553,6 +554,8 @@ def _check_options(args) -> None:
                                  "default without --init; with --init give --starts K)")
         if args.refine < 1:
             raise ValueError(f"--refine must be an integer >= 1, got {args.refine}")
+        if args.roundoff_samples != 0 and args.roundoff_samples < 2:
+            raise ValueError(f"--roundoff-samples must be 0 (not measured) or >= 2, got {args.roundoff_samples}")
 
 
 def _check_outputs(args) -> None:

@@ -50,7 +50,7 @@ import optax
 from jaxmpm import describe_status
 
 from .lm import LAM0, LMOptions, judge, propose
-from .uncertainty import Uncertainty, Verdict, judge_point
+from .uncertainty import ROUNDOFF_SAMPLES, Uncertainty, Verdict, judge_point
 
 __all__ = ["METHODS", "FitResult", "fit", "read_history", "start_theta"]
 
@@ -87,6 +87,8 @@ class FitResult:
             out["start_note"] = self.start_note
         if self.verdict is not None:
             out["verdict"] = self.verdict.to_dict()
+            if self.verdict.scatter is not None:
+                out["roundoff"] = self.verdict.scatter.to_dict(self.keys)
         if self.uncertainty is not None:
             u = self.uncertainty.to_dict()
             if "stderr" in u:
@@ -201,7 +203,12 @@ def start_theta(objective, init: Mapping[str, float] | None) -> tuple[np.ndarray
     for k, v in init.items():
         theta[objective.keys.index(k)] = float(v)
         moved.pop(k, None)
-    bounds.check(theta, "init")  # only the user's values can fail here
+    try:
+        bounds.check(theta, "init")  # only the user's values can fail here
+    except ValueError as err:
+        notes = [note for note in getattr(objective, "bound_notes", ()) if any(
+            note.startswith(f"{k}'s") for k in init)]
+        raise ValueError("; ".join([str(err)] + notes)) from None
     check = getattr(objective, "check_thetas", None)
     if check is not None:  # the engine's rules (mu2 >= mu1, ...) on the full parameter set
         check(theta, "init")
@@ -216,6 +223,7 @@ def fit(objective, init: Mapping[str, float] | None = None, *, method: str = "lm
         grad_mode: str = "fwd",
         xtol: float = 1e-6, ftol: float = 1e-7, stat_tol: float = 0.1, max_rejections: int = 6, progress: bool = False, callback: Callable | None = None,
         noise: Mapping[str, float] | float | None = None, uncertainty: bool = True,
+        roundoff_samples: int = ROUNDOFF_SAMPLES, reference_noise: float = 0.01, threshold: float = 0.1,
         meta: Mapping[str, Any] | None = None) -> FitResult:
     """Fit ``objective.keys`` from ``init`` (physical values by key; missing keys start at the
     scene's values). ``steps``: the maximum number of iterations (model evaluations), counted
@@ -230,7 +238,10 @@ def fit(objective, init: Mapping[str, float] | None = None, *, method: str = "lm
     level of the runs' round-off or chaotic scatter), when an accepted step lowers the loss by
     less than ``ftol`` (relative) or moves θ by less than ``xtol`` (relative), or after
     ``max_rejections`` rejected steps in a row.
-    ``callback(iteration, record)`` is called after each iteration is written."""
+    ``callback(iteration, record)`` is called after each iteration is written.
+    ``roundoff_samples`` perturbed runs at the end point measure the run's own round-off scatter
+    for the verdict and the interval (``uncertainty.model_scatter``; 0: not measured);
+    ``reference_noise`` and ``threshold`` decide which parameters count as constrained."""
     if method not in METHODS:
         raise ValueError(f"method must be one of {METHODS}, got {method!r}")
     if grad_mode not in ("fwd", "rev"):
@@ -440,7 +451,8 @@ def fit(objective, init: Mapping[str, float] | None = None, *, method: str = "lm
         loss_b = float(np.sum(r_b * r_b))
     converged = done and message.startswith("converged")
     verdict, unc = judge_point(objective, r_b, J_b, theta_best, converged=converged, message=message, noise=noise,
-                               uncertainty=uncertainty)
+                               uncertainty=uncertainty, roundoff_samples=roundoff_samples,
+                               reference_noise=reference_noise, threshold=threshold)
     return FitResult(keys=keys, theta={k: float(v) for k, v in zip(keys, theta_best)}, loss=float(loss_b),
                      iterations=len(hist["loss"]), wall_s=float(hist["wall_s"][-1]) if len(hist["wall_s"]) else 0.0,
                      method=method, converged=converged, message=message,

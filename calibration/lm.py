@@ -4,7 +4,9 @@
 so both take exactly the same steps and stop by exactly the same rules:
 
 - ``propose(r, Jz, lam)``: the damped Gauss–Newton step with Marquardt's diagonal scaling,
-  (JᵀJ + λ diag JᵀJ) δ = −Jᵀr, and the loss decrease its linear model promises;
+  (JᵀJ + λ diag JᵀJ) δ = −Jᵀr, shortened to at most ``MAX_STEP`` in every z (the bounds'
+  sigmoid saturates beyond |z| ≈ 5: one long step would land where dθ/dz ≈ 0 and the Jacobian
+  vanishes, a point no later step can leave), and the loss decrease its linear model promises;
 - ``judge(...)``: accept a trial when its run has no status bits and its loss is lower; λ falls
   by 3 after a success and rises by 4 after a failure; and the stopping tests: *converged* when
   the promised decrease is below ``stat_tol`` × n σ² (σ² = loss / (m − n), what fitting pure
@@ -21,10 +23,13 @@ import dataclasses
 
 import numpy as np
 
-__all__ = ["LAM0", "LMOptions", "judge", "propose"]
+__all__ = ["LAM0", "MAX_STEP", "LMOptions", "judge", "propose"]
 
 #: The damping of the first step.
 LAM0 = 1e-3
+#: The longest step in any unconstrained variable z: 2 moves a value at the middle of its bounds
+#: to 12 % of the range from a bound, and never into the sigmoid's flat tail in one step.
+MAX_STEP = 2.0
 
 
 @dataclasses.dataclass(frozen=True)
@@ -44,6 +49,8 @@ def propose(r, Jz, lam):
     d = np.maximum(diag, 1e-12 * np.maximum(diag.max(axis=1, keepdims=True), 1e-300))
     rhs = -np.einsum("kmi,km->ki", Jz, r)
     delta = np.linalg.solve(A + lam[:, None, None] * (d[:, :, None] * np.eye(A.shape[1])), rhs[..., None])[..., 0]
+    longest = np.max(np.abs(delta), axis=1, keepdims=True)
+    delta = delta * np.minimum(1.0, MAX_STEP / np.maximum(longest, 1e-300))
     loss = np.sum(r * r, axis=1)
     promised = loss - np.sum((r + np.einsum("kmi,ki->km", Jz, delta)) ** 2, axis=1)
     return delta, promised

@@ -164,6 +164,32 @@ def jacobian_by_columns(fn, x):
     return jnp.moveaxis(dy, 0, -1), (first(y), jax.tree.map(first, aux))
 
 
+def _engine_bounds(bounds: Bounds, params) -> tuple[Bounds, tuple[str, ...]]:
+    """``bounds`` narrowed so that every θ inside them keeps the engine's rule μ1 ≤ μ2 with the
+    scene's value of the one not fitted (μ1's upper bound at most μ2; μ2's lower at least μ1),
+    and a note for each bound that moved. With both fitted the rule is checked per point
+    (``Objective.check_thetas``)."""
+    lower, upper, notes = list(bounds.lower), list(bounds.upper), []
+    keys = bounds.keys
+    if "mu1" in keys and "mu2" not in keys:
+        i, mu2 = keys.index("mu1"), float(params.mu2)
+        if upper[i] > mu2:
+            notes.append(f"mu1's upper bound {upper[i]:g} lowered to the scene's mu2 = {mu2:g} (the engine needs "
+                         "mu1 <= mu2)")
+            upper[i] = mu2
+    if "mu2" in keys and "mu1" not in keys:
+        i, mu1 = keys.index("mu2"), float(params.mu1)
+        if lower[i] < mu1:
+            notes.append(f"mu2's lower bound {lower[i]:g} raised to the scene's mu1 = {mu1:g} (the engine needs "
+                         "mu1 <= mu2)")
+            lower[i] = mu1
+    for k, lo, hi in zip(keys, lower, upper):
+        if not lo < hi:
+            raise ValueError(f"bounds[{k!r}]: ({lo:g}, {hi:g}) is empty once mu1 <= mu2 is imposed with the "
+                             "scene's other friction coefficient; widen the bound or change the scene's value")
+    return Bounds(keys, tuple(lower), tuple(upper)), tuple(notes)
+
+
 def _check_array(name: str, values, n: int | None = None) -> np.ndarray:
     arr = np.asarray(values, float)
     if arr.ndim != 1 or arr.size == 0:
@@ -244,6 +270,7 @@ class Objective:
                                  f"residual of theirs zero, their noise undefined); leave the {name} out instead")
 
         self.scene = scene
+        self.bounds, self.bound_notes = _engine_bounds(self.bounds, scene.params)
         config = scene.config
         meta = scene.meta
         spacing = config.grid.dx / meta.get("ppc", 2)
@@ -491,6 +518,8 @@ class Objective:
                 "n_front": int(self._t_front.size) if self.front is not None else 0,
                 "weights": self.weights, "sigma": self.sigma, "front_threshold": self.front_threshold,
                 "dx": self.config.grid.dx, "n_particles": int(self._state.x.shape[0]),
+                "bounds": {k: [lo, hi] for k, lo, hi in zip(self.keys, self.bounds.lower, self.bounds.upper)},
+                "bound_notes": list(self.bound_notes),
                 "fixed": {k: float(v) for k, v in self._base.to_dict().items() if k not in self.keys}}
 
 
@@ -506,7 +535,15 @@ class CompositeObjective:
         for i, m in enumerate(members):
             if m.keys != keys:
                 raise ValueError(f"members[{i}] fits {m.keys}, members[0] fits {keys}")
-        self.members, self.keys, self.bounds = members, keys, members[0].bounds
+        self.members, self.keys = members, keys
+        # The box every member accepts (their bounds differ only where a scene's μ1 or μ2 narrowed them).
+        lower = np.max([m.bounds.lower for m in members], axis=0)
+        upper = np.min([m.bounds.upper for m in members], axis=0)
+        if np.any(lower >= upper):
+            raise ValueError("members: their bounds do not overlap (each member's scene narrows mu1 or mu2 to keep "
+                             "mu1 <= mu2); fit scenes with compatible friction coefficients")
+        self.bounds = Bounds(keys, tuple(float(v) for v in lower), tuple(float(v) for v in upper))
+        self.bound_notes = tuple(note for m in members for note in m.bound_notes)
         self.dtype = members[0].dtype
         offsets = np.cumsum([0] + [m.n_residuals for m in members])
         self.n_residuals = int(offsets[-1])

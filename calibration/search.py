@@ -38,7 +38,7 @@ import numpy as np
 from .fit import FitResult, start_theta
 from .lm import LAM0, LMOptions, judge, propose
 from .objective import jacobian_by_columns
-from .uncertainty import block_noise, chi2_of, chi2_quantile, judge_point
+from .uncertainty import ROUNDOFF_SAMPLES, block_noise, chi2_of, chi2_quantile, judge_point
 
 __all__ = ["COARSE_OPTIONS", "DEFAULT_STARTS", "DESIGNS", "WITHIN_NOISE_P", "Minimum", "SearchResult",
            "coarse_to_fine", "design_starts", "search"]
@@ -207,13 +207,16 @@ def search(objective, starts: int | np.ndarray = DEFAULT_STARTS, *, seed: int = 
            init: Mapping[str, float] | None = None, steps: int = 30, xtol: float = 1e-6, ftol: float = 1e-7,
            stat_tol: float = 0.1, max_rejections: int = 6, cluster_tol: float = 0.01,
            noise: Mapping[str, float] | float | None = None, uncertainty: bool = True, shrink: bool = True,
+           roundoff_samples: int = ROUNDOFF_SAMPLES, reference_noise: float = 0.01, threshold: float = 0.1,
            progress: bool = False) -> SearchResult:
     """Multi-start LM from ``starts`` design points (an int k) or from given physical starts
     ((k, n) array). ``init`` (physical values by key, as for ``fit``): one more start, placed
     first. ``steps``: the maximum number of model evaluations per start, as in ``fit``.
     ``cluster_tol``: endpoints closer than this fraction of every bound range are one minimum.
     ``noise``: the known noise per block (None: estimated from the best point's residual
-    structure). ``shrink``: evaluate only the active starts (padded to a power of two)."""
+    structure). ``shrink``: evaluate only the active starts (padded to a power of two).
+    ``roundoff_samples``, ``reference_noise``, ``threshold``: for the best point's verdict and
+    uncertainty, as in ``fit``."""
     clock0 = time.perf_counter()
     steps = _check_int("steps", steps, 1)
     if not (math.isfinite(cluster_tol) and 0 < cluster_tol < 1):
@@ -325,7 +328,9 @@ def search(objective, starts: int | np.ndarray = DEFAULT_STARTS, *, seed: int = 
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
         J_b = cur["Jz"][i_best] / np.asarray(bounds.jacobian_diag(jnp.asarray(z_b)), float)[None, :]
     verdict, unc = judge_point(objective, r_b, J_b, theta_b, converged=converged[i_best], message=messages[i_best],
-                               noise=noise, uncertainty=uncertainty and bool(np.all(np.isfinite(J_b))))
+                               noise=noise, uncertainty=uncertainty and bool(np.all(np.isfinite(J_b))),
+                               roundoff_samples=roundoff_samples if uncertainty else 0,
+                               reference_noise=reference_noise, threshold=threshold)
     wall = time.perf_counter() - clock0
     histories = [{f: np.asarray(v) for f, v in h.items()} for h in histories]
     hist = histories[i_best]

@@ -31,6 +31,20 @@ are None, the statement says why) when the point
   second differences of neighbouring residuals (the high-frequency part; a smooth misfit has
   almost none). An estimated σ is itself uncertain, so the limit is then raised by three of the
   estimate's standard deviations (``~4/sqrt(c)`` relative in σ², c second differences).
+
+**The run's own scatter** (``model_scatter``). A float32 rollout of thousands of steps is not a
+smooth function of θ below some level: a change of θ by a few ulps changes the rounding of every
+step, and the deposit moves by what that rounding adds up to (coherently, not as white noise).
+``model_scatter`` measures it where a fit ends: the residuals at ``samples`` points θ + d_k with
+|d_k| ≈ 1e-6 of θ (far below any interval, far above θ's own rounding), with the exact linear
+change J d_k taken off, scatter only by the run's round-off; their spread gives the noise σ_num of
+each block and, mapped through the least-squares solution, the covariance of θ that the round-off
+alone produces. It enters twice: a stopped optimiser whose remaining Gauss–Newton step is within
+that scatter (Mahalanobis distance below the 99 % quantile of χ²_n) has converged as far as the
+run can tell, and is a verified minimum; and the reported covariance is the statistical one plus
+the numerical one (``stderr`` the total; ``stderr_statistical`` and ``stderr_numerical`` apart).
+For noise-free twins made by the same program that numerical part is what is left, and it is
+what keeps their interval from claiming a precision the run does not have.
 """
 
 from __future__ import annotations
@@ -41,8 +55,8 @@ from typing import Any, Mapping, Sequence
 
 import numpy as np
 
-__all__ = ["NOISE_FLOOR", "Uncertainty", "Verdict", "assess_fit", "block_noise", "chi2_of", "chi2_quantile",
-           "gauss_newton_uncertainty", "judge_point", "structural_noise"]
+__all__ = ["NOISE_FLOOR", "ROUNDOFF_SAMPLES", "ModelScatter", "Uncertainty", "Verdict", "assess_fit", "block_noise",
+           "chi2_of", "chi2_quantile", "gauss_newton_uncertainty", "judge_point", "model_scatter", "structural_noise"]
 
 Z95 = 1.959963984540054
 #: Noise (relative units) below which no misfit is told apart from the run's own round-off.
@@ -51,6 +65,13 @@ NOISE_FLOOR = 1e-6
 ABOVE_NOISE_P = 0.999
 #: Blocks with fewer residuals than this get no structural noise estimate.
 MIN_NOISE_POINTS = 5
+#: Perturbed runs behind ``model_scatter`` by default (each costs one forward run).
+ROUNDOFF_SAMPLES = 8
+#: Their relative size: far below any interval, far above the rounding of θ itself (float32: 8e-8).
+ROUNDOFF_STEP = 1e-6
+#: A stopped optimiser's remaining Gauss–Newton step within this quantile of χ²_n (in the metric
+#: of the run's scatter) counts as converged.
+ROUNDOFF_P = 0.99
 
 
 def chi2_quantile(p: float, dof: float) -> float:
@@ -104,6 +125,70 @@ def chi2_of(r, row_scale, blocks: Mapping[str, slice], sigma: Mapping[str, float
 
 
 @dataclasses.dataclass(frozen=True)
+class ModelScatter:
+    """The run's own (round-off) scatter at a point; see the module docstring."""
+
+    samples: int  # perturbed runs used (failed runs left out)
+    step: float  # their relative size
+    noise: dict[str, float]  # σ_num by block, in the block's relative units
+    cov: np.ndarray  # (n, n): the covariance of θ the scatter alone produces
+    wall_s: float
+
+    @property
+    def stderr(self) -> np.ndarray:
+        return np.sqrt(np.maximum(np.diag(self.cov), 0.0))
+
+    def gauss_newton_distance(self, J, r) -> float:
+        """The remaining Gauss–Newton step −J⁺r in the metric of ``cov``: sqrt(δᵀ cov⁻¹ δ)."""
+        delta = np.linalg.lstsq(np.asarray(J, float), -np.asarray(r, float), rcond=None)[0]
+        return float(math.sqrt(max(float(delta @ _inverse(self.cov) @ delta), 0.0)))
+
+    def to_dict(self, keys: Sequence[str]) -> dict[str, Any]:
+        return {"samples": self.samples, "relative_step": self.step, "noise": self.noise,
+                "stderr": {k: float(v) for k, v in zip(keys, self.stderr)}, "wall_s": round(self.wall_s, 3)}
+
+
+def model_scatter(objective, theta, r, J, *, samples: int = ROUNDOFF_SAMPLES, step: float = ROUNDOFF_STEP,
+                  seed: int = 0) -> ModelScatter | None:
+    """The run's round-off scatter at θ (residuals ``r``, Jacobian ``J`` there, the objective's
+    weighted ones): ``samples`` runs at θ + d_k, d_k of relative size ``step`` in random
+    directions (reflected to stay inside the bounds), give s_k = r(θ + d_k) − J d_k, which differ
+    from r only by the round-off (the curvature term is ~step² smaller). Their sample spread gives
+    σ_num by block and, through p_k = J⁺ s_k, the covariance of θ due to the scatter. Returns None
+    when fewer than two runs succeeded (then nothing is known about the scatter)."""
+    import time
+
+    samples = int(samples)
+    if samples < 2:
+        raise ValueError(f"samples must be >= 2 (a spread needs two runs besides the point), got {samples!r}")
+    clock = time.perf_counter()
+    theta, r, J = np.asarray(theta, float), np.asarray(r, float), np.asarray(J, float)
+    lower, upper = np.asarray(objective.bounds.lower), np.asarray(objective.bounds.upper)
+    scale = np.maximum(np.abs(theta), 0.01 * (upper - lower))
+    rng = np.random.default_rng(seed)
+    kept = [r]
+    for _ in range(samples):
+        u = rng.standard_normal(theta.size)
+        d = step * scale * u / np.linalg.norm(u)
+        d = np.where((theta + d <= lower) | (theta + d >= upper), -d, d)
+        r_k, pred = objective.residuals(theta + d)
+        r_k = np.asarray(r_k, float)
+        if int(np.asarray(pred["status"])) != 0 or not np.all(np.isfinite(r_k)):
+            continue
+        kept.append(r_k - J @ d)
+    if len(kept) < 3:
+        return None
+    S = np.stack(kept)
+    dev = S - S.mean(axis=0)
+    e = dev / np.asarray(objective.row_scale, float)[None, :]
+    noise = {name: float(math.sqrt(np.sum(e[:, sl] ** 2) / ((len(kept) - 1) * max(sl.stop - sl.start, 1))))
+             for name, sl in objective.blocks.items()}
+    P = np.linalg.lstsq(J, S.T, rcond=None)[0].T  # (samples + 1, n)
+    cov = np.atleast_2d(np.cov(P, rowvar=False, ddof=1))
+    return ModelScatter(len(kept) - 1, float(step), noise, cov, time.perf_counter() - clock)
+
+
+@dataclasses.dataclass(frozen=True)
 class Verdict:
     """Whether a point is a fit of the data, and if not, why (see the module docstring)."""
 
@@ -116,29 +201,55 @@ class Verdict:
     chi2: dict[str, float]  # by block with a noise level
     chi2_limit: dict[str, float]
     statement: str
+    convergence: str = ""  # how the minimum was verified (the optimiser's test, or the run's round-off)
+    scatter: ModelScatter | None = None
 
     def to_dict(self) -> dict[str, Any]:
-        return {"is_fit": self.is_fit, "verdict": "a fit of the data" if self.is_fit else "not a fit of the data",
-                "reasons": list(self.reasons), "verified_minimum": self.verified, "at_bound": list(self.at_bound),
-                "noise": self.noise, "noise_source": self.noise_source, "chi2": self.chi2,
-                "chi2_limit": self.chi2_limit, "statement": self.statement}
+        out = {"is_fit": self.is_fit, "verdict": "a fit of the data" if self.is_fit else "not a fit of the data",
+               "reasons": list(self.reasons), "verified_minimum": self.verified, "at_bound": list(self.at_bound),
+               "noise": self.noise, "noise_source": self.noise_source, "chi2": self.chi2,
+               "chi2_limit": self.chi2_limit, "statement": self.statement}
+        if self.convergence:
+            out["convergence"] = self.convergence
+        return out
 
 
 def assess_fit(r, row_scale, blocks: Mapping[str, slice], theta, *, converged: bool, message: str = "",
-               bounds=None, noise: Mapping[str, float] | float | None = None) -> Verdict:
+               bounds=None, noise: Mapping[str, float] | float | None = None, J=None,
+               scatter: ModelScatter | None = None) -> Verdict:
     """Judge the point θ with residuals ``r`` (the objective's weighted ones): a verified
     minimum (``converged``, ``message`` the optimiser's), off the bounds, with a misfit within
-    the noise in every block (the given ``noise``, or the residuals' structural noise)."""
+    the noise in every block (the given ``noise``, or the residuals' structural noise).
+
+    With the run's ``scatter`` (``model_scatter``) and the Jacobian ``J``: a point where the
+    optimiser stopped without converging still counts as a verified minimum when its remaining
+    Gauss–Newton step lies within the scatter (the run cannot resolve a better point), and each
+    block's noise for the χ² test is sqrt(σ² + σ_num²)."""
     theta = np.asarray(theta, float)
     e = np.asarray(r, float) / np.asarray(row_scale, float)
     m, n = e.size, theta.size
     reasons = []
+    convergence = message if converged else ""
+    if not converged and scatter is not None and J is not None:
+        distance = scatter.gauss_newton_distance(J, r)
+        limit_d = math.sqrt(chi2_quantile(ROUNDOFF_P, n))
+        if distance <= limit_d:
+            converged = True
+            convergence = (f"converged within the run's round-off: the remaining Gauss–Newton step is {distance:.2g} "
+                           f"standard deviations of the scatter {scatter.samples} perturbed runs show (limit "
+                           f"{limit_d:.2g}); the optimiser had {message or 'stopped'}")
+        else:
+            message = (f"{message or 'the optimiser did not converge'}; the remaining Gauss–Newton step is "
+                       f"{distance:.2g} standard deviations of the run's round-off scatter, beyond {limit_d:.2g}")
     if not converged:
         reasons.append(f"not a verified minimum ({message or 'the optimiser did not converge'})")
     at_bound = tuple(bounds.near_bound(theta)) if bounds is not None else ()
     if at_bound:
         reasons.append(f"{', '.join(at_bound)} at a bound (the misfit falls towards or beyond the physical range)")
     sigma, counts, source = block_noise(r, row_scale, blocks, noise)
+    if scatter is not None:
+        sigma = {name: None if v is None else math.hypot(v, scatter.noise.get(name, 0.0)) for name, v in sigma.items()}
+        source += ", with the run's round-off scatter added in quadrature"
     chi2, limit, unknown = {}, {}, []
     for name, sl in blocks.items():
         if sigma[name] is None:
@@ -160,7 +271,8 @@ def assess_fit(r, row_scale, blocks: Mapping[str, slice], theta, *, converged: b
                      "describes the curvature at a minimum of the data's misfit, which this point is not.")
     if unknown:
         statement += " The noise test left out " + ", ".join(unknown) + "."
-    return Verdict(is_fit, tuple(reasons), bool(converged), at_bound, sigma, source, chi2, limit, statement)
+    return Verdict(is_fit, tuple(reasons), bool(converged), at_bound, sigma, source, chi2, limit, statement,
+                   convergence, scatter)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -180,6 +292,8 @@ class Uncertainty:
     eigenvectors: np.ndarray  # columns
     statement: str
     verdict: Verdict | None = None
+    stderr_statistical: np.ndarray | None = None  # from the data's noise alone
+    stderr_numerical: np.ndarray | None = None  # from the run's round-off scatter alone (None: not measured)
 
     @property
     def withheld(self) -> bool:
@@ -193,6 +307,9 @@ class Uncertainty:
                "constrained": list(self.constrained), "statement": self.statement}
         if not self.withheld:
             out["stderr"] = by_key(self.stderr)
+            if self.stderr_numerical is not None:
+                out["stderr_statistical"] = by_key(self.stderr_statistical)
+                out["stderr_numerical"] = by_key(self.stderr_numerical)
             out["ci95"] = {k: [float(lo), float(hi)] for k, (lo, hi) in zip(self.keys, self.ci95)}
             out["relative_halfwidth_at_reference_noise"] = by_key(self.relative_halfwidth)
         return out
@@ -218,7 +335,7 @@ def _inverse(fisher, rcond: float = 1e-14):
 def gauss_newton_uncertainty(
     J, r, keys: Sequence[str], theta, blocks: Mapping[str, slice], row_scale,
     *, noise: Mapping[str, float] | float | None = None, reference_noise: float = 0.01,
-    threshold: float = 0.1, bounds=None, verdict: Verdict | None = None,
+    threshold: float = 0.1, bounds=None, verdict: Verdict | None = None, scatter: ModelScatter | None = None,
 ) -> Uncertainty:
     """Covariance, standard errors and identifiability at the optimum.
 
@@ -228,7 +345,8 @@ def gauss_newton_uncertainty(
     estimate it from the residuals. ``verdict`` (from ``assess_fit``): when it says the point
     is not a fit of the data, every interval (stderr, ci95, cov, the half-widths and the
     constrained keys) is withheld and the statement says why; only the local geometry
-    (correlations, Fisher eigen-directions) is kept.
+    (correlations, Fisher eigen-directions) is kept. ``scatter`` (``model_scatter``; default:
+    the verdict's): its covariance of θ, the run's round-off, is added to the statistical one.
     """
     keys = tuple(keys)
     J = np.asarray(J, float)
@@ -256,7 +374,10 @@ def gauss_newton_uncertainty(
         Jb = Je[sl]
         fisher_ref += Jb.T @ Jb / reference[name] ** 2
         fisher += Jb.T @ Jb / max(sigma, 1e-12) ** 2  # σ = 0 only for an exact fit: ~zero-width intervals
-    cov = _inverse(fisher)
+    cov_stat = _inverse(fisher)
+    if scatter is None and verdict is not None:
+        scatter = verdict.scatter
+    cov = cov_stat + scatter.cov if scatter is not None else cov_stat
     stderr = np.sqrt(np.maximum(np.diag(cov), 0.0))
     with np.errstate(invalid="ignore", divide="ignore"):
         corr = cov / np.outer(stderr, stderr)
@@ -301,20 +422,36 @@ def gauss_newton_uncertainty(
         statement = " ".join([verdict.statement] + (["Local geometry only:"] + geometry if geometry else []))
         return Uncertainty(keys, theta, None, None, corr, None, used, estimated, None, None, (), evals, evecs,
                            statement, verdict)
+    se_stat = np.sqrt(np.maximum(np.diag(cov_stat), 0.0))
+    if scatter is not None:
+        dominated = [k for k, a, b in zip(keys, se_stat, scatter.stderr) if b > a]
+        if dominated:
+            lines.append(f"The run's own round-off ({scatter.samples} perturbed runs) dominates the interval of "
+                         f"{', '.join(dominated)}: the data resolve more than the simulator can reproduce.")
     return Uncertainty(keys, theta, stderr, cov, corr, ci95, used, estimated, se_ref, rel, constrained,
-                       evals, evecs, " ".join(lines), verdict)
+                       evals, evecs, " ".join(lines), verdict, se_stat,
+                       scatter.stderr if scatter is not None else None)
 
 
 def judge_point(objective, r, J, theta, *, converged: bool, message: str,
-                noise: Mapping[str, float] | float | None = None, uncertainty: bool = True):
+                noise: Mapping[str, float] | float | None = None, uncertainty: bool = True,
+                roundoff_samples: int = ROUNDOFF_SAMPLES, reference_noise: float = 0.01, threshold: float = 0.1):
     """The verdict on a fit's end point and, when ``uncertainty``, its Gauss–Newton uncertainty
     (intervals withheld unless the verdict is a fit): what ``fit`` and ``search`` report for
-    their best point. Returns ``(verdict, uncertainty or None)``."""
+    their best point. ``roundoff_samples`` perturbed runs measure the run's own scatter there
+    (``model_scatter``; 0: not measured, the verdict and interval then assume a smooth run).
+    Returns ``(verdict, uncertainty or None)``."""
+    J = np.asarray(J, float)
+    scatter = None
+    if roundoff_samples and np.all(np.isfinite(J)) and hasattr(objective, "residuals"):
+        scatter = model_scatter(objective, theta, r, J, samples=roundoff_samples)
     verdict = assess_fit(r, objective.row_scale, objective.blocks, theta, converged=converged, message=message,
-                         bounds=objective.bounds, noise=noise)
+                         bounds=objective.bounds, noise=noise, J=J if scatter is not None else None,
+                         scatter=scatter)
     unc = None
     if uncertainty:
         unc = gauss_newton_uncertainty(J, r, objective.keys, theta, objective.blocks, objective.row_scale,
-                                       noise=noise, bounds=objective.bounds, verdict=verdict)
+                                       noise=noise, bounds=objective.bounds, verdict=verdict, scatter=scatter,
+                                       reference_noise=reference_noise, threshold=threshold)
     return verdict, unc
 

@@ -387,6 +387,15 @@ def test_objective_refuses_a_zero_weight_and_invalid_starts():
     with pytest.raises(ValueError, match=r"weights\['profile'\] is 0"):
         Objective(scene, ("beta",), profile=target, weights={"profile": 0.0})
     objective = Objective(scene, ("mu1",), profile=target)
-    with pytest.raises(ValueError, match="init: the member is not a valid parameter set: member 0 \\(mu1 = 0.7\\): "
-                                         "mu2 \\(the limiting friction\\) must be >= mu1"):
+    # With mu2 fixed, mu1 <= mu2 is a bound: every point the optimiser can reach keeps it.
+    mu2 = float(scene.params.mu2)
+    assert objective.bounds.upper == (pytest.approx(mu2),) and "lowered to the scene's mu2" in objective.bound_notes[0]
+    with pytest.raises(ValueError, match="init: mu1 = 0.7 must lie strictly inside its bounds .*mu1's upper bound 2 "
+                                         "lowered to the scene's mu2"):
         fit(objective, {"mu1": 0.7}, steps=1)
+    # With both fitted, the rule is checked per point.
+    both = Objective(scene, ("mu1", "mu2"), profile=target)
+    assert both.bounds.upper == (2.0, 2.0) and not both.bound_notes
+    with pytest.raises(ValueError, match="init: the member is not a valid parameter set: member 0 \\(mu1 = 0.7, "
+                                         "mu2 = 0.6\\): mu2 \\(the limiting friction\\) must be >= mu1"):
+        fit(both, {"mu1": 0.7, "mu2": 0.6}, steps=1)

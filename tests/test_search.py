@@ -78,11 +78,11 @@ def test_a_batch_of_starts_takes_the_steps_of_single_fits(found, objective):
 
 def test_points_at_a_bound_or_unverified_get_no_interval(found, objective):
     at_bound = [m for m in found.minima if m.at_bound]
-    assert at_bound, [m.theta for m in found.minima]  # seed 0: one start runs into β = 0
+    assert at_bound, [m.theta for m in found.minima]  # seed 0: one start runs into μ1 = μ2, its upper bound
     i = at_bound[0].starts[0]
     verdict = assess_fit(found.residuals[i], objective.row_scale, objective.blocks, found.finals[i],
                          converged=True, bounds=objective.bounds)
-    assert not verdict.is_fit and "beta at a bound" in verdict.statement
+    assert not verdict.is_fit and f"{at_bound[0].at_bound[0]} at a bound" in verdict.statement
     # Two iterations are not a verified minimum: no interval, whatever the misfit.
     short = fit(objective, {"beta": 0.3, "mu1": 0.5}, steps=2)
     assert not short.verdict.is_fit and "not a verified minimum" in short.verdict.reasons[0]
@@ -215,3 +215,42 @@ def test_coarse_to_fine_refines_the_coarse_minima_and_finds_the_truth(objective)
     assert out["starts"] == K and out["refined_from"] and out["minima"]
     with pytest.raises(ValueError, match="coarse: fits"):
         coarse_to_fine(objective, Objective(coarse.scene, ("mu1",), profile=coarse.profiles[0]), K)
+
+
+def test_the_runs_round_off_verifies_a_stopped_minimum_and_widens_its_interval(found, objective):
+    """model_scatter: perturbed runs (relative 1e-6) near a float32 twin's minimum show the run's
+    own scatter; an optimiser stopped there (no convergence test met) is verified by it, a point
+    10 % away is not, and the interval adds the numerical covariance to the statistical one. In
+    float64 (the module's objective) the same scatter is a million times smaller."""
+    from calibration.uncertainty import model_scatter
+
+    i = found.best_start
+    scatter64 = model_scatter(objective, found.finals[i], found.residuals[i], found.best.jacobian, samples=4)
+    assert np.all(scatter64.stderr < 1e-9 * TRUTH)
+
+    scene = scenes.cohesive_collapse(dx=0.089 / 4, t_end=0.1, dtype="float32")
+    xs = objective.profiles[0].x
+    gen = Objective(scene, KEYS, profile=ProfileTarget(xs, np.ones_like(xs)), check_data=False)
+    obj = Objective(scene, KEYS, profile=ProfileTarget(xs, np.asarray(gen.residuals(TRUTH)[1]["h"], float)))
+    r0, J0, _ = obj.residuals_and_jacobian(TRUTH)
+    scatter = model_scatter(obj, TRUTH, np.asarray(r0, float), np.asarray(J0, float), samples=6)
+    assert scatter.samples == 6 and scatter.cov.shape == (2, 2)
+    assert 1e-9 < scatter.noise["profile"] < 1e-4  # round-off: far below any measurement, not zero
+    assert np.all(np.linalg.eigvalsh(scatter.cov) >= 0) and np.all(scatter.stderr > 1e-7 * TRUTH)
+    # Where LM might stop on float32 data: one standard deviation of the scatter off the truth.
+    theta = TRUTH + np.linalg.cholesky(scatter.cov) @ np.array([0.6, 0.8])
+    r, J, _ = obj.residuals_and_jacobian(theta)
+    r, J = np.asarray(r, float), np.asarray(J, float)
+    stopped = assess_fit(r, obj.row_scale, obj.blocks, theta, converged=False,
+                         message="stopped: 6 rejected steps in a row", bounds=obj.bounds, J=J, scatter=scatter)
+    assert stopped.verified and "within the run's round-off" in stopped.convergence
+    far = 1.1 * TRUTH  # its Gauss–Newton step dwarfs the scatter
+    r_far, J_far, _ = obj.residuals_and_jacobian(far)
+    verdict = assess_fit(np.asarray(r_far, float), obj.row_scale, obj.blocks, far, converged=False,
+                         message="stopped", bounds=obj.bounds, J=np.asarray(J_far, float), scatter=scatter)
+    assert not verdict.verified and "standard deviations of the run's round-off scatter" in verdict.reasons[0]
+    unc = gauss_newton_uncertainty(J, r, KEYS, theta, obj.blocks, obj.row_scale, bounds=obj.bounds,
+                                   verdict=stopped, noise=0.01)
+    np.testing.assert_allclose(unc.stderr ** 2, unc.stderr_statistical ** 2 + scatter.stderr ** 2, rtol=1e-10)
+    out = unc.to_dict()
+    assert set(out["stderr_numerical"]) == set(KEYS) and "ci95" in out
