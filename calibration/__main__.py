@@ -302,7 +302,8 @@ def _twin(args) -> int:
     out = twin(quick=args.quick, noise=args.noise, keys=keys, method=args.method, steps=args.steps,
                seed=args.noise_seed, dx=args.dx, ppc=args.ppc, t_end=args.t_end, values=_pairs(args.set, "--set"),
                dtype=args.dtype, out=args.out, resume=args.resume, overwrite=args.overwrite,
-               progress=not args.no_progress, reference_noise=args.reference_noise, threshold=args.threshold)
+               progress=not args.no_progress, reference_noise=args.reference_noise, threshold=args.threshold,
+               roundoff_samples=args.roundoff_samples)
     result, objective = out.pop("_fit"), out.pop("_objective")
     errors: dict[str, str] = {}
     if args.plot:
@@ -339,6 +340,25 @@ def _twin_landscape(args, objective, out) -> dict:
         summary["figure"] = str(plot_landscape(xs, ys, loss, kx, ky, pathlib.Path(args.plot) / "twin_landscape.png",
                                                marks=marks, title=f"twin loss over ({kx}, {ky}), others at truth"))
     return summary
+
+
+def _coverage(args) -> int:
+    from .coverage import coverage
+
+    if not 0 < args.noise < 1:
+        raise ValueError(f"--noise must be in (0, 1): coverage needs noisy data, got {args.noise}")
+    if args.seeds < 2:
+        raise ValueError(f"--seeds must be >= 2, got {args.seeds}")
+    result = coverage(args.seeds, noise=args.noise, keys=_keys(args.fit), quick=args.quick,
+                      progress=not args.no_progress, dx=args.dx, values=_pairs(args.set, "--set"), steps=args.steps)
+    out = result.to_json()
+    errors: dict[str, str] = {}
+    if args.plot:
+        from .plots import plot_coverage
+
+        out["figures"] = _guard(errors, "--plot", lambda: [str(plot_coverage(
+            result, pathlib.Path(args.plot) / "coverage.png"))])
+    return _finish(out, args, errors)
 
 
 def _floats(text: str, option: str) -> list[float]:
@@ -512,6 +532,18 @@ def build_parser() -> argparse.ArgumentParser:
     law.add_argument("--no-progress", action="store_true")
     law.add_argument("--json", action="store_true")
 
+    cov = sub.add_parser("coverage", help="twins over many noise seeds: how often the 95 % intervals hold the truth")
+    cov.add_argument("--fit", default="beta,mu1", metavar="KEYS", help="parameters to fit (default beta,mu1)")
+    cov.add_argument("--seeds", type=int, default=20, help="noise seeds 0..N-1 (default 20)")
+    cov.add_argument("--noise", type=float, default=0.02, help="Gaussian noise, fraction of the peak height")
+    cov.add_argument("--quick", action="store_true", help="the twin's coarse grid (dx = L/8), about 25 s a seed")
+    cov.add_argument("--dx", type=float, default=None, help="grid spacing, m (default: the twin's)")
+    cov.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="a true scene parameter")
+    cov.add_argument("--steps", type=int, default=None, help="LM iterations per fit (default 25)")
+    cov.add_argument("--plot", default=None, metavar="DIR", help="every seed's interval against the truth")
+    cov.add_argument("--no-progress", action="store_true")
+    cov.add_argument("--json", action="store_true")
+
     tw = sub.add_parser("twin", help="fit synthetic S4 data made with known parameters")
     _common(tw, data=False)
     _fit_options(tw, "beta,mu1,xi")
@@ -541,6 +573,9 @@ def _check_options(args) -> None:
             if given and weight == 0:
                 raise ValueError(f"{option} 0 gives the {what} data no weight: their residuals would all be zero and "
                                  f"their uncertainty undefined; leave out {what} instead")
+    samples = getattr(args, "roundoff_samples", 0)
+    if samples != 0 and samples < 2:
+        raise ValueError(f"--roundoff-samples must be 0 (not measured) or >= 2, got {samples}")
     for option in ("init", "set"):
         if hasattr(args, option):
             _pairs(getattr(args, option), f"--{option}")  # malformed or repeated keys
@@ -554,8 +589,6 @@ def _check_options(args) -> None:
                                  "default without --init; with --init give --starts K)")
         if args.refine < 1:
             raise ValueError(f"--refine must be an integer >= 1, got {args.refine}")
-        if args.roundoff_samples != 0 and args.roundoff_samples < 2:
-            raise ValueError(f"--roundoff-samples must be 0 (not measured) or >= 2, got {args.roundoff_samples}")
 
 
 def _check_outputs(args) -> None:
@@ -613,7 +646,7 @@ def main(argv=None) -> int:
             raise ValueError("--resume needs --out (the history file to continue)")
         _check_options(args)
         _check_outputs(args)
-        commands = {"fit": _fit, "sweep": _sweep, "twin": _twin, "bench": _bench, "law": _law}
+        commands = {"fit": _fit, "sweep": _sweep, "twin": _twin, "bench": _bench, "law": _law, "coverage": _coverage}
         return commands[args.command](args)
     except ValueError as err:
         parser.exit(2, f"python -m calibration {args.command}: error: {err}\n")

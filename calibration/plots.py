@@ -10,7 +10,7 @@ import pathlib
 
 import numpy as np
 
-__all__ = ["plot_fit", "plot_history", "plot_landscape", "plot_loss_curve", "plot_runout_law"]
+__all__ = ["plot_coverage", "plot_fit", "plot_history", "plot_landscape", "plot_loss_curve", "plot_runout_law"]
 
 
 def _plt():
@@ -198,5 +198,41 @@ def plot_runout_law(cases, path, *, law, title: str | None = None):
     fig.tight_layout()
     path = pathlib.Path(path)
     fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def plot_coverage(result, path, *, title: str | None = None):
+    """Every seed's fitted value and 95 % interval (estimated noise; the given-noise interval
+    faint behind it) against the truth, one panel per key, misses in red."""
+    plt = _plt()
+    keys = result.keys
+    fig, axes = plt.subplots(1, len(keys), figsize=(4.2 * len(keys), 0.22 * len(result.rows) + 1.8), squeeze=False)
+    for ax, k in zip(axes[0], keys):
+        truth = result.truth[k]
+        for i, row in enumerate(result.rows):
+            value = row.theta[k]
+            if row.ci95_given is not None:
+                lo, hi = row.ci95_given[k]
+                ax.plot([lo, hi], [i, i], color="0.75", lw=5, solid_capstyle="butt")
+            if row.ci95 is None:
+                ax.plot(value, i, "x", color="tab:orange")
+                continue
+            lo, hi = row.ci95[k]
+            color = "tab:blue" if lo <= truth <= hi else "tab:red"
+            ax.plot([lo, hi], [i, i], color=color, lw=1.8)
+            ax.plot(value, i, "o", color=color, ms=3.5)
+        ax.axvline(truth, color="k", lw=1, ls="--")
+        rate = result.rate(k)
+        ax.set_title(f"{k}: {rate['hits']}/{rate['of']} intervals hold the truth", fontsize=10)
+        ax.set_xlabel(k)
+        ax.set_yticks(range(len(result.rows)))
+        ax.set_yticklabels([str(r.seed) for r in result.rows], fontsize=7)
+    axes[0][0].set_ylabel("noise seed")
+    fig.suptitle(title or f"95 % intervals over {len(result.rows)} seeds, {100 * result.noise:.3g} % noise "
+                 "(grey: true noise given; x: not a fit, no interval)", fontsize=10)
+    fig.tight_layout()
+    path = pathlib.Path(path)
+    fig.savefig(path, dpi=120)
     plt.close(fig)
     return path

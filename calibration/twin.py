@@ -26,6 +26,7 @@ from jaxmpm.scenes import build_scene
 
 from .fit import fit
 from .objective import FrontTarget, Objective, ProfileTarget
+from .uncertainty import ROUNDOFF_SAMPLES
 
 __all__ = ["twin", "TWIN_TRUTH", "TWIN_START_FACTORS", "PROFILE_TIMES", "FRONT_TIMES"]
 
@@ -66,7 +67,7 @@ def twin(*, quick: bool = False, noise: float = 0.0, keys: Sequence[str] = ("bet
          method: str = "lm", steps: int | None = None, seed: int = 0, dx: float | None = None, ppc: float | None = None,
          t_end: float | None = None, values: Mapping[str, float] | None = None, dtype=None, out=None,
          resume: bool = False, overwrite: bool = False, progress: bool = False, reference_noise: float = 0.01,
-         threshold: float = 0.1) -> dict[str, Any]:
+         threshold: float = 0.1, roundoff_samples: int = ROUNDOFF_SAMPLES) -> dict[str, Any]:
     """Run the twin experiment and return the fit's JSON plus ``true``, ``rel_error``,
     ``constrained``, ``in_ci95`` and the objects (under ``"_fit"``, ``"_objective"``)."""
     if not (np.isfinite(noise) and 0 <= noise < 1):
@@ -83,17 +84,12 @@ def twin(*, quick: bool = False, noise: float = 0.0, keys: Sequence[str] = ("bet
     t0 = time.perf_counter()
     profiles, front = twin_data(scene, keys, truth, noise=noise, seed=seed)
     objective = Objective(scene, keys, profile=profiles, front=front)
+    # Identifiability at the stated reference noise (or the twin's own noise when larger).
     result = fit(objective, start, method=method, steps=steps or (25 if method == "lm" else 150), out=out,
                  resume=resume, overwrite=overwrite, progress=progress, noise=None,
+                 reference_noise=max(reference_noise, noise), threshold=threshold, roundoff_samples=roundoff_samples,
                  meta={"twin": True, "noise": noise, "seed": seed, "true": dict(zip(keys, truth.tolist()))})
-    # Identifiability at the stated reference noise (or the twin's own noise when larger).
-    from .uncertainty import gauss_newton_uncertainty
-
-    unc = gauss_newton_uncertainty(result.jacobian, result.residuals, keys,
-                                   np.array([result.theta[k] for k in keys]), objective.blocks,
-                                   objective.row_scale, reference_noise=max(reference_noise, noise),
-                                   threshold=threshold, bounds=objective.bounds, verdict=result.verdict)
-    result.uncertainty = unc
+    unc = result.uncertainty
     out_json = result.to_json()
     out_json["wall_s"] = round(time.perf_counter() - t0, 3)
     out_json["true"] = dict(zip(keys, truth.tolist()))
