@@ -16,9 +16,12 @@ write, and what ``Profile.to_csv`` writes)::
     ...
 
 Comment lines ``# key: value`` form the header; a value is JSON-decoded where it parses as JSON
-and kept as a string otherwise. Keys with a meaning here: ``experiment`` (str), ``time_s`` (s,
-the time the profile was taken; ``None`` when absent), ``units`` (``m``, ``cm`` or ``mm``),
-``source`` (str: a citation or the command that made the file) and ``synthetic`` (bool; when
+and kept as a string otherwise. A comment line indented by two or more blanks after the ``#``
+right below a key line continues that key's value (joined with a blank), so a long citation may
+span lines. Keys with a meaning here: ``experiment`` (str), ``time_s`` (s, the time the profile
+was taken; ``None`` when absent, or when it is words starting with "final", such as ``final
+deposit (the flow has stopped)``: the text is kept in ``meta["time_s_text"]``), ``units``
+(``m``, ``cm`` or ``mm``), ``source`` (str: a citation or the command that made the file) and ``synthetic`` (bool; when
 absent a profile is synthetic if the word "synthetic" is in ``experiment``). Every other key goes
 to ``meta``. The column header is ``x_m,h_m``; ``x_cm,h_cm`` and ``x_mm,h_mm`` are converted to
 metres, and ``x,h`` takes its units from the ``units`` key or the ``units=`` argument.
@@ -81,6 +84,11 @@ NOISE_FRACTION = 1e-3
 _MIN_POINTS = 3
 _ENV = "JAXMPM_EXPERIMENTS_DATA"
 _DECIMAL_COMMA = re.compile(r"^[+-]?\d*,\d+([eE][+-]?\d+)?$")
+#: A header comment indented by this much after "#" continues the value of the key line above it.
+_CONTINUATION = "  "
+#: A ``time_s`` header in words that starts with this word means the final deposit, after the
+#: flow stopped (``time_s`` None: the end of the run).
+_FINAL = "final"
 
 
 # ---------------------------------------------------------------------------------------------
@@ -127,24 +135,34 @@ def _read(path: str | os.PathLike) -> _Parsed:
         text = path.read_bytes().decode("utf-8-sig")
     except UnicodeDecodeError as err:
         raise ValueError(f"{file}: not a UTF-8 text file ({err})") from None
-    header: dict[str, Any] = {}
+    raw: dict[str, str] = {}
     header_line: dict[str, int] = {}
     content: list[tuple[int, str]] = []
+    last_key = None  # the key a continuation line would continue
     for number, line in enumerate(text.splitlines(), start=1):
         stripped = line.strip()
         if not stripped:
+            last_key = None
             continue
         if stripped.startswith("#"):
-            key, sep, value = stripped[1:].partition(":")
+            body = stripped[1:]
+            if last_key is not None and body.startswith(_CONTINUATION) and body.strip():
+                raw[last_key] += " " + body.strip()  # an indented line continues the key above
+                continue
+            key, sep, value = body.partition(":")
             key = key.strip()
             if not sep or not key:
+                last_key = None
                 continue  # a free comment
-            if key in header:
+            if key in raw:
                 raise ValueError(f"{file}: line {number}: header key {key!r} repeats line {header_line[key]}")
-            header[key] = _decode(value.strip())
+            raw[key] = value.strip()
             header_line[key] = number
+            last_key = key
             continue
+        last_key = None
         content.append((number, stripped))
+    header: dict[str, Any] = {key: _decode(value) for key, value in raw.items()}
     delimiter = None
     if content:
         first = content[0][1]
@@ -310,8 +328,16 @@ def _synthetic(parsed: _Parsed, experiment: str) -> bool:
     return "synthetic" in experiment.lower()
 
 
+def _final_deposit(parsed: _Parsed) -> bool:
+    """True when the header's ``time_s`` is words that start with "final" (the final deposit)."""
+    value = parsed.header.get("time_s")
+    return isinstance(value, str) and value.strip().lower().startswith(_FINAL)
+
+
 def _time(parsed: _Parsed, argument: float | None) -> float | None:
     value = parsed.header.get("time_s")
+    if _final_deposit(parsed):
+        value = None  # "final deposit": no single time; the argument (if any) supplies one
     if value is not None:
         line = parsed.header_line["time_s"]
         if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
@@ -482,6 +508,8 @@ def load_profile(
     extra: dict[str, Any] = {}
     if wpd_dataset is not None:
         extra["wpd_dataset"] = wpd_dataset
+    if _final_deposit(parsed):
+        extra["time_s_text"] = parsed.header["time_s"]
     h_max = float(h_raw.max())
     if h_max <= 0:
         raise ValueError(f"{file}: h is zero or negative everywhere (max h = {h_max:g} {unit})")
@@ -683,10 +711,12 @@ class DatasetInfo:
 
     name: str
     path: pathlib.Path
-    kind: str  # setup, scaling_law, analytic, synthetic or example
+    kind: str  # setup, scaling_law, analytic, synthetic, example or measured
     description: str
     synthetic: bool
     secondary: bool
+    source: str = ""  # where a third-party file comes from (manifest "source"; empty for the project's own)
+    licence: str = ""  # its licence where it is not the project's (manifest "licence")
 
 
 def data_dir() -> pathlib.Path:
@@ -716,6 +746,7 @@ def list_datasets() -> dict[str, DatasetInfo]:
         out[entry["name"]] = DatasetInfo(
             name=entry["name"], path=folder / entry["path"], kind=entry["kind"], description=entry["description"],
             synthetic=bool(entry["synthetic"]), secondary=bool(entry["secondary"]),
+            source=str(entry.get("source", "")), licence=str(entry.get("licence", "")),
         )
     return out
 

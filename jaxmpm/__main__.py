@@ -145,7 +145,7 @@ def _run(args) -> int:
             return None
 
     if args.out:
-        path = output("--out", lambda: io.write_h5(args.out, result, config, params, attrs=meta))
+        path = output("--out", lambda: io.write_h5(args.out, result, config, params, attrs=meta, initial=state))
         if path is not None:
             summary["out"] = str(path)
     profile = None

@@ -4,7 +4,10 @@ Layout of a file written by ``write_h5``::
 
     /frames/frame_00000 ...   one group per frame time, attribute ``t``; a dataset per key of
                               ``Result.frames`` (x, v, p, q and the internal variables)
-    /final                    the final state: x, v, p, q and the internal variables
+    /initial                  the state the run started from (when ``write_h5`` is given it,
+                              as ``python -m jaxmpm run`` does): the same datasets as /final
+    /final                    the final state: x, v, p, q, vol (current particle volumes,
+                              V0 det F_e exp(eps_v^p)) and the internal variables
     root attributes           ``param/<key>`` per parameter, ``params_json``, ``config_json``,
                               ``jaxmpm_version``, ``status``, ``status_text`` (JSON list),
                               ``t_end``, ``steps``, ``frame_times`` and any extra attributes
@@ -13,6 +16,9 @@ The file is written under a temporary name in the target directory and moved ont
 with ``os.replace`` only once it is complete and closed, so a file at ``path`` is never a
 partial run. Batched results (leading batch axes, from ``jax.vmap``) are stored as they are:
 each frame dataset keeps the batch axes in front.
+
+Particles keep their order: row k of /initial/x and of /final/x is the same particle, so
+``final["x"] - initial["x"]`` is its displacement (the region that moved).
 """
 
 from __future__ import annotations
@@ -31,9 +37,10 @@ import numpy as np
 
 from .config import Config
 from .materials.base import invariants
+from .observables import particle_volumes
 from .params import Params
 from .simulate import Result
-from .state import describe_status
+from .state import State, describe_status
 
 __all__ = ["write_h5", "read_h5", "write_profile_csv", "PROFILE_COLUMNS", "check_output_file", "check_output_dir",
            "json_safe"]
@@ -80,7 +87,14 @@ def _version() -> str:
     return str(__version__)
 
 
-def _write(f: h5py.File, result: Result, config: Config, params: Params, extra: Mapping[str, Any]):
+def _state_values(state: State) -> dict[str, Any]:
+    """The datasets of /initial and /final: x, v, p, q, vol and the internal variables."""
+    p, q = invariants(state.tau)
+    return {"x": state.x, "v": state.v, "p": p, "q": q, "vol": particle_volumes(state), **_leaves(state.internal)}
+
+
+def _write(f: h5py.File, result: Result, config: Config, params: Params, extra: Mapping[str, Any],
+           initial: State | None = None):
     state = result.state
     batch = np.ndim(state.x) - 2  # number of leading batch axes
     frame_times = tuple(float(t) for t in result.frame_times)
@@ -93,11 +107,11 @@ def _write(f: h5py.File, result: Result, config: Config, params: Params, extra: 
         for name, arr in arrays.items():
             group.create_dataset(name, data=arr[(slice(None),) * batch + (k,)])
 
-    final = f.create_group("final")
-    p, q = invariants(state.tau)
-    values = {"x": state.x, "v": state.v, "p": p, "q": q, **_leaves(state.internal)}
-    for name, arr in values.items():
-        final.create_dataset(name, data=np.asarray(arr))
+    groups = {"final": state} if initial is None else {"initial": initial, "final": state}
+    for group_name, group_state in groups.items():
+        group = f.create_group(group_name)
+        for name, arr in _state_values(group_state).items():
+            group.create_dataset(name, data=np.asarray(arr))
 
     attrs = f.attrs
     param_values = params.to_dict()
@@ -127,12 +141,15 @@ def write_h5(
     config: Config,
     params: Params,
     attrs: Mapping[str, Any] | None = None,
+    initial: State | None = None,
 ) -> pathlib.Path:
     """Write one run to the HDF5 file ``path`` (layout in the module docstring); return its path.
 
-    ``attrs`` adds root attributes: strings and scalars as they are, anything else as JSON. An
-    existing file at ``path`` is replaced, but only once the new one is completely written; on
-    any error the temporary file is removed and the error re-raised.
+    ``attrs`` adds root attributes: strings and scalars as they are, anything else as JSON.
+    ``initial``: the state the run started from, stored as /initial (same particles, same order
+    as /final; unbatched, or batched as the result is). An existing file at ``path`` is replaced,
+    but only once the new one is completely written; on any error the temporary file is removed
+    and the error re-raised.
     """
     if not isinstance(result, Result):
         raise ValueError(f"result must be a Result, got {type(result).__name__}")
@@ -140,6 +157,13 @@ def write_h5(
         raise ValueError(f"config must be a Config, got {type(config).__name__}")
     if not isinstance(params, Params):
         raise ValueError(f"params must be a Params, got {type(params).__name__}")
+    if initial is not None:
+        if not isinstance(initial, State):
+            raise ValueError(f"initial must be a State (the run's initial state), got {type(initial).__name__}")
+        shape, want = np.shape(initial.x), np.shape(result.state.x)
+        if shape[-2:] != want[-2:] or len(shape) > len(want):
+            raise ValueError(f"initial holds particles of shape {shape}, the result {want}: not the same run's "
+                             "initial state")
     extra = dict(attrs or {})
     for key in extra:
         if not isinstance(key, str) or not key:
@@ -155,7 +179,7 @@ def write_h5(
     tmp = path.with_name(f"{path.name}.{uuid.uuid4().hex[:8]}.tmp")
     try:
         with h5py.File(tmp, "x") as f:
-            _write(f, result, config, params, extra)
+            _write(f, result, config, params, extra, initial)
         os.replace(tmp, path)
     except BaseException:
         tmp.unlink(missing_ok=True)
@@ -189,9 +213,10 @@ def _datasets(group: h5py.Group) -> dict[str, np.ndarray]:
 def read_h5(path: str | os.PathLike) -> dict[str, Any]:
     """Read a file written by ``write_h5``.
 
-    Returns ``{"attrs": {...}, "frames": [{"t": t, "x": ..., ...}, ...], "final": {...}}``.
-    JSON attributes (``params_json``, ``config_json``, ``status_text`` and non-scalar extras)
-    come back decoded.
+    Returns ``{"attrs": {...}, "frames": [{"t": t, "x": ..., ...}, ...], "initial": {...} or None,
+    "final": {...}}`` (``initial`` is None for a file written without it, such as one from before
+    /initial existed). JSON attributes (``params_json``, ``config_json``, ``status_text`` and
+    non-scalar extras) come back decoded.
     """
     path = pathlib.Path(path)
     if not path.is_file():
@@ -204,8 +229,9 @@ def read_h5(path: str | os.PathLike) -> dict[str, Any]:
         for name in sorted(f["frames"]):
             group = f["frames"][name]
             frames.append({"t": float(group.attrs["t"]), **_datasets(group)})
+        initial = _datasets(f["initial"]) if "initial" in f else None
         final = _datasets(f["final"])
-    return {"attrs": attrs, "frames": frames, "final": final}
+    return {"attrs": attrs, "frames": frames, "initial": initial, "final": final}
 
 
 #: Columns of a deposit-profile CSV (the schema that ``experiments_data/`` and the calibration

@@ -175,6 +175,23 @@ def test_header_units_and_column_units(tmp_path):
     assert "units" not in p.meta
 
 
+def test_header_continuation_lines_and_final_time(tmp_path):
+    """An indented comment right below a key line continues its value; a blank line or a plain
+    free comment ends it. A time_s in words starting with "final" is the final deposit."""
+    text = ("# experiment: Someone (2008), a collapse\n#   (J. Things 1, 2-3), final surface\n"
+            "# source: a figure\n\n#   not a continuation, a blank line came before\n"
+            "# licence: GPL-3.0\n# a free comment\n#   nor this\n"
+            "# time_s: final deposit (the flow has stopped)\n# units: m\nx_m,h_m\n0,0.1\n0.1,0.05\n0.2,0\n")
+    p = load_profile(write(tmp_path, text))
+    assert p.experiment == "Someone (2008), a collapse (J. Things 1, 2-3), final surface"
+    assert p.source == "a figure" and p.meta["licence"] == "GPL-3.0"
+    assert p.time_s is None and p.meta["time_s_text"] == "final deposit (the flow has stopped)"
+    assert "not a continuation" not in json.dumps(p.meta) and "nor this" not in json.dumps(p.meta)
+    assert load_profile(write(tmp_path, text), time_s=0.8).time_s == 0.8  # the caller may say when
+    with pytest.raises(ValueError, match="time_s must be a finite number of seconds, got 'later'"):
+        load_profile(write(tmp_path, "# time_s: later\nx_m,h_m\n0,0.1\n0.1,0.05\n0.2,0\n"))
+
+
 def test_sort_and_clip_noise(tmp_path):
     p = load_profile(write(tmp_path, "20,70\n10,80\n40,50\n30,60\n"), units="mm", sort=True)
     np.testing.assert_allclose(p.x, [0.01, 0.02, 0.03, 0.04])
@@ -249,7 +266,8 @@ def test_manifest_lists_every_file():
                ("README.md", "manifest.json", "generate.py") and "__pycache__" not in p.parts}
     assert listed == shipped
     for info in datasets.values():
-        assert info.kind in ("setup", "scaling_law", "analytic", "synthetic", "example")
+        assert info.kind in ("setup", "scaling_law", "analytic", "synthetic", "example", "measured")
+        assert info.kind != "measured" or (info.source and info.licence)  # a third party's file: whose, what licence
         assert info.description and "\n" not in info.description
         assert dataset_path(info.name) == info.path
         assert dataset_path(str(info.path.relative_to(data.data_dir()))) == info.path
@@ -273,6 +291,9 @@ def test_every_shipped_file_loads():
             assert "synthetic" in loaded.experiment
             assert loaded.source.startswith("python ") and loaded.meta["status"] == 0
             assert set(loaded.meta["parameters"]) >= {"beta", "mu1", "mu2", "I0", "xi", "pc0"}
+        elif info.kind == "measured":
+            p = load_profile(info.path)
+            assert not p.synthetic and not info.synthetic and p.n >= 5 and "licence" in p.meta
         else:
             p = load_profile(info.path, units="mm", experiment="S4 beta=0.25 (synthetic, format example)")
             assert p.synthetic and p.n >= 5

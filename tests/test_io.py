@@ -117,3 +117,26 @@ def test_batched_result(run, tmp_path):
     np.testing.assert_array_equal(data["frames"][1]["x"][1], result.frames["x"][1])
     assert data["attrs"]["steps"].shape == (2,)
     assert data["attrs"]["params_json"]["E"] == [params.to_dict()["E"]] * 2
+
+
+def test_initial_state_round_trip(run, tmp_path):
+    """/initial holds the state the run started from, with the datasets of /final, particle for
+    particle; a file written without it reads back with initial None."""
+    cfg, params, result = run
+    x, vol = jm.seed_box((0.3, 0.1), (0.6, 0.4), cfg.grid.dx, 2)
+    state0 = jm.init_state(cfg, x, vol)
+    data = io.read_h5(io.write_h5(tmp_path / "run.h5", result, cfg, params, initial=state0))
+    initial, final = data["initial"], data["final"]
+    assert set(initial) == set(final) >= {"x", "v", "p", "q", "vol"}
+    np.testing.assert_array_equal(initial["x"], np.asarray(state0.x))
+    np.testing.assert_array_equal(initial["vol"], np.asarray(state0.vol0))
+    np.testing.assert_array_equal(initial["p"], 0.0)
+    np.testing.assert_array_equal(final["x"], np.asarray(result.state.x))
+    assert final["vol"].shape == final["p"].shape and np.all(final["vol"] > 0)
+    assert io.read_h5(io.write_h5(tmp_path / "old.h5", result, cfg, params))["initial"] is None
+    with pytest.raises(ValueError, match="initial must be a State"):
+        io.write_h5(tmp_path / "bad.h5", result, cfg, params, initial=np.asarray(state0.x))
+    fewer = state0.replace(x=state0.x[:-1])
+    with pytest.raises(ValueError, match="not the same run's initial state"):
+        io.write_h5(tmp_path / "bad.h5", result, cfg, params, initial=fewer)
+    assert not (tmp_path / "bad.h5").exists()

@@ -1,5 +1,5 @@
 """Granular collapses of SCENES.md: S2 (two lifted gates), S3 (sloping bed), S4 (cohesive),
-S5 (aspect ratio). All share one builder.
+S5 (aspect ratio), S7 (Bui et al. 2008's aluminium bars). All share one builder.
 
 Coordinates: the column initially occupies [0, L] × [0, H] with the floor (bed) at y = 0 and the
 back wall at x = 0; on a slope x runs along the bed and gravity is rotated,
@@ -24,8 +24,8 @@ from ..step import step_budget
 
 __all__ = [
     "DEFAULT_PPC", "DEFAULT_SAMPLING", "S2_DEFAULT_PPC", "Scene", "floor_lift", "S2_PARAMS", "S3_PARAMS", "S4_PARAMS", "S5_PARAMS",
-    "gates_collapse", "slope_collapse", "cohesive_collapse", "aspect_ratio_collapse", "collapse", "runout_law",
-    "height_law",
+    "S7_PARAMS", "gates_collapse", "slope_collapse", "cohesive_collapse", "aspect_ratio_collapse", "aluminium_bars",
+    "collapse", "runout_law", "height_law",
 ]
 
 G = 9.81
@@ -280,3 +280,58 @@ def aspect_ratio_collapse(a: float = 1.0, L0: float = 0.05, dx: float | None = N
                      frames=frames, base_params=S5_PARAMS, **kw)
     scene.meta["a"] = a
     return scene
+
+
+#: S7 aluminium bars (Bui, Fukagawa, Sako & Ohno 2008), every value with its source
+#: (experiments_data/setups/S7_aluminium_bars.json holds the same with longer notes):
+#: - mu1 = tan 19.8°: the bars' friction angle reported with the data (SCENES.md S7). A modelling
+#:   choice of convention: tan φ is the μ(I) law's friction coefficient (q/p̄ in simple shear);
+#:   a plane-strain Mohr–Coulomb match of the same φ would give sin φ = 0.339 instead of 0.360.
+#: - beta = 0: cohesionless (reported).
+#: - rho = 2650 kg/m³: the bulk density of the numerical studies that use these data (2650–2700
+#:   per the data file's header; 2650 in Bui et al.'s own simulation as later studies quote it).
+#:   It is not a packing of aluminium (2700) but the value the benchmarks use; the deposit
+#:   depends on it only through the elastic wave speed and the inertial number.
+#: - rho_s = 2700 kg/m³: the density of aluminium (enters the inertial number only).
+#: - E = 0.84 MPa, nu = 0.3: the elastic constants of Bui et al.'s own SPH simulation of this
+#:   experiment (secondary: as later numerical studies quote them, e.g. K = 0.7 MPa with ν = 0.3);
+#:   a softened stiffness like the 1 MPa of the other scenes, not a property of the bars.
+#: - d = 1.2 mm: a modelling choice, a representative bar diameter (bars of about 1–1.5 mm,
+#:   secondary, not checked in the primary paper); it enters only the inertial number I.
+#: - mu2 = tan 32.76°, I0 = 0.279: no μ(I) measurement exists for the bars; the glass-bead
+#:   values of MODEL.md §4 (Jop, Forterre & Pouliquen) as a modelling choice. The rate part is
+#:   not negligible here: with mu2 = mu1 (no rate dependence) the deposit runs about 0.02 m
+#:   further, and halving d about 0.005 m, so a final surface constrains mu1 only together
+#:   with these choices.
+#: - pc0 = rho g H = 2600 Pa: a modelling choice. Then no particle starts beyond the cap of the
+#:   ellipse (no gravity compaction at t = 0, which would lower the back of the column, measured
+#:   standing at its initial height), and the column's mean pressure ρ g H / 2 sits at the apex,
+#:   where plastic flow has no volume change (the dilatancy 0 reported).
+#: - xi = 50: the reference code's scenes' value (S2, S4), a modelling choice.
+S7_PARAMS = {"mu1": math.tan(math.radians(19.8)), "mu2": math.tan(math.radians(32.76)), "I0": 0.279,
+             "beta": 0.0, "rho": 2650.0, "rho_s": 2700.0, "E": 0.84e6, "nu": 0.3, "d": 1.2e-3,
+             "pc0": round(2650.0 * G * 0.10), "xi": 50.0}
+#: S7's column (SCENES.md S7), m.
+S7_LENGTH, S7_HEIGHT = 0.20, 0.10
+
+
+def aluminium_bars(dx: float = S7_HEIGHT / 16, ppc: float | None = None, dim: int = 2, width: float | None = None,
+                   t_end: float = 1.0, frames: int = 0, **kw) -> Scene:
+    """S7 (Bui et al. 2008): a plane-strain column of aluminium bars, 0.20 m long × 0.10 m high,
+    against a slip-free back wall (as S4's) on a rough floor, released at t = 0 with no gate.
+
+    Floor: MODEL.md §5's no-slip wall, the type that stands for a rough base (the basal layer of
+    grains does not slide on it); slip-stick would need a basal friction coefficient that is not
+    reported. Release: the front side was "removed quickly" at a speed not reported, so the
+    instantaneous release is taken, as the numerical studies of these data do; a 50 m/s gate
+    (S4's) would clear the column in 2 ms, 2 % of sqrt(H/g), and change nothing but the cost.
+    Material: ``S7_PARAMS`` (sources there).
+
+    The grid reaches 0.35 m beyond the column (x ≈ 0.57 m): the measured deposit ends at
+    x ≈ 0.44 m, and a fit must be free to try a lower friction. Defaults: dx = H/16 = 6.25 mm
+    and a jittered 3 × 3 lattice (4,608 particles); t_end = 1 s, by when the deposit has stopped
+    (at the defaults the kinetic energy falls below 1e-5 of its peak by t ≈ 0.7 s, at dx = 4 mm
+    by 0.8 s, and without rate dependence, mu2 = mu1, by 0.9 s)."""
+    kw.setdefault("runout", 0.35)
+    return collapse("aluminium-bars", S7_LENGTH, S7_HEIGHT, dx=dx, ppc=ppc, dim=dim, width=width, t_end=t_end,
+                    frames=frames, base_params=S7_PARAMS, **kw)
