@@ -4,14 +4,16 @@ The data flow: ``data`` (profiles and front histories, validated) -> ``objective
 residuals against them) -> ``fit`` (Levenberg–Marquardt or optax Adam, with bounds and a
 resumable history) -> ``uncertainty`` (Gauss–Newton covariance, identifiability, and the verdict
 whether a point is a fit of the data at all); ``search`` runs LM from many space-filling starts in
-one vmapped batch and reports every minimum within the noise of the best; ``lm`` is the LM step both
-share; ``sweep`` evaluates the loss over many parameter sets at once; ``twin`` fits data with known
-parameters.
+one vmapped batch and reports every minimum within the noise of the best. Both run the
+``(init, update)`` optimisers of ``lm`` (Levenberg–Marquardt) and ``adam`` through the one loop of
+``loop``, recording in ``history`` (saving and resuming); ``sweep`` evaluates the loss over many
+parameter sets at once; ``twin`` fits data with known parameters.
 """
 
 from .bounds import DEFAULT_BOUNDS, FIT_KEYS, Bounds
 from .data import FrontHistory, Profile, RunoutLaw, list_datasets, load_front_history, load_profile, load_scaling_law
-from .fit import FitResult, fit, read_history
+from .fit import FitResult, fit
+from .history import read_history
 from .objective import CompositeObjective, FrontTarget, Objective, ProfileTarget
 from .search import Minimum, SearchResult, coarse_to_fine, design_starts, search
 from .uncertainty import Uncertainty, Verdict, assess_fit, gauss_newton_uncertainty, structural_noise

@@ -1,32 +1,36 @@
 """Fitting: Levenberg–Marquardt on the residual Jacobian, or optax Adam, with a resumable history.
 
 Both optimisers work on unconstrained z (``calibration.bounds``), so every iterate is a
-physical parameter set. Each iteration is one model evaluation.
+physical parameter set. Each iteration is one model evaluation. ``fit`` runs one start (a batch
+of one) of the optimiser through the driver loop ``calibration.loop.run``, which records every
+iteration in a ``calibration.history.History``:
 
-- ``method="lm"``: Levenberg–Marquardt with Marquardt's diagonal scaling (the step and the
-  stopping rules of ``calibration.lm``, shared with the batched ``calibration.search``). Every
-  evaluation returns the residuals and their Jacobian together (forward mode, one batched
-  tangent pass); a trial step is accepted when the loss falls and the run has no status bits.
-  A run that fails (status bits: the flow left the grid, non-finite stress, ...) is a rejected
-  trial, reported in the history.
+- ``method="lm"``: Levenberg–Marquardt with Marquardt's diagonal scaling
+  (``calibration.lm.levenberg_marquardt``: the step and the stopping rules the batched
+  ``calibration.search`` uses too). Every evaluation returns the residuals and their Jacobian
+  together (forward mode, one batched tangent pass); a trial step is accepted when the loss
+  falls and the run has no status bits. A run that fails (status bits: the flow left the grid,
+  non-finite stress, ...) is a rejected trial, reported in the history; a failing run at the
+  start is an error.
+- ``method="adam"``: optax Adam with gradient clipping and a cosine learning-rate schedule
+  (``calibration.adam``); the gradient comes from forward mode (``grad_mode="fwd"``, J_θᵀ r) or
+  reverse mode through the checkpointed rollout (``"rev"``). The best iterate is returned.
 
-The result carries a ``Verdict`` (``calibration.uncertainty.assess_fit``): a point that is not a
+The result carries a ``Verdict`` (``calibration.uncertainty.judge_point``): a point that is not a
 verified minimum (LM stopped on its rejection or step budget), sits at a bound, or leaves a misfit
 well above the noise is "not a fit of the data", and its uncertainty holds no interval. A scene
 value on a bound (S4's β = 0) is not a usable start: the fit starts inside (``start_theta``) and
 ``start_note`` says where.
-- ``method="adam"``: optax Adam with gradient clipping and a cosine learning-rate schedule; the
-  gradient comes from forward mode (``grad_mode="fwd"``, J_θᵀ r) or reverse mode through the
-  checkpointed rollout (``"rev"``). The best iterate is returned.
 
 After every iteration the whole history (θ, z, loss, gradient norm, status, accepted flag, λ,
-wall time) and what is needed to continue (the current point, λ or the optimiser state) is
-written to ``out`` (HDF5, written to a temporary file and renamed, so a kill never leaves a
-partial file). ``resume=True`` continues from that file exactly where it stopped: the resumed
-trajectory equals the uninterrupted one. The file records the objective's ``fingerprint`` (the
-data's content, the scene and every option that changes the loss), and a resume refuses an
-objective whose fingerprint differs, naming what differs; it also refuses a missing file. An
-existing file is never replaced by a new fit unless ``overwrite=True``.
+wall time) and what is needed to continue (LM: the accepted point and λ; Adam: the current
+point and the optimiser state) is written to ``out`` (HDF5, written to a temporary file and
+renamed, so a kill never leaves a partial file). ``resume=True`` continues from that file
+exactly where it stopped (LM runs its accepted point again, not counted as an iteration): the
+resumed trajectory equals the uninterrupted one. The file records the objective's
+``fingerprint`` (the data's content, the scene and every option that changes the loss), and a
+resume refuses an objective whose fingerprint differs, naming what differs; it also refuses a
+missing file. An existing file is never replaced by a new fit unless ``overwrite=True``.
 """
 
 from __future__ import annotations
@@ -34,28 +38,23 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
-import os
-import pathlib
-import re
-import time
-import uuid
 from typing import Any, Callable, Mapping
 
-import h5py
 import jax
 import jax.numpy as jnp
 import numpy as np
-import optax
 
-from jaxmpm import describe_status
-
-from .lm import LAM0, LMOptions, judge, propose
+from .adam import adam
+from .history import History, check_out, read_history
+from .lm import LMOptions, LMState, levenberg_marquardt
+from .loop import Evaluation, run, status_text
 from .uncertainty import ROUNDOFF_SAMPLES, Uncertainty, Verdict, judge_point
 
 __all__ = ["METHODS", "FitResult", "fit", "read_history", "start_theta"]
 
 METHODS = ("lm", "adam")
-_HISTORY_FIELDS = ("theta", "z", "loss", "grad_norm", "status", "accepted", "lam", "wall_s")
+#: The optimiser options a resume must share with the file (the others may change).
+_RESUME_OPTIONS = ("learning_rate", "clip", "grad_mode")
 
 
 @dataclasses.dataclass
@@ -97,96 +96,6 @@ class FitResult:
         return out
 
 
-def _atomic_h5(path: pathlib.Path, write: Callable[[h5py.File], None]) -> None:
-    tmp = path.with_name(f".{path.name}.{uuid.uuid4().hex[:8]}.tmp")
-    try:
-        with h5py.File(tmp, "w") as f:
-            write(f)
-        os.replace(tmp, path)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
-
-
-class _NotAHistory(Exception):
-    pass
-
-
-def read_history(path) -> dict[str, Any]:
-    """A history file as ``{"attrs": {...}, "history": {field: array}, "resume": {...}}``.
-
-    Raises ``ValueError`` naming the file when it does not exist, is not a readable HDF5 file
-    (empty, truncated, some other format) or is an HDF5 file of another kind (a run's output)."""
-    path = pathlib.Path(path)
-    shown = repr(str(path))
-    if not path.exists():
-        raise ValueError(f"out: {shown} does not exist (nothing to resume)")
-    if not path.is_file():
-        raise ValueError(f"out: {shown} is not a file")
-    try:
-        with h5py.File(path, "r") as f:
-            missing = [f"attribute {k!r}" for k in ("keys_json", "method", "options_json") if k not in f.attrs]
-            missing += [f"group {g!r}" for g in ("history", "resume") if g not in f]
-            if missing:
-                raise _NotAHistory(f"no {', '.join(missing)}")
-            attrs = {k: (json.loads(v) if k.endswith("_json") else v) for k, v in f.attrs.items()}
-            history = {k: np.asarray(f["history"][k]) for k in f["history"]}
-            resume = {k: np.asarray(f["resume"][k]) for k in f["resume"]}
-    except _NotAHistory as err:
-        raise ValueError(f"{shown} is not a fit history written by calibration.fit ({err})") from None
-    except (OSError, KeyError, ValueError, TypeError) as err:  # h5py's errors for unreadable files are OSErrors
-        raise ValueError(f"{shown} is not a readable fit history: {type(err).__name__}: {err} (an empty or "
-                         "truncated file, or not HDF5 at all?)") from None
-    missing = [k for k in _HISTORY_FIELDS if k not in history] + [k for k in ("z", "lam", "done") if k not in resume]
-    lengths = {k: len(history[k]) for k in _HISTORY_FIELDS if k in history}
-    if missing or len(set(lengths.values())) > 1:
-        raise ValueError(f"{shown} is not a complete fit history (missing {missing}, lengths {lengths})")
-    return {"attrs": attrs, "history": history, "resume": resume}
-
-
-#: Which command-line option sets each entry of ``Objective.fingerprint`` (for resume errors).
-_FINGERPRINT_OPTIONS = {
-    "scene": "--scene", "data": "--data/--front: their content", "keys": "--fit", "dx": "--dx", "ppc": "--ppc",
-    "sampling": "--sampling", "seed": "--seed", "dim": "--dim", "width": "--width", "slope_deg": "--slope",
-    "L": "--aspect", "H": "--aspect", "t_end": "--t-end", "fixed": "--set",
-    "weights": "--weight-profile/--weight-front", "sigma": "sigma", "front_threshold": "--front-threshold",
-    "x_ref": "x_ref", "bounds": "bounds", "dtype": "--dtype", "jacobian": "--jacobian", "fd_step": "--fd-step",
-    "n_particles": "--dx/--ppc/--sampling", "particles": "--ppc/--sampling/--seed",
-    "config": "the scene's run configuration",
-}
-
-
-def _flatten(value, prefix="") -> dict[str, Any]:
-    if isinstance(value, dict):
-        out = {}
-        for k, v in value.items():
-            out.update(_flatten(v, f"{prefix}.{k}" if prefix else str(k)))
-        return out
-    if isinstance(value, list) and value and all(isinstance(v, dict) for v in value):
-        out = {}
-        for i, v in enumerate(value):
-            out.update(_flatten(v, f"{prefix}[{i}]"))
-        return out
-    return {prefix: value}
-
-
-def _fingerprint_differences(saved: dict, now: dict) -> list[str]:
-    """Human-readable differences between two fingerprints: 'dx (--dx): 0.0148 in the file, 0.0111 now'."""
-    a, b = _flatten(saved), _flatten(now)
-    out = []
-    for key in list(a) + [k for k in b if k not in a]:
-        if a.get(key, "<absent>") == b.get(key, "<absent>"):
-            continue
-        top = re.sub(r"^(\w+\[\d+\]\.)+", "", key).split(".")[0]  # "members[0].fixed.pc0" -> "fixed"
-        option = _FINGERPRINT_OPTIONS.get(top, top)
-        out.append(f"{key} ({option}): {a.get(key, '<absent>')!r} in the file, {b.get(key, '<absent>')!r} now")
-    return out
-
-
-def _status_text(status: int) -> str:
-    return f"status {status}: {'; '.join(describe_status(status))}" if status else "status 0"
-
-
 def start_theta(objective, init: Mapping[str, float] | None) -> tuple[np.ndarray, str]:
     """The start θ of a fit and a note saying where it differs from the scene's values.
 
@@ -216,6 +125,58 @@ def start_theta(objective, init: Mapping[str, float] | None) -> tuple[np.ndarray
                      f"({bounds.lower[objective.keys.index(k)]:g}, {bounds.upper[objective.keys.index(k)]:g}), "
                      f"so the fit starts at {new:g}" for k, (old, new) in moved.items())
     return theta, note
+
+
+def _evaluator(objective, rev: bool) -> Callable[[np.ndarray], Evaluation]:
+    """The model at the rows of z (k, n), one run each: residuals and their Jacobian from the
+    objective (forward mode, or its differences), or with ``rev`` the reverse-mode gradient alone."""
+    bounds = objective.bounds
+
+    def one(z):
+        theta = np.asarray(bounds.to_physical(jnp.asarray(z)))
+        dtheta_dz = np.asarray(bounds.jacobian_diag(jnp.asarray(z)))
+        if rev:
+            (loss, pred), g = objective.value_and_grad(theta)
+            r = J = Jz = None
+            g = np.asarray(g)
+        else:
+            r, J, pred = objective.residuals_and_jacobian(theta)
+            r, J = np.asarray(r, float), np.asarray(J, float)
+            loss, g, Jz = np.sum(r * r), 2.0 * J.T @ r, J * dtheta_dz[None, :]
+        return theta, float(loss), int(np.asarray(pred["status"])), g, r, J, Jz, g * dtheta_dz, pred
+
+    def evaluate(z):
+        theta, loss, status, g, r, J, Jz, g_z, pred = zip(*[one(row) for row in z])
+        r, J, Jz = (None if parts[0] is None else np.stack(parts) for parts in (r, J, Jz))
+        return Evaluation(theta=np.stack(theta), loss=np.array(loss), status=np.array(status), grad=np.stack(g),
+                          residuals=r, jacobian=J, jacobian_z=Jz, grad_z=np.stack(g_z),
+                          prediction=jax.tree.map(lambda *leaves: np.stack([np.asarray(a) for a in leaves]), *pred))
+
+    return evaluate
+
+
+def _snapshot(state) -> dict[str, Any]:
+    """What a resume needs from the state of one start, by the names of the history file: LM's
+    accepted point and λ; Adam's current point and optax state (λ NaN)."""
+    if isinstance(state, LMState):
+        return {"z": state.z[0], "lam": state.lam[0]}
+    leaves = jax.tree.leaves(state.inner)
+    return {"z": state.z_next[0], "lam": np.nan, **{f"opt_{i}": np.asarray(leaf)[0] for i, leaf in enumerate(leaves)}}
+
+
+def _restore(optimiser, saved: Mapping[str, Any], history: History):
+    """The state of one start that ``_snapshot`` saved, continued: LM's rejections in a row
+    are those at the end of the history; Adam's evaluations are its iterations."""
+    state = optimiser.init(np.asarray(saved["z"], float)[None])
+    common = {"done": np.array([bool(saved["done"])]), "message": np.array([saved["message"]], object)}
+    if isinstance(state, LMState):
+        accepted = history.arrays()["accepted"]
+        rejections = len(accepted) - len(np.trim_zeros(accepted, "b"))
+        return state._replace(lam=np.array([float(saved["lam"])]), rejections=np.array([rejections]), **common)
+    template = jax.tree.leaves(state.inner)
+    leaves = [jnp.asarray(saved[f"opt_{i}"], t.dtype)[None] for i, t in enumerate(template)]
+    return state._replace(inner=jax.tree.unflatten(jax.tree.structure(state.inner), leaves),
+                          count=np.array([history.iterations]), **common)
 
 
 def fit(objective, init: Mapping[str, float] | None = None, *, method: str = "lm", steps: int = 30,
@@ -250,201 +211,73 @@ def fit(objective, init: Mapping[str, float] | None = None, *, method: str = "lm
         raise ValueError(f"steps must be a positive integer, got {steps!r}")
     if not (math.isfinite(learning_rate) and learning_rate > 0):
         raise ValueError(f"learning_rate must be > 0, got {learning_rate!r}")
-    if resume and out is None:
-        raise ValueError("resume=True needs out (the history file to resume from)")
-    if resume and overwrite:
-        raise ValueError("resume and overwrite exclude each other: continue the history in out, or replace it")
+    path = check_out(out, resume=resume, overwrite=overwrite)
     bounds, keys = objective.bounds, objective.keys
-    path = pathlib.Path(out) if out is not None else None
-    if path is not None and not path.parent.exists():
-        raise ValueError(f"out: directory {str(path.parent)!r} does not exist")
-    if path is not None and path.is_dir():
-        raise ValueError(f"out: {str(path)!r} is a folder, not a file")
-    if path is not None and resume and not path.exists():
-        raise ValueError(f"resume: {str(path)!r} does not exist: there is nothing to resume (check the name; "
-                         "without resume (--resume) a new fit starts)")
-    if path is not None and not resume and path.exists() and not overwrite:
-        raise ValueError(f"out: {str(path)!r} exists (an earlier fit's history?); continue it with resume=True "
-                         "(--resume) or replace it with overwrite=True (--overwrite)")
     fingerprint_of = getattr(objective, "fingerprint", None)
     fingerprint = json.loads(json.dumps(fingerprint_of())) if fingerprint_of is not None else None
     options = {"method": method, "steps": steps, "learning_rate": learning_rate, "clip": clip,
                "grad_mode": grad_mode, "xtol": xtol, "ftol": ftol}
+    header = None if path is None else {
+        "keys": list(keys), "method": method, "options": options, "objective": objective.describe(),
+        "fingerprint": fingerprint, "meta": dict(meta or {})}
+    if method == "lm":
+        optimiser = levenberg_marquardt(LMOptions(xtol=xtol, ftol=ftol, stat_tol=stat_tol,
+                                                  max_rejections=max_rejections))
+    else:
+        optimiser = adam(learning_rate, steps=steps, clip=clip)
 
-    history = {k: [] for k in _HISTORY_FIELDS}
-    lm_options = LMOptions(xtol=xtol, ftol=ftol, stat_tol=stat_tol, max_rejections=max_rejections)
     start_note = ""
-    optimizer = None
-    if method == "adam":
-        schedule = optax.cosine_decay_schedule(learning_rate, decay_steps=steps, alpha=0.05)
-        optimizer = optax.chain(optax.clip_by_global_norm(clip), optax.adam(schedule))
-
     if resume:
-        saved = read_history(path)
-        attrs = saved["attrs"]
-        if tuple(attrs["keys_json"]) != keys or attrs["method"] != method:
-            raise ValueError(f"out: {str(path)!r} holds a {attrs['method']} fit of {attrs['keys_json']}, "
-                             f"not a {method} fit of {list(keys)}")
-        for k in ("learning_rate", "clip", "grad_mode"):
-            if attrs["options_json"].get(k) != options[k]:
-                raise ValueError(f"resume: {k} = {options[k]!r} differs from the file's "
-                                 f"{attrs['options_json'].get(k)!r}")
-        if fingerprint is not None:
-            if "fingerprint_json" not in attrs:
-                raise ValueError(f"resume: {str(path)!r} does not record the problem it was made for (written by an "
-                                 "older calibration.fit), so it cannot be checked against this one; start a new fit "
-                                 "(another out, or overwrite=True / --overwrite)")
-            differences = _fingerprint_differences(attrs["fingerprint_json"], fingerprint)
-            if differences:
-                raise ValueError(f"resume: {str(path)!r} holds a fit of a different problem, which a resume would "
-                                 "mix into one history; what differs (option): " + "; ".join(differences))
-        history = {k: list(saved["history"][k]) for k in _HISTORY_FIELDS}
-        z = saved["resume"]["z"]
-        lam = float(saved["resume"]["lam"])
-        opt_state = None
-        if optimizer is not None:
-            template = optimizer.init(jnp.asarray(z))
-            leaves = [saved["resume"][f"opt_{i}"] for i in range(len(jax.tree.leaves(template)))]
-            opt_state = jax.tree.unflatten(jax.tree.structure(template),
-                                           [jnp.asarray(v, t.dtype) for v, t in zip(leaves, jax.tree.leaves(template))])
-        done = bool(saved["resume"]["done"])
-        message = str(attrs.get("message", ""))
+        history, saved = History.resume(path, header, same=_RESUME_OPTIONS, snapshot=_snapshot)
+        state = _restore(optimiser, saved, history)
     else:
         theta0, start_note = start_theta(objective, init)
-        z = bounds.to_unconstrained(theta0)
-        lam = LAM0
-        opt_state = optimizer.init(jnp.asarray(z)) if optimizer is not None else None
-        done, message = False, ""
-    wall0 = history["wall_s"][-1] if history["wall_s"] else 0.0
-    t0 = time.perf_counter()
+        history = History(path=path, header=header, snapshot=_snapshot)
+        state = optimiser.init(bounds.to_unconstrained(theta0)[None])
+    evaluate = _evaluator(objective, rev=method == "adam" and grad_mode == "rev")
+    if method == "lm" and history.iterations:  # resumed: run the accepted point again (not an iteration)
+        state = optimiser.update(evaluate(state.z_next), state)
 
-    def evaluate(z_):
-        theta_ = np.asarray(bounds.to_physical(jnp.asarray(z_)))
-        if method == "adam" and grad_mode == "rev":
-            (loss_, pred_), g_theta = objective.value_and_grad(theta_)
-            return theta_, float(loss_), None, None, np.asarray(g_theta), pred_
-        r_, J_, pred_ = objective.residuals_and_jacobian(theta_)
-        r_, J_ = np.asarray(r_, float), np.asarray(J_, float)
-        return theta_, float(np.sum(r_ * r_)), r_, J_, 2.0 * J_.T @ r_, pred_
-
-    def save(state_z, state_lam, state_opt, is_done, msg):
-        if path is None:
-            return
-
-        def write(f):
-            f.attrs["keys_json"] = json.dumps(list(keys))
-            f.attrs["method"] = method
-            f.attrs["options_json"] = json.dumps(options)
-            f.attrs["objective_json"] = json.dumps(objective.describe())
-            if fingerprint is not None:
-                f.attrs["fingerprint_json"] = json.dumps(fingerprint)
-            f.attrs["meta_json"] = json.dumps(dict(meta or {}))
-            f.attrs["message"] = msg
-            g = f.create_group("history")
-            n = len(history["loss"])
-            for k in _HISTORY_FIELDS:
-                arr = np.asarray(history[k]) if n else np.zeros((0, len(keys)) if k in ("theta", "z") else 0)
-                g.create_dataset(k, data=arr)
-            res = f.create_group("resume")
-            res.create_dataset("z", data=np.asarray(state_z))
-            res.create_dataset("lam", data=state_lam)
-            res.create_dataset("done", data=is_done)
-            if state_opt is not None:
-                for i, leaf in enumerate(jax.tree.leaves(state_opt)):
-                    res.create_dataset(f"opt_{i}", data=np.asarray(leaf))
-
-        _atomic_h5(path, write)
-
-    def record(z_, theta_, loss_, g_theta, status_, accepted_, lam_):
-        history["z"].append(np.asarray(z_, float))
-        history["theta"].append(np.asarray(theta_, float))
-        history["loss"].append(loss_)
-        history["grad_norm"].append(float(np.linalg.norm(g_theta)))
-        history["status"].append(int(status_))
-        history["accepted"].append(bool(accepted_))
-        history["lam"].append(lam_)
-        history["wall_s"].append(wall0 + time.perf_counter() - t0)
+    def check_start(evaluation):
+        status, loss = int(evaluation.status[0]), float(evaluation.loss[0])
+        if status or not math.isfinite(loss):
+            raise ValueError(f"init: the run at the initial parameters fails ({status_text(status)}; "
+                             f"loss {loss}); choose another start")
 
     bar = None
     if progress:
         try:
             from tqdm import tqdm
 
-            bar = tqdm(total=steps, initial=len(history["loss"]), desc=f"fit ({method})", unit="it")
+            bar = tqdm(total=steps, initial=history.iterations, desc=f"fit ({method})", unit="it")
         except ImportError:
             bar = None
 
-    def report(k):
+    def report(state, rows):
+        last = history.last()
         if bar is not None:
-            theta_ = history["theta"][-1]
-            bar.set_postfix_str(f"loss {history['loss'][-1]:.3e} " +
-                                " ".join(f"{key}={v:.4g}" for key, v in zip(keys, theta_)))
+            bar.set_postfix_str(f"loss {last['loss']:.3e} " +
+                                " ".join(f"{key}={v:.4g}" for key, v in zip(keys, last["theta"])))
             bar.update(1)
         if callback is not None:
-            callback(k, {f: history[f][-1] for f in _HISTORY_FIELDS})
+            callback(history.iterations - 1, last)
 
-    rejections = 0
-    current = None  # (z, theta, loss, r, J, g, pred) at the accepted point (LM) or the last point (Adam)
-    if history["loss"] and method == "lm":
-        current = (z, *evaluate(z))  # re-evaluate the accepted point (not a new iteration)
-
-    while len(history["loss"]) < steps and not done:
-        k = len(history["loss"])
-        if method == "lm":
-            if current is None:  # the first evaluation
-                theta, loss, r, J, g, pred = evaluate(z)
-                status = int(np.asarray(pred["status"]))
-                if status or not math.isfinite(loss):
-                    raise ValueError(f"init: the run at the initial parameters fails ({_status_text(status)}; "
-                                     f"loss {loss}); choose another start")
-                current = (z, theta, loss, r, J, g, pred)
-                record(z, theta, loss, g, status, True, lam)
-            else:
-                z_c, theta_c, loss_c, r_c, J_c, g_c, _ = current
-                dtheta_dz = np.asarray(bounds.jacobian_diag(jnp.asarray(z_c)))
-                delta, promised = propose(r_c[None], (J_c * dtheta_dz[None, :])[None], np.array([lam]))
-                z_t = z_c + delta[0]
-                theta, loss, r, J, g, pred = evaluate(z_t)
-                status = int(np.asarray(pred["status"]))
-                accepted, lams, rej, stop, messages = judge(
-                    [loss_c], theta_c[None], [loss], theta[None], [status == 0], promised, [lam], [rejections],
-                    r_c.size, lm_options)
-                accepted, lam, rejections = bool(accepted[0]), float(lams[0]), int(rej[0])
-                if accepted:
-                    current = (z_t, theta, loss, r, J, g, pred)
-                if stop[0]:
-                    done, message = True, messages[0]
-                record(z_t, theta, loss, g, status, accepted, lam)
-            save(current[0], lam, None, done, message)
-        else:
-            theta, loss, r, J, g, pred = evaluate(z)
-            status = int(np.asarray(pred["status"]))
-            ok = status == 0 and math.isfinite(loss) and np.all(np.isfinite(g))
-            record(z, theta, loss, g, status, ok, float("nan"))
-            if not ok:
-                done, message = True, f"stopped: the run at iteration {k} failed ({_status_text(status)})"
-                save(z, lam, opt_state, done, message)
-                report(k)
-                break
-            g_z = jnp.asarray(g * np.asarray(bounds.jacobian_diag(jnp.asarray(z))))
-            with jax.numpy_dtype_promotion("standard"):  # optax's schedules mix int counts and floats
-                updates, opt_state = optimizer.update(g_z, opt_state, jnp.asarray(z))
-                z = np.asarray(optax.apply_updates(jnp.asarray(z), updates), float)
-            save(z, lam, opt_state, done, message)
-        report(k)
+    state = run(optimiser, state, evaluate, history, steps=steps,
+                check_start=check_start if method == "lm" else None, report=report)
     if bar is not None:
         bar.close()
-    if not done:
-        message = message or f"stopped after {len(history['loss'])} iterations (steps = {steps})"
+    done, message = bool(state.done[0]), str(state.message[0])
 
-    hist = {k: np.asarray(v) for k, v in history.items()}
+    hist = history.arrays()
     ok_rows = np.flatnonzero((hist["status"] == 0) & np.isfinite(hist["loss"]))
     if ok_rows.size == 0:
         raise ValueError("fit: no iteration produced a valid run")
     i_best = ok_rows[np.argmin(hist["loss"][ok_rows])]
     theta_best = hist["theta"][i_best]
-    if current is not None and np.array_equal(current[1], theta_best) and current[3] is not None:
-        _, _, loss_b, r_b, J_b, _, pred_b = current
+    current = state.current if method == "lm" else None  # LM's accepted point, with its run
+    if current is not None and np.array_equal(current.theta[0], theta_best):
+        loss_b, r_b, J_b = float(current.loss[0]), current.residuals[0], current.jacobian[0]
+        pred_b = jax.tree.map(lambda a: a[0], current.prediction)
     else:
         r_b, J_b, pred_b = objective.residuals_and_jacobian(theta_best)
         r_b, J_b = np.asarray(r_b, float), np.asarray(J_b, float)

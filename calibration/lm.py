@@ -1,7 +1,8 @@
-"""One Levenberg–Marquardt iteration in the unconstrained variables z, for a batch of starts.
+"""Levenberg–Marquardt in the unconstrained variables z, for a batch of starts, as an ``(init, update)`` pair.
 
-``fit`` (one start: a batch of one) and ``search`` (k starts at once) share these two functions,
-so both take exactly the same steps and stop by exactly the same rules:
+``fit`` (one start: a batch of one) and ``search`` (k starts at once) both run
+``levenberg_marquardt(options)`` through ``calibration.loop.run``, so both take exactly the same
+steps and stop by exactly the same rules:
 
 - ``propose(r, Jz, lam)``: the damped Gauss–Newton step with Marquardt's diagonal scaling,
   (JᵀJ + λ diag JᵀJ) δ = −Jᵀr, shortened to at most ``MAX_STEP`` in every z (the bounds'
@@ -14,16 +15,23 @@ so both take exactly the same steps and stop by exactly the same rules:
   or moves θ by less than ``xtol`` (relative), or when rejected steps are shorter than ``xtol``;
   *stopped* (not a verified minimum) after ``max_rejections`` rejected steps in a row.
 
+The state (``LMState``) holds the accepted point and its evaluation, λ, the rejections in a
+row and the next trial. Its first evaluation is at the starts themselves: a start whose run
+fails (status bits, a non-finite loss) is done with a message that begins "stopped".
+
 Arrays carry a leading batch axis k; everything is numpy (the model runs are the cost).
 """
 
 from __future__ import annotations
 
 import dataclasses
+from typing import NamedTuple
 
 import numpy as np
 
-__all__ = ["LAM0", "MAX_STEP", "LMOptions", "judge", "propose"]
+from .loop import Evaluation, Optimiser, where_rows
+
+__all__ = ["LAM0", "MAX_STEP", "LMOptions", "LMState", "judge", "levenberg_marquardt", "propose"]
 
 #: The damping of the first step.
 LAM0 = 1e-3
@@ -90,3 +98,54 @@ def judge(loss_c, theta_c, loss_t, theta_t, ok_t, promised, lam, rejections, m: 
         messages.append(msg)
     done = np.array([bool(msg) for msg in messages])
     return accepted, lam, rejections, done, messages
+
+
+class LMState(NamedTuple):
+    z: np.ndarray  # (k, n) the accepted points
+    current: Evaluation | None  # the evaluation at z (None before the first)
+    lam: np.ndarray  # (k,) the damping of the next step
+    rejections: np.ndarray  # (k,) rejected steps in a row
+    z_next: np.ndarray  # (k, n) the next trials
+    promised: np.ndarray  # (k,) the loss decreases their steps promise
+    accepted: np.ndarray  # (k,) whether the last evaluation was accepted
+    done: np.ndarray  # (k,)
+    message: np.ndarray  # (k,) object: "" while a start goes on
+
+
+def levenberg_marquardt(options: LMOptions = LMOptions()) -> Optimiser:
+    """LM as ``(init, update)``: ``init(z)`` asks for the runs at the starts z (k, n);
+    ``update(evaluation, state)`` judges the trials (the first evaluation: takes the starts
+    whose runs succeed) and proposes the next ones."""
+
+    def init(z):
+        z = np.asarray(z, float)
+        k = z.shape[0]
+        return LMState(z=z, current=None, lam=np.full(k, LAM0), rejections=np.zeros(k, int), z_next=z,
+                       promised=np.full(k, np.nan), accepted=np.zeros(k, bool), done=np.zeros(k, bool),
+                       message=np.full(k, "", object))
+
+    def update(evaluation: Evaluation, state: LMState) -> LMState:
+        if state.current is None:  # the runs at the starts
+            accepted = (evaluation.status == 0) & np.isfinite(evaluation.loss)
+            z, lam, rejections, stop = state.z_next, state.lam, state.rejections, ~accepted
+            current = evaluation._replace(loss=np.where(accepted, evaluation.loss, np.nan))
+            messages = [f"stopped: the run at the start fails (status {s}; loss {v})"
+                        for s, v in zip(evaluation.status, evaluation.loss)]
+        else:
+            c = state.current
+            accepted, lam, rejections, stop, messages = judge(
+                c.loss, c.theta, evaluation.loss, evaluation.theta, evaluation.status == 0, state.promised,
+                state.lam, state.rejections, c.residuals.shape[1], options)
+            z = np.where(accepted[:, None], state.z_next, state.z)
+            current = where_rows(accepted, evaluation, c)
+        done = state.done | stop
+        message = np.where(stop, np.array(messages, object), state.message)
+        z_next, promised = z.copy(), np.full(len(z), np.nan)
+        go = ~done
+        if go.any():
+            delta, promised[go] = propose(current.residuals[go], current.jacobian_z[go], lam[go])
+            z_next[go] = z[go] + delta
+        return LMState(z=z, current=current, lam=lam, rejections=rejections, z_next=z_next, promised=promised,
+                       accepted=accepted, done=done, message=message)
+
+    return Optimiser(init, update)

@@ -5,10 +5,11 @@
 e.g. μ1 > μ2, are skipped), and runs LM from all of them at once, in the unconstrained variables
 z of ``calibration.bounds``: one ``jit(vmap(...))`` call per iteration evaluates the residuals
 and their forward-mode Jacobian dr/dz of every active start (the bounds map is inside the traced
-function, so autodiff applies its chain rule). The step and the stopping rules are those of
-``calibration.lm``, the same as the single-start ``fit`` uses, applied per start on the batch;
-a start that has stopped is frozen and leaves the batch, which shrinks to the next power of two
-that holds the active starts (at most log2 k + 1 compilations).
+function, so autodiff applies its chain rule). The optimiser is ``calibration.lm``'s
+``levenberg_marquardt`` and the loop ``calibration.loop.run``, the same as the single-start
+``fit`` uses, here on a batch of k starts with a ``calibration.history.History`` of k rows and
+no file; a start that has stopped is frozen and leaves the batch, which shrinks to the next
+power of two that holds the active starts (at most log2 k + 1 compilations).
 
 The endpoints are then clustered: two are the same minimum when their values differ by at most
 ``cluster_tol`` of the bound range in every parameter. Every distinct minimum is reported, with
@@ -36,7 +37,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from .fit import FitResult, start_theta
-from .lm import LAM0, LMOptions, judge, propose
+from .history import History
+from .lm import LMOptions, levenberg_marquardt
+from .loop import Evaluation, run
 from .objective import jacobian_by_columns
 from .uncertainty import ROUNDOFF_SAMPLES, block_noise, chi2_of, chi2_quantile, judge_point
 
@@ -238,8 +241,7 @@ def search(objective, starts: int | np.ndarray = DEFAULT_STARTS, *, seed: int = 
         theta0, start_note = start_theta(objective, init)
         thetas = np.concatenate([theta0[None], thetas])
     k, n = thetas.shape
-    m = objective.n_residuals
-    options = LMOptions(xtol=xtol, ftol=ftol, stat_tol=stat_tol, max_rejections=max_rejections)
+    optimiser = levenberg_marquardt(LMOptions(xtol=xtol, ftol=ftol, stat_tol=stat_tol, max_rejections=max_rejections))
     batch = _batch_fn(objective)
     dtype = objective.dtype
     compile_s = 0.0
@@ -247,7 +249,7 @@ def search(objective, starts: int | np.ndarray = DEFAULT_STARTS, *, seed: int = 
     evaluations = 0
 
     def evaluate(Z):
-        """r (b, m), Jz (b, m, n), predictions (numpy), for the rows of Z, in one batched call."""
+        """The rows of Z in one batched call, padded to a compiled size."""
         nonlocal compile_s, evaluations
         b = Z.shape[0]
         size = min(k, 1 << (b - 1).bit_length()) if shrink else k
@@ -258,98 +260,61 @@ def search(objective, starts: int | np.ndarray = DEFAULT_STARTS, *, seed: int = 
             compiled_sizes.add(size)
             compile_s += time.perf_counter() - clock  # the first call of a shape: compile + one run
         evaluations += size
-        return (np.array(r[:b], float), np.array(Jz[:b], float), jax.tree.map(lambda a: a[:b], pred))
+        r, Jz, pred = np.array(r[:b], float), np.array(Jz[:b], float), jax.tree.map(lambda a: a[:b], pred)
+        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):  # dθ/dz = 0 at a bound: J, |g| inf
+            J = np.stack([Jz_ / np.asarray(bounds.jacobian_diag(jnp.asarray(z)), float)[None, :]
+                          for z, Jz_ in zip(Z, Jz)])
+            g = np.stack([2.0 * J_.T @ r_ for J_, r_ in zip(J, r)])
+        return Evaluation(theta=np.asarray(bounds.to_physical(jnp.asarray(Z)), float), loss=np.sum(r * r, axis=1),
+                          status=np.asarray(pred["status"], int).reshape(-1), grad=g, residuals=r, jacobian=J,
+                          jacobian_z=Jz, grad_z=None, prediction=pred)
 
-    def statuses(pred):
-        return np.asarray(pred["status"], int).reshape(-1)
+    def check_start(evaluation):
+        if not np.any((evaluation.status == 0) & np.isfinite(evaluation.loss)):
+            raise ValueError(f"search: the runs at all {k} starts fail (statuses "
+                             f"{sorted(set(evaluation.status.tolist()))})")
 
-    def grad_norm(z, Jz_, r_):  # |dloss/dθ|, as fit records it (inf at a bound, where dθ/dz = 0)
-        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-            return float(np.linalg.norm(2.0 * (Jz_ / np.asarray(bounds.jacobian_diag(jnp.asarray(z)), float)).T
-                                        @ r_))
+    def report(state, rows):
+        if progress and history.iterations > 1:  # from the first step on (not the runs at the starts)
+            print(f"search: iteration {history.iterations}/{steps}, {len(rows)} active of {k}, best loss "
+                  f"{np.nanmin(state.current.loss):.3e}", file=sys.stderr, flush=True)
 
+    history = History(k, t0=clock0)
     Z = np.stack([bounds.to_unconstrained(t) for t in thetas])
-    r, Jz, pred = evaluate(Z)
-    status = statuses(pred)
-    loss = np.sum(r * r, axis=1)
-    ok = (status == 0) & np.isfinite(loss)
-    theta_c = np.array(bounds.to_physical(jnp.asarray(Z)), float)
-    cur = {"z": Z.copy(), "theta": theta_c, "r": r, "Jz": Jz, "loss": np.where(ok, loss, np.nan),
-           "pred": [jax.tree.map(lambda a, i=i: a[i], pred) for i in range(k)]}
-    lam = np.full(k, LAM0)
-    rejections = np.zeros(k, int)
-    done = ~ok
-    messages = ["" if ok[i] else f"stopped: the run at the start fails (status {status[i]}; loss {loss[i]})"
-                for i in range(k)]
-    if not ok.any():
-        raise ValueError(f"search: the runs at all {k} starts fail (statuses {sorted(set(status.tolist()))})")
-    histories = [{"z": [Z[i].copy()], "theta": [theta_c[i].copy()], "loss": [loss[i]], "status": [int(status[i])],
-                "accepted": [bool(ok[i])], "lam": [LAM0], "wall_s": [time.perf_counter() - clock0],
-                "grad_norm": [grad_norm(Z[i], Jz[i], r[i])]} for i in range(k)]
-    iterations = 1
-    while iterations < steps and not done.all():
-        active = np.flatnonzero(~done)
-        delta, promised = propose(cur["r"][active], cur["Jz"][active], lam[active])
-        Z_t = cur["z"][active] + delta
-        r_t, Jz_t, pred_t = evaluate(Z_t)
-        status_t = statuses(pred_t)
-        loss_t = np.sum(r_t * r_t, axis=1)
-        theta_t = np.asarray(bounds.to_physical(jnp.asarray(Z_t)), float)
-        accepted, lam[active], rejections[active], stop, msgs = judge(
-            cur["loss"][active], cur["theta"][active], loss_t, theta_t, status_t == 0, promised, lam[active],
-            rejections[active], m, options)
-        for j, i in enumerate(active):
-            if accepted[j]:
-                cur["z"][i], cur["theta"][i], cur["r"][i], cur["Jz"][i] = Z_t[j], theta_t[j], r_t[j], Jz_t[j]
-                cur["loss"][i] = loss_t[j]
-                cur["pred"][i] = jax.tree.map(lambda a, j=j: a[j], pred_t)
-            if stop[j]:
-                done[i], messages[i] = True, msgs[j]
-            h = histories[i]
-            for field, value in (("z", Z_t[j]), ("theta", theta_t[j]), ("loss", loss_t[j]),
-                                 ("status", int(status_t[j])), ("accepted", bool(accepted[j])), ("lam", lam[i]),
-                                 ("wall_s", time.perf_counter() - clock0),
-                                 ("grad_norm", grad_norm(Z_t[j], Jz_t[j], r_t[j]))):
-                h[field].append(value)
-        iterations += 1
-        if progress:
-            best = np.nanmin(cur["loss"])
-            print(f"search: iteration {iterations}/{steps}, {len(active)} active of {k}, best loss {best:.3e}",
-                  file=sys.stderr, flush=True)
-    for i in np.flatnonzero(~done):
-        messages[i] = f"stopped after {len(histories[i]['loss'])} iterations (steps = {steps})"
+    state = run(optimiser, optimiser.init(Z), evaluate, history, steps=steps, check_start=check_start,
+                report=report)
+    cur, messages = state.current, list(state.message)
+    iterations = history.iterations
 
     # ---- the best start, judged; its noise sets the scale of Δχ² ----------------------------------
-    valid = np.flatnonzero(np.isfinite(cur["loss"]))
-    order = valid[np.argsort(cur["loss"][valid], kind="stable")]
+    valid = np.flatnonzero(np.isfinite(cur.loss))
+    order = valid[np.argsort(cur.loss[valid], kind="stable")]
     i_best = int(order[0])
     converged = [msg.startswith("converged") for msg in messages]
-    theta_b, z_b, r_b = cur["theta"][i_best], cur["z"][i_best], cur["r"][i_best]
-    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-        J_b = cur["Jz"][i_best] / np.asarray(bounds.jacobian_diag(jnp.asarray(z_b)), float)[None, :]
+    theta_b, r_b, J_b = cur.theta[i_best], cur.residuals[i_best], cur.jacobian[i_best]
     verdict, unc = judge_point(objective, r_b, J_b, theta_b, converged=converged[i_best], message=messages[i_best],
                                noise=noise, uncertainty=uncertainty and bool(np.all(np.isfinite(J_b))),
                                roundoff_samples=roundoff_samples if uncertainty else 0,
                                reference_noise=reference_noise, threshold=threshold)
     wall = time.perf_counter() - clock0
-    histories = [{f: np.asarray(v) for f, v in h.items()} for h in histories]
+    histories = [history.arrays(i) for i in range(k)]
     hist = histories[i_best]
-    best = FitResult(keys=keys, theta=dict(zip(keys, map(float, theta_b))), loss=float(cur["loss"][i_best]),
+    best = FitResult(keys=keys, theta=dict(zip(keys, map(float, theta_b))), loss=float(cur.loss[i_best]),
                      iterations=len(hist["loss"]), wall_s=wall, method="lm", converged=converged[i_best],
                      message=messages[i_best], history=hist, residuals=r_b, jacobian=J_b,
-                     prediction=cur["pred"][i_best], uncertainty=unc,
+                     prediction=jax.tree.map(lambda a: a[i_best], cur.prediction), uncertainty=unc,
                      start=dict(zip(keys, map(float, thetas[i_best]))),
                      start_note=start_note if i_best == 0 and init else "", verdict=verdict)
 
     # ---- distinct minima, and which lie within the noise of the best -------------------------------
     sigma, _, _ = block_noise(r_b, objective.row_scale, objective.blocks, noise)
-    chi2 = {int(i): chi2_of(cur["r"][i], objective.row_scale, objective.blocks, sigma) for i in valid}
+    chi2 = {int(i): chi2_of(cur.residuals[i], objective.row_scale, objective.blocks, sigma) for i in valid}
     limit = chi2_quantile(WITHIN_NOISE_P, n)
     span = np.asarray(bounds.upper) - np.asarray(bounds.lower)
     clusters: list[list[int]] = []
     for i in order:
         for members in clusters:
-            if np.max(np.abs(cur["theta"][i] - cur["theta"][members[0]]) / span) <= cluster_tol:
+            if np.max(np.abs(cur.theta[i] - cur.theta[members[0]]) / span) <= cluster_tol:
                 members.append(int(i))
                 break
         else:
@@ -358,12 +323,13 @@ def search(objective, starts: int | np.ndarray = DEFAULT_STARTS, *, seed: int = 
     for members in clusters:
         i = members[0]
         delta_chi2 = chi2[i] - chi2[i_best]
-        minima.append(Minimum(theta=dict(zip(keys, map(float, cur["theta"][i]))), loss=float(cur["loss"][i]),
+        minima.append(Minimum(theta=dict(zip(keys, map(float, cur.theta[i]))), loss=float(cur.loss[i]),
                               delta_chi2=float(delta_chi2), within_noise=bool(delta_chi2 <= limit),
                               starts=tuple(members), verified=converged[i],
-                              at_bound=tuple(bounds.near_bound(cur["theta"][i])), message=messages[i]))
+                              at_bound=tuple(bounds.near_bound(cur.theta[i])), message=messages[i]))
     return SearchResult(keys=keys, starts=thetas, design=design, seed=int(seed), minima=minima, best=best,
-                        best_start=i_best, finals=cur["theta"].copy(), losses=cur["loss"].copy(), residuals=cur["r"].copy(), histories=histories,
+                        best_start=i_best, finals=cur.theta.copy(), losses=cur.loss.copy(),
+                        residuals=cur.residuals.copy(), histories=histories,
                         messages=messages, delta_chi2_limit=limit, iterations=iterations, evaluations=evaluations,
                         wall_s=wall, compile_s=compile_s, start_note=start_note)
 

@@ -447,7 +447,7 @@ def write_sweep(path, result: SweepResult, objective=None) -> None:
     import json
     import pathlib
 
-    from .fit import _atomic_h5
+    from .history import atomic_h5
 
     def write(f):
         f.attrs["keys_json"] = json.dumps(list(result.keys))
@@ -458,4 +458,4 @@ def write_sweep(path, result: SweepResult, objective=None) -> None:
         f.create_dataset("status", data=np.asarray(result.status))
         f.create_dataset("residuals", data=np.asarray(result.residuals))
 
-    _atomic_h5(pathlib.Path(path), write)
+    atomic_h5(pathlib.Path(path), write)
