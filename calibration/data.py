@@ -3,8 +3,8 @@ scaling laws, and the files shipped in ``experiments_data/``.
 
 Formats
 -------
-**Project CSV** (what ``jaxmpm.io.write_profile_csv`` and ``python -m jaxmpm run ... --profile-csv``
-write, and what ``Profile.to_csv`` writes)::
+**Project CSV** (the format of ``jaxmpm.tables``: what ``python -m jaxmpm run ... --profile-csv``,
+``Profile.to_csv`` and ``FrontHistory.to_csv`` write)::
 
     # experiment: cohesive-collapse (synthetic, jaxmpm 0.1.0)
     # time_s: 0.5
@@ -63,11 +63,12 @@ import math
 import os
 import pathlib
 import re
-import uuid
 from collections.abc import Mapping
 from typing import Any
 
 import numpy as np
+
+from jaxmpm import tables
 
 __all__ = [
     "UNITS", "DatasetInfo", "FrontHistory", "Profile", "RunoutLaw", "data_dir", "dataset_path", "list_datasets",
@@ -83,92 +84,14 @@ _FIELD_KEYS = ("experiment", "time_s", "units", "source", "synthetic")
 NOISE_FRACTION = 1e-3
 _MIN_POINTS = 3
 _ENV = "JAXMPM_EXPERIMENTS_DATA"
-_DECIMAL_COMMA = re.compile(r"^[+-]?\d*,\d+([eE][+-]?\d+)?$")
-#: A header comment indented by this much after "#" continues the value of the key line above it.
-_CONTINUATION = "  "
 #: A ``time_s`` header in words that starts with this word means the final deposit, after the
 #: flow stopped (``time_s`` None: the end of the run).
 _FINAL = "final"
 
 
 # ---------------------------------------------------------------------------------------------
-# Parsing
+# Parsing (``jaxmpm.tables.read_table`` splits a file into header and cells; what they mean is here)
 # ---------------------------------------------------------------------------------------------
-
-
-@dataclasses.dataclass
-class _Parsed:
-    """A delimited text file split into its header keys and its rows of cells."""
-
-    file: str
-    header: dict[str, Any]
-    header_line: dict[str, int]
-    rows: list[tuple[int, list[str]]]  # (1-based line number, cells), comment and blank lines removed
-
-
-def _decode(value: str):
-    try:
-        return json.loads(value)
-    except ValueError:
-        return value
-
-
-def _split(line: str, delimiter: str | None) -> list[str]:
-    cells = line.split(delimiter) if delimiter else line.split()
-    out = []
-    for cell in cells:
-        cell = cell.strip()
-        if len(cell) >= 2 and cell[0] == cell[-1] == '"':
-            cell = cell[1:-1].strip()
-        if delimiter in (";", "\t") and _DECIMAL_COMMA.match(cell):
-            cell = cell.replace(",", ".")
-        out.append(cell)
-    return out
-
-
-def _read(path: str | os.PathLike) -> _Parsed:
-    path = pathlib.Path(path)
-    file = str(path)
-    if not path.is_file():
-        raise ValueError(f"{file}: no such file")
-    try:
-        text = path.read_bytes().decode("utf-8-sig")
-    except UnicodeDecodeError as err:
-        raise ValueError(f"{file}: not a UTF-8 text file ({err})") from None
-    raw: dict[str, str] = {}
-    header_line: dict[str, int] = {}
-    content: list[tuple[int, str]] = []
-    last_key = None  # the key a continuation line would continue
-    for number, line in enumerate(text.splitlines(), start=1):
-        stripped = line.strip()
-        if not stripped:
-            last_key = None
-            continue
-        if stripped.startswith("#"):
-            body = stripped[1:]
-            if last_key is not None and body.startswith(_CONTINUATION) and body.strip():
-                raw[last_key] += " " + body.strip()  # an indented line continues the key above
-                continue
-            key, sep, value = body.partition(":")
-            key = key.strip()
-            if not sep or not key:
-                last_key = None
-                continue  # a free comment
-            if key in raw:
-                raise ValueError(f"{file}: line {number}: header key {key!r} repeats line {header_line[key]}")
-            raw[key] = value.strip()
-            header_line[key] = number
-            last_key = key
-            continue
-        last_key = None
-        content.append((number, stripped))
-    header: dict[str, Any] = {key: _decode(value) for key, value in raw.items()}
-    delimiter = None
-    if content:
-        first = content[0][1]
-        delimiter = next((d for d in (";", "\t", ",") if d in first), None)
-    rows = [(number, _split(line, delimiter)) for number, line in content]
-    return _Parsed(file, header, header_line, rows)
 
 
 def _is_number(cell: str) -> bool:
@@ -179,7 +102,7 @@ def _is_number(cell: str) -> bool:
     return True
 
 
-def _numeric(parsed: _Parsed, rows, names: tuple[str, ...]) -> tuple[np.ndarray, np.ndarray]:
+def _numeric(parsed: tables.Table, rows, names: tuple[str, ...]) -> tuple[np.ndarray, np.ndarray]:
     """Rows of cells as a float array (n, len(names)) and their line numbers; checks each cell."""
     values = np.empty((len(rows), len(names)))
     lines = np.empty(len(rows), dtype=int)
@@ -201,7 +124,7 @@ def _numeric(parsed: _Parsed, rows, names: tuple[str, ...]) -> tuple[np.ndarray,
     return values, lines
 
 
-def _columns(parsed: _Parsed, dataset: str | None):
+def _columns(parsed: tables.Table, dataset: str | None):
     """The column names (lower case; ``None`` for a headerless file), the data rows, and the name
     of the WebPlotDigitizer dataset taken from a multi-dataset file (else ``None``)."""
     rows = parsed.rows
@@ -257,7 +180,7 @@ def _trim(cells: list[str]) -> list[str]:
     return cells
 
 
-def _unit_scale(parsed: _Parsed, from_names: str | None, argument: str | None, table: Mapping[str, float],
+def _unit_scale(parsed: tables.Table, from_names: str | None, argument: str | None, table: Mapping[str, float],
                 what: str, hint: str) -> tuple[str, float]:
     """Resolve units from the column names, the ``units`` header key and the argument, which must
     agree where more than one is given."""
@@ -308,7 +231,7 @@ def _check_count(file: str, n: int):
         raise ValueError(f"{file}: {n} data row(s); at least {_MIN_POINTS} are needed")
 
 
-def _experiment(parsed: _Parsed, path: pathlib.Path, argument: str | None) -> str:
+def _experiment(parsed: tables.Table, path: pathlib.Path, argument: str | None) -> str:
     value = parsed.header.get("experiment")
     if argument is not None:
         if value is not None and str(value) != argument:
@@ -318,7 +241,7 @@ def _experiment(parsed: _Parsed, path: pathlib.Path, argument: str | None) -> st
     return str(value) if value is not None else path.stem
 
 
-def _synthetic(parsed: _Parsed, experiment: str) -> bool:
+def _synthetic(parsed: tables.Table, experiment: str) -> bool:
     if "synthetic" in parsed.header:
         value = parsed.header["synthetic"]
         if not isinstance(value, bool):
@@ -328,13 +251,13 @@ def _synthetic(parsed: _Parsed, experiment: str) -> bool:
     return "synthetic" in experiment.lower()
 
 
-def _final_deposit(parsed: _Parsed) -> bool:
+def _final_deposit(parsed: tables.Table) -> bool:
     """True when the header's ``time_s`` is words that start with "final" (the final deposit)."""
     value = parsed.header.get("time_s")
     return isinstance(value, str) and value.strip().lower().startswith(_FINAL)
 
 
-def _time(parsed: _Parsed, argument: float | None) -> float | None:
+def _time(parsed: tables.Table, argument: float | None) -> float | None:
     value = parsed.header.get("time_s")
     if _final_deposit(parsed):
         value = None  # "final deposit": no single time; the argument (if any) supplies one
@@ -353,27 +276,19 @@ def _time(parsed: _Parsed, argument: float | None) -> float | None:
     return None
 
 
-def _meta(parsed: _Parsed, extra: Mapping[str, Any] = ()) -> dict[str, Any]:
+def _meta(parsed: tables.Table, extra: Mapping[str, Any] = ()) -> dict[str, Any]:
     meta = {k: v for k, v in parsed.header.items() if k not in _FIELD_KEYS}
     meta.update(extra)
     return meta
 
 
 # ---------------------------------------------------------------------------------------------
-# Writing
+# Writing (the header of a profile or front history; ``jaxmpm.tables`` writes the file)
 # ---------------------------------------------------------------------------------------------
 
 
-def _header_value(key, value):
-    """A header value as ``write_profile_csv`` will print it, such that reading decodes it back."""
-    if not isinstance(key, str) or not key.strip() or ":" in key or "\n" in key or key != key.strip():
-        raise ValueError(f"meta keys must be non-empty strings without ':' or newlines, got {key!r}")
-    if isinstance(value, str) and (_decode(value) != value or "\n" in value or value != value.strip()):
-        return json.dumps(value)
-    return value
-
-
 def _header(experiment: str, time_s: float | None, source: str, synthetic: bool, meta: Mapping[str, Any]):
+    """The header of a written profile or front history: its fields in a fixed order, then ``meta``."""
     clash = sorted(set(meta) & set(_FIELD_KEYS))
     if clash:
         raise ValueError(f"meta must not hold the keys {clash}: they are fields")
@@ -382,21 +297,7 @@ def _header(experiment: str, time_s: float | None, source: str, synthetic: bool,
         out["time_s"] = float(time_s)
     out.update(units="m", source=source, synthetic=bool(synthetic))
     out.update(meta)
-    return {k: _header_value(k, v) for k, v in out.items()}
-
-
-def _write_csv(path, names: tuple[str, str], a: np.ndarray, b: np.ndarray, header: Mapping[str, Any]):
-    """A two-column CSV in the layout of ``jaxmpm.io.write_profile_csv`` (atomic)."""
-    path = pathlib.Path(path)
-    if not path.parent.is_dir():
-        raise ValueError(f"path: directory {str(path.parent)!r} does not exist")
-    lines = [f"# {k}: {v if isinstance(v, str) else json.dumps(v)}" for k, v in header.items()]
-    lines.append(",".join(names))
-    lines += [f"{ai:.6e},{bi:.6e}" for ai, bi in zip(a, b)]
-    tmp = path.with_name(f".{path.name}.{uuid.uuid4().hex[:8]}.tmp")
-    tmp.write_text("\n".join(lines) + "\n")
-    os.replace(tmp, path)
-    return path
+    return out
 
 
 def _frozen_array(name: str, value, owner: str) -> np.ndarray:
@@ -455,12 +356,10 @@ class Profile:
         return int(self.x.size)
 
     def to_csv(self, path: str | os.PathLike) -> pathlib.Path:
-        """Write the project CSV (via ``jaxmpm.io.write_profile_csv``); ``load_profile`` reads it back
-        identically to the printed precision (7 significant digits)."""
-        from jaxmpm.io import write_profile_csv
-
+        """Write the project CSV (via ``jaxmpm.tables.write_profile_csv``); ``load_profile`` reads it
+        back identically to the printed precision (7 significant digits)."""
         header = _header(self.experiment, self.time_s, self.source, self.synthetic, self.meta)
-        return write_profile_csv(path, self.x, self.h, header)
+        return tables.write_profile_csv(path, self.x, self.h, header)
 
 
 def load_profile(
@@ -482,7 +381,7 @@ def load_profile(
     -1e-3 max h. Raises ``ValueError`` naming the file and line on any invalid input.
     """
     path = pathlib.Path(path)
-    parsed = _read(path)
+    parsed = tables.read_table(path)
     names, rows, wpd_dataset = _columns(parsed, dataset)
     file = parsed.file
     column_units = None
@@ -577,9 +476,10 @@ class FrontHistory:
         return int(self.t.size)
 
     def to_csv(self, path: str | os.PathLike) -> pathlib.Path:
-        """Write columns ``t_s,xf_m`` with the header convention of the profile CSV."""
+        """Write columns ``t_s,xf_m`` with the header convention of the profile CSV (via
+        ``jaxmpm.tables.write_table``)."""
         header = _header(self.experiment, None, self.source, self.synthetic, self.meta)
-        return _write_csv(path, ("t_s", "xf_m"), self.t, self.x_front, header)
+        return tables.write_table(path, dict(zip(tables.FRONT_COLUMNS, (self.t, self.x_front))), header)
 
 
 def load_front_history(
@@ -595,7 +495,7 @@ def load_front_history(
     export of (t, x_front), for which ``units`` (length) and ``time_units`` (``'s'``, ``'ms'``) must
     be given. Errors as for ``load_profile``; t must be strictly increasing (or ``sort=True``)."""
     path = pathlib.Path(path)
-    parsed = _read(path)
+    parsed = tables.read_table(path)
     names, rows, wpd_dataset = _columns(parsed, dataset)
     file = parsed.file
     column_units = column_time = None
@@ -635,7 +535,7 @@ def load_front_history(
 def read_table(path: str | os.PathLike) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
     """A CSV with the project header convention and a row of column names: ``(header, columns)``,
     the header JSON-decoded where possible and each column a float64 array (checked finite)."""
-    parsed = _read(path)
+    parsed = tables.read_table(path)
     number, first = parsed.rows[0] if parsed.rows else (0, [])
     names = tuple(_trim(first))
     if not names or any(_is_number(c) for c in names) or len(set(names)) != len(names):

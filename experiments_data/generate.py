@@ -11,7 +11,6 @@ command lines recorded in each profile's ``source`` header. Nothing here is a me
 
 from __future__ import annotations
 
-import json
 import pathlib
 import subprocess
 import sys
@@ -35,10 +34,11 @@ PROFILE_COMMANDS = (
 
 
 def _write(path: pathlib.Path, header: dict, names: tuple[str, ...], rows) -> None:
-    lines = [f"# {k}: {v if isinstance(v, str) else json.dumps(v)}" for k, v in header.items()]
-    lines.append(",".join(names))
-    lines += [",".join(f"{v:.10g}" for v in row) for row in rows]
-    path.write_text("\n".join(lines) + "\n")
+    """A table in the project's CSV format (``jaxmpm.tables.write_table``), 10 significant digits."""
+    from jaxmpm.tables import write_table
+
+    columns = np.array(list(rows), dtype=float).reshape(-1, len(names)).T
+    write_table(path, dict(zip(names, columns)), header, fmt=".10g")
     print(f"wrote {path.relative_to(ROOT)}")
 
 

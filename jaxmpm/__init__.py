@@ -2,12 +2,12 @@
 
 The public surface: static configuration (``Grid``, ``Config``, ``Wall``, materials), the
 parameter pytree (``Params``), the state (``State``, ``init_state``), particle sampling (``seed_box``), the pure
-step and rollout factories, the public ``simulate`` call and HDF5 output.
+step and rollout factories, the public ``simulate`` call, HDF5 output (``io``) and the CSV format (``tables``).
 """
 
 from importlib import metadata as _metadata
 
-from . import io, scenes
+from . import io, scenes, tables
 from .boundary import Wall
 from .config import Config, Grid
 from .materials import CriticalState, Hencky, Material, hencky_stress, invariants
@@ -55,5 +55,5 @@ __all__ = [
     "BUDGET", "Config", "CriticalState", "EDGE", "DEFAULTS", "Grid", "Hencky", "J_NONPOSITIVE", "LEFT_GRID", "Material",
     "NONFINITE", "PARAM_KEYS", "Params", "Result", "SAMPLINGS", "SimulationError", "State", "Wall",
     "compiled_rollout", "describe_status", "frame_observer", "hencky_stress", "init_state",
-    "invariants", "io", "make_rollout", "make_step", "scenes", "seed_box", "simulate", "validate_params",
+    "invariants", "io", "make_rollout", "make_step", "scenes", "seed_box", "simulate", "tables", "validate_params",
 ]

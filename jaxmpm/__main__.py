@@ -108,7 +108,7 @@ def _run(args) -> int:
     _check_run_outputs(args, frames)
     if args.dtype == "float64":
         jax.config.update("jax_enable_x64", True)
-    from . import io
+    from . import io, tables
     from .observables import deposit_profile, particle_volumes
     from .simulate import simulate
     from .state import describe_status
@@ -160,7 +160,7 @@ def _run(args) -> int:
                                        width=scene.meta.get("width")))
         profile = (xs, h)
         if args.profile_csv:
-            output("--profile-csv", lambda: io.write_profile_csv(args.profile_csv, xs, h, {
+            output("--profile-csv", lambda: tables.write_profile_csv(args.profile_csv, xs, h, {
                 "experiment": f"{scene.name} (synthetic, jaxmpm {_version()})", "time_s": config.t_end,
                 "units": "m", "synthetic": True, "source": "python -m jaxmpm run " + " ".join(sys.argv[2:]),
                 # float32 leaves printed to the precision they hold (0.3, not 0.30000001192092896)

@@ -19,6 +19,9 @@ each frame dataset keeps the batch axes in front.
 
 Particles keep their order: row k of /initial/x and of /final/x is the same particle, so
 ``final["x"] - initial["x"]`` is its displacement (the region that moved).
+
+The CSV format (deposit profiles and other tables) lives in ``jaxmpm.tables``; its
+``write_profile_csv`` and ``PROFILE_COLUMNS`` are importable from here as well.
 """
 
 from __future__ import annotations
@@ -41,6 +44,7 @@ from .observables import particle_volumes
 from .params import Params
 from .simulate import Result
 from .state import State, describe_status
+from .tables import PROFILE_COLUMNS, write_profile_csv  # the CSV format's home is tables
 
 __all__ = ["write_h5", "read_h5", "write_profile_csv", "PROFILE_COLUMNS", "check_output_file", "check_output_dir",
            "json_safe"]
@@ -232,29 +236,6 @@ def read_h5(path: str | os.PathLike) -> dict[str, Any]:
         initial = _datasets(f["initial"]) if "initial" in f else None
         final = _datasets(f["final"])
     return {"attrs": attrs, "frames": frames, "initial": initial, "final": final}
-
-
-#: Columns of a deposit-profile CSV (the schema that ``experiments_data/`` and the calibration
-#: loader read): comment lines "# key: value" (experiment, time_s, units, source, ...), then a
-#: header line and rows of x and h in metres.
-PROFILE_COLUMNS = ("x_m", "h_m")
-
-
-def write_profile_csv(path: str | os.PathLike, x, h, meta: Mapping[str, Any]) -> pathlib.Path:
-    """Write a deposit profile h(x) (metres) with its metadata header, atomically."""
-    path = pathlib.Path(path)
-    if not path.parent.exists():
-        raise ValueError(f"path: directory {str(path.parent)!r} does not exist")
-    x, h = np.asarray(x, float), np.asarray(h, float)
-    if x.shape != h.shape or x.ndim != 1:
-        raise ValueError(f"x and h must be 1-D of equal length, got {x.shape} and {h.shape}")
-    lines = [f"# {key}: {value if isinstance(value, str) else _dumps(value)}" for key, value in meta.items()]
-    lines.append(",".join(PROFILE_COLUMNS))
-    lines += [f"{xi:.6e},{hi:.6e}" for xi, hi in zip(x, h)]
-    tmp = path.with_name(f".{path.name}.{uuid.uuid4().hex[:8]}.tmp")
-    tmp.write_text("\n".join(lines) + "\n")
-    os.replace(tmp, path)
-    return path
 
 
 # ---- checks made before any work ---------------------------------------------------------------
