@@ -7,7 +7,10 @@ whether a point is a fit of the data at all); ``search`` runs LM from many space
 one vmapped batch and reports every minimum within the noise of the best. Both run the
 ``(init, update)`` optimisers of ``lm`` (Levenberg–Marquardt) and ``adam`` through the one loop of
 ``loop``, recording in ``history`` (saving and resuming); ``sweep`` evaluates the loss over many
-parameter sets at once; ``twin`` fits data with known parameters.
+parameter sets at once. The studies return dataclasses whose ``to_json()`` the command line
+prints: ``twin`` fits data with known parameters (``TwinResult``), ``scaling`` fits the S5 runout
+law (``LawResult``), ``bench`` times an evaluation (``BenchResult``), ``coverage`` runs twins over
+noise seeds (``CoverageResult``).
 """
 
 from .bounds import DEFAULT_BOUNDS, FIT_KEYS, Bounds

@@ -289,7 +289,7 @@ def _sweep_plot(directory, result, keys) -> list[str]:
 def _twin(args) -> int:
     import jax
 
-    from .twin import twin
+    from .twin import twin, twin_landscape
 
     if args.dtype == "float64":
         jax.config.update("jax_enable_x64", True)
@@ -299,47 +299,33 @@ def _twin(args) -> int:
         raise ValueError("twin uses the S4 scene's default particle sampling: --sampling and --seed do not apply "
                          "(--noise-seed seeds the noise)")
     keys = _keys(args.fit)
-    out = twin(quick=args.quick, noise=args.noise, keys=keys, method=args.method, steps=args.steps,
-               seed=args.noise_seed, dx=args.dx, ppc=args.ppc, t_end=args.t_end, values=_pairs(args.set, "--set"),
-               dtype=args.dtype, out=args.out, resume=args.resume, overwrite=args.overwrite,
-               progress=not args.no_progress, reference_noise=args.reference_noise, threshold=args.threshold,
-               roundoff_samples=args.roundoff_samples)
-    result, objective = out.pop("_fit"), out.pop("_objective")
+    if args.landscape and len(keys) < 2:
+        raise ValueError("--landscape needs at least two fitted keys")
+    result = twin(quick=args.quick, noise=args.noise, keys=keys, method=args.method, steps=args.steps,
+                  seed=args.noise_seed, dx=args.dx, ppc=args.ppc, t_end=args.t_end, values=_pairs(args.set, "--set"),
+                  dtype=args.dtype, out=args.out, resume=args.resume, overwrite=args.overwrite,
+                  progress=not args.no_progress, reference_noise=args.reference_noise, threshold=args.threshold,
+                  roundoff_samples=args.roundoff_samples)
+    out = result.to_json()
     errors: dict[str, str] = {}
     if args.plot:
-        out["figures"] = _guard(errors, "--plot", lambda: _plots(args.plot, objective, result, prefix="twin",
-                                                                 truth=out["true"]))
+        out["figures"] = _guard(errors, "--plot", lambda: _plots(args.plot, result.objective, result.fit,
+                                                                 prefix="twin", truth=result.truth))
     if args.landscape:
-        out["landscape"] = _twin_landscape(args, objective, out)
+        landscape = twin_landscape(result, args.landscape, progress=not args.no_progress)
+        out["landscape"] = landscape.to_json()
+        if args.plot:
+            out["landscape"]["figure"] = str(_twin_landscape_plot(args.plot, landscape))
     return _finish(out, args, errors)
 
 
-def _twin_landscape(args, objective, out) -> dict:
-    """Sweep the twin's loss over its first two keys (±40 % around the truth, the others at
-    their true values) and draw it with the truth, the start and the fit marked."""
-    import numpy as np
+def _twin_landscape_plot(directory, landscape):
+    from .plots import plot_landscape
 
-    from .sweep import grid_points, sweep
-
-    if len(objective.keys) < 2:
-        raise ValueError("--landscape needs at least two fitted keys")
-    kx, ky = objective.keys[:2]
-    ranges = {k: (0.6 * out["true"][k], 1.4 * out["true"][k]) for k in (kx, ky)}
-    _, grid = grid_points(ranges, args.landscape, keys=(kx, ky))
-    thetas = np.tile([out["true"][k] for k in objective.keys], (grid.shape[0], 1))
-    thetas[:, :2] = grid
-    result = sweep(objective, thetas, progress=not args.no_progress)
-    xs, ys, loss = result.landscape(kx, ky)
-    summary = {"keys": [kx, ky], "n": int(grid.shape[0]), "failed": len(result.failed), "wall_s": result.wall_s,
-               "mode": result.mode}
-    if args.plot:
-        from .plots import plot_landscape
-
-        marks = {"true": (out["true"][kx], out["true"][ky]), "start": (out["start"][kx], out["start"][ky]),
-                 "fit": (out["params"][kx], out["params"][ky])}
-        summary["figure"] = str(plot_landscape(xs, ys, loss, kx, ky, pathlib.Path(args.plot) / "twin_landscape.png",
-                                               marks=marks, title=f"twin loss over ({kx}, {ky}), others at truth"))
-    return summary
+    kx, ky = landscape.keys
+    xs, ys, loss = landscape.grid()
+    return plot_landscape(xs, ys, loss, kx, ky, pathlib.Path(directory) / "twin_landscape.png",
+                          marks=landscape.marks, title=f"twin loss over ({kx}, {ky}), others at truth")
 
 
 def _coverage(args) -> int:
@@ -385,14 +371,11 @@ def _law(args) -> int:
     else:
         law = functools.partial(runout_law, sand=True) if args.sand else runout_law
         label = ("sand (Lube et al. 2005" if args.sand else "glass beads (Lajeunesse et al. 2005") + ", secondary)"
-    for a in _floats(args.train, "--train") + _floats(args.test, "--test"):
-        law(a)  # an aspect ratio the law file does not tabulate fails here, before any run
-    out = fit_runout_law(_floats(args.train, "--train"), _floats(args.test, "--test"), _keys(args.fit), law=law,
-                         dx=args.dx, ppc=args.ppc, values=_pairs(args.set, "--set"), steps=args.steps, out=args.out,
-                         overwrite=args.overwrite, progress=not args.no_progress, jacobian=args.jacobian,
-                         fd_step=args.fd_step)
-    result = out.pop("_fit")
-    out["law"] = label
+    result = fit_runout_law(_floats(args.train, "--train"), _floats(args.test, "--test"), _keys(args.fit), law=law,
+                            label=label, dx=args.dx, ppc=args.ppc, values=_pairs(args.set, "--set"), steps=args.steps,
+                            out=args.out, overwrite=args.overwrite, progress=not args.no_progress,
+                            jacobian=args.jacobian, fd_step=args.fd_step)
+    out = result.to_json()
     errors: dict[str, str] = {}
     if args.plot:
         from .plots import plot_history, plot_runout_law
@@ -400,8 +383,8 @@ def _law(args) -> int:
         def figures():
             d = pathlib.Path(args.plot)
             d.mkdir(parents=True, exist_ok=True)
-            return [str(plot_runout_law(out["cases"], d / "law_runout.png", law=law, title=out["law"])),
-                    str(plot_history(result.history, result.keys, d / "law_history.png"))]
+            return [str(plot_runout_law(out["cases"], d / "law_runout.png", law=law, title=result.law)),
+                    str(plot_history(result.fit.history, result.fit.keys, d / "law_history.png"))]
 
         out["figures"] = _guard(errors, "--plot", figures)
     return _finish(out, args, errors)
@@ -416,8 +399,8 @@ def _bench(args) -> int:
         jax.config.update("jax_enable_x64", True)
     kw = {"dx": 0.089 / 8, "t_end": 0.2} if args.quick else {"dx": args.dx}
     values = {k: float(v) for k, v in _pairs(args.set, "--set").items()}
-    out = bench(_keys(args.fit), repeat=args.repeat, dtype=args.dtype, values=values, **kw)
-    return 1 if _emit(out, args.json) else 0
+    result = bench(_keys(args.fit), repeat=args.repeat, dtype=args.dtype, values=values, **kw)
+    return 1 if _emit(result.to_json(), args.json) else 0
 
 
 def _common(p, data: bool = True) -> None:

@@ -19,7 +19,7 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
-from .twin import CHI2_95, twin
+from .twin import TwinResult, twin
 from .uncertainty import gauss_newton_uncertainty
 
 __all__ = ["CoverageResult", "CoverageRow", "clopper_pearson", "coverage"]
@@ -98,10 +98,11 @@ class CoverageResult:
 
 
 def coverage(seeds: int | Sequence[int] = 20, *, noise: float = 0.02, keys: Sequence[str] = ("beta", "mu1"),
-             quick: bool = True, progress: bool = False, run: Callable[..., dict] = twin, **twin_options
+             quick: bool = True, progress: bool = False, run: Callable[..., TwinResult] = twin, **twin_options
              ) -> CoverageResult:
     """The twin at ``noise`` for each seed (an int k: seeds 0..k−1); ``twin_options`` go to
-    ``calibration.twin`` (dx, values, steps, ...); ``run`` replaces it (for tests)."""
+    ``calibration.twin`` (dx, values, steps, ...); ``run`` replaces it (for tests: it must return
+    a ``TwinResult``)."""
     if not (np.isfinite(noise) and 0 < noise < 1):
         raise ValueError(f"noise must be in (0, 1): coverage needs noisy data, got {noise!r}")
     seed_list = list(range(seeds)) if isinstance(seeds, (int, np.integer)) else [int(s) for s in seeds]
@@ -111,9 +112,8 @@ def coverage(seeds: int | Sequence[int] = 20, *, noise: float = 0.02, keys: Sequ
     clock = time.perf_counter()
     rows, truth = [], None
     for i, seed in enumerate(seed_list):
-        out = run(quick=quick, noise=noise, keys=keys, seed=seed, **twin_options)
-        result, objective = out.pop("_fit"), out.pop("_objective")
-        truth = out["true"]
+        tw = run(quick=quick, noise=noise, keys=keys, seed=seed, **twin_options)
+        result, objective, truth = tw.fit, tw.objective, tw.truth
         given = ci_given = None
         if result.verdict is None or result.verdict.is_fit:
             unc = gauss_newton_uncertainty(result.jacobian, result.residuals, keys, [result.theta[k] for k in keys],
@@ -121,14 +121,13 @@ def coverage(seeds: int | Sequence[int] = 20, *, noise: float = 0.02, keys: Sequ
                                            bounds=objective.bounds, verdict=result.verdict)
             given = {k: bool(lo <= truth[k] <= hi) for k, (lo, hi) in zip(keys, unc.ci95)}
             ci_given = {k: [float(lo), float(hi)] for k, (lo, hi) in zip(keys, unc.ci95)}
-        rows.append(CoverageRow(seed=seed, theta=dict(result.theta), is_fit=out["verdict"]["is_fit"],
-                                in_ci95=out["in_ci95"], in_ci95_given=given, ci95=out.get("ci95"),
-                                ci95_given=ci_given,
-                                delta_chi2_truth=float(out["delta_chi2_truth"]),
-                                truth_in_joint_95=bool(out["delta_chi2_truth"] <= CHI2_95[len(keys)]),
-                                noise_estimated=dict(out["noise_estimated"]), iterations=int(out["iterations"]),
-                                wall_s=float(out["wall_s"])))
+        rows.append(CoverageRow(seed=seed, theta=dict(result.theta), is_fit=bool(result.verdict.is_fit),
+                                in_ci95=tw.in_ci95, in_ci95_given=given, ci95=tw.ci95, ci95_given=ci_given,
+                                delta_chi2_truth=float(tw.delta_chi2_truth),
+                                truth_in_joint_95=bool(tw.truth_in_joint_95),
+                                noise_estimated=dict(result.uncertainty.noise_estimated),
+                                iterations=int(result.iterations), wall_s=round(float(tw.wall_s), 3)))
         if progress:
-            print(f"coverage: seed {seed} ({i + 1}/{len(seed_list)}): in 95 % {out['in_ci95']}, "
-                  f"Δχ² of truth {out['delta_chi2_truth']:.2f}, {out['wall_s']:.0f} s", flush=True)
+            print(f"coverage: seed {seed} ({i + 1}/{len(seed_list)}): in 95 % {tw.in_ci95}, "
+                  f"Δχ² of truth {tw.delta_chi2_truth:.2f}, {tw.wall_s:.0f} s", flush=True)
     return CoverageResult(keys, truth, float(noise), bool(quick), tuple(rows), time.perf_counter() - clock)

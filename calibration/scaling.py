@@ -7,10 +7,14 @@ normalised runout error (ΔL/L0)_model − (ΔL/L0)_law. The members are fitted 
 fitted parameters predict them. The glass-bead law (Lajeunesse et al. 2005, quoted by K. Kumar)
 is a secondary source: the comparison tests the model against a quoted trend, not a
 measurement.
+
+``fit_runout_law(...)`` returns a ``LawResult`` (the ``FitResult`` and one ``LawCase`` per aspect
+ratio); its ``to_json()`` is what ``python -m calibration law --json`` prints.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from typing import Any, Callable, Mapping, Sequence
 
@@ -18,10 +22,10 @@ import numpy as np
 
 from jaxmpm.scenes import aspect_ratio_collapse, runout_law
 
-from .fit import fit
+from .fit import FitResult, fit
 from .objective import CompositeObjective, FrontTarget, Objective
 
-__all__ = ["runout_objective", "fit_runout_law", "law_from_table"]
+__all__ = ["LawCase", "LawResult", "runout_objective", "fit_runout_law", "law_from_table"]
 
 
 def law_from_table(table) -> Callable:
@@ -61,18 +65,61 @@ def _runouts(objective, theta) -> tuple[float, int]:
     return (float(np.asarray(pred["front"])[-1]) - L0) / L0, int(np.asarray(pred["status"]))
 
 
+@dataclasses.dataclass(frozen=True)
+class LawCase:
+    """One aspect ratio: the law's ΔL/L0 and the model's before (at the start) and after the fit."""
+
+    a: float
+    used_in_fit: bool
+    law: float
+    model_start: float
+    model_fit: float
+    rel_error_start: float
+    rel_error_fit: float
+    status: int  # the engine's status bits of both runs, or-ed
+    n_particles: int
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class LawResult:
+    """The runout-law fit: the ``FitResult`` of the members fitted together, every aspect ratio's
+    runout before and after it (``cases``, in increasing a), and ``warning`` when a fitted value
+    ended at a bound (None otherwise)."""
+
+    fit: FitResult
+    start: dict[str, float]
+    cases: tuple[LawCase, ...]
+    law: str  # how the law is named in the JSON
+    L0: float
+    dx: float
+    warning: str | None
+    wall_s: float
+
+    def to_json(self) -> dict[str, Any]:
+        """The fit's JSON plus ``warning`` (if any), ``start``, ``cases``, ``wall_s``, ``law``,
+        ``L0`` and ``dx``: what ``python -m calibration law --json`` prints."""
+        out = self.fit.to_json()
+        if self.warning:
+            out["warning"] = self.warning
+        out.update({"start": dict(self.start), "cases": [dataclasses.asdict(c) for c in self.cases],
+                    "wall_s": round(self.wall_s, 3), "law": self.law, "L0": self.L0, "dx": self.dx})
+        return out
+
+
 def fit_runout_law(a_fit: Sequence[float] = (0.5, 1.0, 4.0), a_test: Sequence[float] = (2.0, 8.0),
-                   keys: Sequence[str] = ("mu1", "mu2"), *, law: Callable = runout_law, L0: float = 0.05,
-                   dx: float | None = None, ppc: float | None = None, values: Mapping[str, float] | None = None,
-                   init: Mapping[str, float] | None = None, steps: int = 15, out=None, overwrite: bool = False,
-                   progress: bool = False,
-                   dtype=None, jacobian: str = "fd", fd_step: float = 0.05) -> dict[str, Any]:
-    """Fit ``keys`` to the runout law at ``a_fit`` and predict it at ``a_test``. Returns a JSON-able
-    dict (fitted values, standard errors, runouts before and after the fit at every a) plus the
-    fit result under ``"_fit"``."""
+                   keys: Sequence[str] = ("mu1", "mu2"), *, law: Callable = runout_law, label: str | None = None,
+                   L0: float = 0.05, dx: float | None = None, ppc: float | None = None,
+                   values: Mapping[str, float] | None = None, init: Mapping[str, float] | None = None,
+                   steps: int = 15, out=None, overwrite: bool = False, progress: bool = False,
+                   dtype=None, jacobian: str = "fd", fd_step: float = 0.05) -> LawResult:
+    """Fit ``keys`` to the runout law at ``a_fit`` and predict it at ``a_test``. ``law(a)`` must
+    answer at every aspect ratio (checked before any run); ``label`` names it in the result
+    (default: the function's name)."""
     a_fit, a_test = [float(a) for a in a_fit], [float(a) for a in a_test]
     if not a_fit:
         raise ValueError("a_fit: at least one aspect ratio is needed")
+    for a in a_fit + a_test:
+        law(a)  # an aspect ratio the law does not give (e.g. a table's missing row) fails here, before any run
     t0 = time.perf_counter()
     members = [runout_objective(a, keys, law, L0, dx, ppc, values, dtype, jacobian, fd_step) for a in a_fit]
     composite = CompositeObjective(members)
@@ -82,23 +129,22 @@ def fit_runout_law(a_fit: Sequence[float] = (0.5, 1.0, 4.0), a_test: Sequence[fl
                  meta={"runout_law": True, "a_fit": a_fit, "a_test": a_test})
     theta = np.array([result.theta[k] for k in keys])
     theta_start = np.array([start[k] for k in keys])
-    rows = []
+    cases = []
     for a in sorted(set(a_fit) | set(a_test)):
         obj = (members[a_fit.index(a)] if a in a_fit
                else runout_objective(a, keys, law, L0, dx, ppc, values, dtype, jacobian, fd_step))
         before, st0 = _runouts(obj, theta_start)
         after, st1 = _runouts(obj, theta)
         target = float(law(a))
-        rows.append({"a": a, "used_in_fit": a in a_fit, "law": target, "model_start": before, "model_fit": after,
-                     "rel_error_start": before / target - 1.0, "rel_error_fit": after / target - 1.0,
-                     "status": st0 | st1, "n_particles": int(obj.scene.state.x.shape[0])})
-    out_json = result.to_json()
+        cases.append(LawCase(a=a, used_in_fit=a in a_fit, law=target, model_start=before, model_fit=after,
+                             rel_error_start=before / target - 1.0, rel_error_fit=after / target - 1.0,
+                             status=st0 | st1, n_particles=int(obj.scene.state.x.shape[0])))
+    warning = None
     at_bound = composite.bounds.near_bound(theta)
     if at_bound:
-        out_json["warning"] = (f"{at_bound} ended at a bound of {dict(zip(keys, zip(composite.bounds.lower, composite.bounds.upper)))}:"
-                               " the law asks for values outside the physical range (a sign of missing physics or "
-                               "resolution, not a measurement of them)")
-    out_json.update({"start": start, "cases": rows, "wall_s": round(time.perf_counter() - t0, 3),
-                     "law": getattr(law, "__name__", str(law)), "L0": L0, "dx": members[0].config.grid.dx,
-                     "_fit": result})
-    return out_json
+        box = dict(zip(keys, zip(composite.bounds.lower, composite.bounds.upper)))
+        warning = (f"{at_bound} ended at a bound of {box}: the law asks for values outside the physical range "
+                   "(a sign of missing physics or resolution, not a measurement of them)")
+    return LawResult(fit=result, start=start, cases=tuple(cases),
+                     law=label if label is not None else getattr(law, "__name__", str(law)), L0=L0,
+                     dx=members[0].config.grid.dx, warning=warning, wall_s=time.perf_counter() - t0)

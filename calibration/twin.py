@@ -13,10 +13,16 @@ the 95 % quantile of χ² with n degrees of freedom.
 
 ``quick=True`` uses a coarse grid (dx = L/8, 256 particles); the default dx = L/16 (1,024
 particles) is the project's default S4 resolution.
+
+``twin(...)`` returns a ``TwinResult`` (the ``FitResult``, the ``Objective`` and the comparison
+with the truth; ``to_json()`` is what ``python -m calibration twin --json`` prints);
+``twin_landscape(result, n)`` sweeps its loss on an n × n grid over the first two keys
+(``--landscape N``) and returns a ``TwinLandscape``.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from typing import Any, Mapping, Sequence
 
@@ -24,11 +30,13 @@ import numpy as np
 
 from jaxmpm.scenes import build_scene
 
-from .fit import fit
+from .fit import FitResult, fit
 from .objective import FrontTarget, Objective, ProfileTarget
+from .sweep import SweepResult, grid_points, sweep
 from .uncertainty import ROUNDOFF_SAMPLES
 
-__all__ = ["twin", "TWIN_TRUTH", "TWIN_START_FACTORS", "PROFILE_TIMES", "FRONT_TIMES"]
+__all__ = ["TwinLandscape", "TwinResult", "twin", "twin_landscape", "TWIN_TRUTH", "TWIN_START_FACTORS", "PROFILE_TIMES",
+           "FRONT_TIMES"]
 
 #: Perturbation of the start, by key (multiplies the true value).
 TWIN_START_FACTORS = {"beta": 0.6, "mu1": 1.2, "mu2": 0.9, "I0": 1.5, "xi": 0.6}
@@ -63,13 +71,71 @@ def twin_data(scene, keys, truth: np.ndarray, noise: float = 0.0, seed: int = 0,
     return profiles, FrontTarget(times, front)
 
 
+@dataclasses.dataclass(frozen=True, eq=False)
+class TwinResult:
+    """A twin experiment: the fit (``FitResult``) and the objective it fitted, against the truth.
+
+    ``rel_error`` is fit / truth − 1 by key; ``in_ci95`` whether each 95 % interval holds the truth
+    (None: the verdict withheld the interval); ``delta_chi2_truth`` the likelihood-ratio distance
+    of the truth from the fit (None without noise). ``wall_s`` covers the data and the fit."""
+
+    fit: FitResult
+    objective: Objective
+    keys: tuple[str, ...]
+    truth: dict[str, float]
+    start: dict[str, float]
+    rel_error: dict[str, float]
+    in_ci95: dict[str, bool] | None
+    delta_chi2_truth: float | None
+    noise: float
+    seed: int
+    dx: float
+    n_particles: int
+    wall_s: float
+
+    @property
+    def truth_in_joint_95(self) -> bool | None:
+        """Δχ² of the truth against χ²_n(0.95), n fitted parameters (None without noise)."""
+        if self.delta_chi2_truth is None:
+            return None
+        return bool(self.delta_chi2_truth <= CHI2_95[len(self.keys)])
+
+    @property
+    def ci95(self) -> dict[str, list[float]] | None:
+        """The 95 % intervals by key (None: withheld, or no uncertainty analysis)."""
+        unc = self.fit.uncertainty
+        if unc is None or unc.withheld:
+            return None
+        return {k: [float(lo), float(hi)] for k, (lo, hi) in zip(self.keys, unc.ci95)}
+
+    def to_json(self) -> dict[str, Any]:
+        """The fit's JSON plus ``true``, the twin's ``start``, ``rel_error``, ``in_ci95``, with noise
+        ``delta_chi2_truth`` and ``truth_in_joint_95``, and the run's ``noise``, ``seed``, ``dx`` and
+        ``n_particles``: what ``python -m calibration twin --json`` prints."""
+        out = self.fit.to_json()
+        out["wall_s"] = round(self.wall_s, 3)
+        out["true"] = dict(self.truth)
+        out["start"] = dict(self.start)
+        out["rel_error"] = dict(self.rel_error)
+        out["in_ci95"] = None if self.in_ci95 is None else dict(self.in_ci95)
+        if self.delta_chi2_truth is not None:
+            out["delta_chi2_truth"] = self.delta_chi2_truth
+            out["truth_in_joint_95"] = self.truth_in_joint_95
+        out["noise"] = self.noise
+        out["seed"] = self.seed
+        out["dx"] = self.dx
+        out["n_particles"] = self.n_particles
+        return out
+
+
 def twin(*, quick: bool = False, noise: float = 0.0, keys: Sequence[str] = ("beta", "mu1", "xi"),
          method: str = "lm", steps: int | None = None, seed: int = 0, dx: float | None = None, ppc: float | None = None,
          t_end: float | None = None, values: Mapping[str, float] | None = None, dtype=None, out=None,
          resume: bool = False, overwrite: bool = False, progress: bool = False, reference_noise: float = 0.01,
-         threshold: float = 0.1, roundoff_samples: int = ROUNDOFF_SAMPLES) -> dict[str, Any]:
-    """Run the twin experiment and return the fit's JSON plus ``true``, ``rel_error``,
-    ``constrained``, ``in_ci95`` and the objects (under ``"_fit"``, ``"_objective"``)."""
+         threshold: float = 0.1, roundoff_samples: int = ROUNDOFF_SAMPLES) -> TwinResult:
+    """Run the twin experiment: make the data at the truth, fit them from the perturbed start.
+    ``values`` are true scene parameters over ``TWIN_TRUTH``; ``out``/``resume``/``overwrite``
+    keep the fit's history (``calibration.fit``)."""
     if not (np.isfinite(noise) and 0 <= noise < 1):
         raise ValueError(f"noise must be in [0, 1), got {noise!r}")
     keys = tuple(keys)
@@ -89,15 +155,12 @@ def twin(*, quick: bool = False, noise: float = 0.0, keys: Sequence[str] = ("bet
                  resume=resume, overwrite=overwrite, progress=progress, noise=None,
                  reference_noise=max(reference_noise, noise), threshold=threshold, roundoff_samples=roundoff_samples,
                  meta={"twin": True, "noise": noise, "seed": seed, "true": dict(zip(keys, truth.tolist()))})
+    wall_s = time.perf_counter() - t0
     unc = result.uncertainty
-    out_json = result.to_json()
-    out_json["wall_s"] = round(time.perf_counter() - t0, 3)
-    out_json["true"] = dict(zip(keys, truth.tolist()))
-    out_json["start"] = start
-    out_json["rel_error"] = {k: result.theta[k] / v - 1.0 for k, v in zip(keys, truth)}
     # No interval (None) when the verdict says the fit is not a fit of the data.
-    out_json["in_ci95"] = (None if unc.withheld else
-                           {k: bool(lo <= v <= hi) for k, v, (lo, hi) in zip(keys, truth, unc.ci95)})
+    in_ci95 = (None if unc.withheld else
+               {k: bool(lo <= v <= hi) for k, v, (lo, hi) in zip(keys, truth, unc.ci95)})
+    delta = None
     if noise > 0:
         # The likelihood-ratio view, which does not linearise: Δχ² of the truth against the fit,
         # with each block's residuals divided by its estimated noise, against χ²_n(0.95).
@@ -108,12 +171,43 @@ def twin(*, quick: bool = False, noise: float = 0.0, keys: Sequence[str] = ("bet
             return sum(float(np.sum(e[sl] ** 2)) / unc.noise[name] ** 2 for name, sl in objective.blocks.items())
 
         delta = chi2(r_true) - chi2(result.residuals)
-        out_json["delta_chi2_truth"] = delta
-        out_json["truth_in_joint_95"] = bool(delta <= CHI2_95[len(keys)])
-    out_json["noise"] = noise
-    out_json["seed"] = seed
-    out_json["dx"] = dx
-    out_json["n_particles"] = int(scene.state.x.shape[0])
-    out_json["_fit"] = result
-    out_json["_objective"] = objective
-    return out_json
+    return TwinResult(fit=result, objective=objective, keys=keys, truth=dict(zip(keys, truth.tolist())), start=start,
+                      rel_error={k: result.theta[k] / v - 1.0 for k, v in zip(keys, truth)}, in_ci95=in_ci95,
+                      delta_chi2_truth=delta, noise=noise, seed=seed, dx=dx, n_particles=int(scene.state.x.shape[0]),
+                      wall_s=wall_s)
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class TwinLandscape:
+    """The twin's loss swept over its first two keys (±40 % around the truth, the others at their
+    true values): the sweep itself, and the truth, start and fit to mark on a figure."""
+
+    keys: tuple[str, str]
+    sweep: SweepResult
+    marks: dict[str, tuple[float, float]]  # "true", "start", "fit": (x, y)
+
+    def grid(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """x values, y values and the loss on the grid (``SweepResult.landscape``)."""
+        return self.sweep.landscape(*self.keys)
+
+    def to_json(self) -> dict[str, Any]:
+        return {"keys": list(self.keys), "n": int(self.sweep.n), "failed": len(self.sweep.failed),
+                "wall_s": self.sweep.wall_s, "mode": self.sweep.mode}
+
+
+def twin_landscape(result: TwinResult, n: int, *, progress: bool = False) -> TwinLandscape:
+    """Sweep ``result``'s loss on an ``n`` × ``n`` grid over its first two keys."""
+    keys = result.keys
+    if len(keys) < 2:
+        raise ValueError(f"a twin landscape needs at least two fitted keys, got {list(keys)}")
+    kx, ky = keys[:2]
+    truth = result.truth
+    ranges = {k: (0.6 * truth[k], 1.4 * truth[k]) for k in (kx, ky)}
+    _, grid = grid_points(ranges, n, keys=(kx, ky))
+    thetas = np.tile([truth[k] for k in keys], (grid.shape[0], 1))
+    thetas[:, :2] = grid
+    swept = sweep(result.objective, thetas, progress=progress)
+    theta = result.fit.theta
+    marks = {"true": (truth[kx], truth[ky]), "start": (result.start[kx], result.start[ky]),
+             "fit": (theta[kx], theta[ky])}
+    return TwinLandscape((kx, ky), swept, marks)

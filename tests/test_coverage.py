@@ -2,12 +2,15 @@
 linear-Gaussian stand-in for the twin (exact answers are known there; the real study is
 `python -m calibration coverage`, docs/calibration.md)."""
 
+import dataclasses
 import types
 
 import numpy as np
 import pytest
 
 from calibration.coverage import CoverageResult, clopper_pearson, coverage
+from calibration.fit import FitResult
+from calibration.twin import TwinResult
 from calibration.uncertainty import assess_fit, gauss_newton_uncertainty
 
 M, TRUTH = 60, {"a": 1.0, "b": 2.0}
@@ -18,8 +21,8 @@ BLOCKS, ROW_SCALE = {"profile": slice(0, M)}, np.full(M, 1 / np.sqrt(M))
 
 
 def linear_twin(*, quick, noise, keys, seed, width=1.0):
-    """Least squares of a line through noisy points: what calibration.twin returns, exactly solvable.
-    ``width`` scales the reported interval (1: honest; 0.5: too narrow)."""
+    """Least squares of a line through noisy points, returned as calibration.twin returns a twin
+    (a TwinResult), exactly solvable. ``width`` scales the reported interval (1: honest; 0.5: too narrow)."""
     rng = np.random.default_rng(seed)
     theta_true = np.array([TRUTH[k] for k in keys])
     data = J @ theta_true / ROW_SCALE + noise * rng.standard_normal(M)
@@ -30,12 +33,16 @@ def linear_twin(*, quick, noise, keys, seed, width=1.0):
     ci = np.stack([theta - width * (theta - unc.ci95[:, 0]), theta + width * (unc.ci95[:, 1] - theta)], axis=1)
     chi2 = lambda res: float(np.sum((res / ROW_SCALE) ** 2)) / unc.noise["profile"] ** 2  # noqa: E731
     r_true = J @ theta_true - data * ROW_SCALE
-    result = types.SimpleNamespace(verdict=verdict, jacobian=J, residuals=r, theta=dict(zip(keys, theta)))
+    params = dict(zip(keys, theta.tolist()))
+    result = FitResult(keys=tuple(keys), theta=params, loss=float(r @ r), iterations=1, wall_s=0.0, method="lm",
+                       converged=True, message="converged", history={}, residuals=r, jacobian=J, prediction={},
+                       uncertainty=dataclasses.replace(unc, ci95=ci), verdict=verdict)
     objective = types.SimpleNamespace(blocks=BLOCKS, row_scale=ROW_SCALE, bounds=None)
-    return {"_fit": result, "_objective": objective, "true": TRUTH, "verdict": verdict.to_dict(),
-            "in_ci95": {k: bool(lo <= TRUTH[k] <= hi) for k, (lo, hi) in zip(keys, ci)},
-            "ci95": {k: list(map(float, c)) for k, c in zip(keys, ci)}, "delta_chi2_truth": chi2(r_true) - chi2(r),
-            "noise_estimated": unc.noise_estimated, "iterations": 1, "wall_s": 0.0}
+    return TwinResult(fit=result, objective=objective, keys=tuple(keys), truth=TRUTH, start=params,
+                      rel_error={k: params[k] / TRUTH[k] - 1.0 for k in keys},
+                      in_ci95={k: bool(lo <= TRUTH[k] <= hi) for k, (lo, hi) in zip(keys, ci)},
+                      delta_chi2_truth=chi2(r_true) - chi2(r), noise=noise, seed=seed, dx=0.0, n_particles=0,
+                      wall_s=0.0)
 
 
 def test_clopper_pearson_matches_the_exact_binomial_interval():

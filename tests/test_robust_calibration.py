@@ -207,6 +207,9 @@ def test_an_existing_history_is_not_replaced_without_overwrite(history, no_work,
      "a Latin hypercube (--lhs) is none"),
     ([*SWEEP, "--data", S4, "--over", "beta=0.1:0.3:3", "--lhs", "4"], "a count n does not apply with --lhs"),
     (["twin", "--seed", "3"], "--sampling and --seed do not apply"),
+    (["twin", "--fit", "beta", "--landscape", "3"], "--landscape needs at least two fitted keys"),
+    (["law", "--law", str(ROOT / "experiments_data" / "scaling_laws" / "runout_glass_beads.csv"), "--test", "5"],
+     "aspect ratios [5.0] are not in"),
     ([*FIT, "--data", S4, "--overwrite"], "--overwrite needs --out"),
 ])
 def test_bad_options_are_refused_naming_the_option(no_work, tmp_path, monkeypatch, argv, message):
