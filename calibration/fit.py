@@ -184,7 +184,8 @@ def fit(objective, init: Mapping[str, float] | None = None, *, method: str = "lm
         grad_mode: str = "fwd",
         xtol: float = 1e-6, ftol: float = 1e-7, stat_tol: float = 0.1, max_rejections: int = 6, progress: bool = False, callback: Callable | None = None,
         noise: Mapping[str, float] | float | None = None, uncertainty: bool = True,
-        roundoff_samples: int = ROUNDOFF_SAMPLES, reference_noise: float = 0.01, threshold: float = 0.1,
+        roundoff_samples: int = ROUNDOFF_SAMPLES, sampling_seeds: int = 0, reference_noise: float = 0.01,
+        threshold: float = 0.1,
         meta: Mapping[str, Any] | None = None) -> FitResult:
     """Fit ``objective.keys`` from ``init`` (physical values by key; missing keys start at the
     scene's values). ``steps``: the maximum number of iterations (model evaluations), counted
@@ -202,7 +203,9 @@ def fit(objective, init: Mapping[str, float] | None = None, *, method: str = "lm
     ``callback(iteration, record)`` is called after each iteration is written.
     ``roundoff_samples`` perturbed runs at the end point measure the run's own round-off scatter
     for the verdict and the interval (``uncertainty.model_scatter``; 0: not measured);
-    ``reference_noise`` and ``threshold`` decide which parameters count as constrained."""
+    ``sampling_seeds`` other draws of the particles add the sampling's share to the interval
+    (``uncertainty.sampling_scatter``; 0, the default: not measured); ``reference_noise`` and
+    ``threshold`` decide which parameters count as constrained."""
     if method not in METHODS:
         raise ValueError(f"method must be one of {METHODS}, got {method!r}")
     if grad_mode not in ("fwd", "rev"):
@@ -284,7 +287,7 @@ def fit(objective, init: Mapping[str, float] | None = None, *, method: str = "lm
         loss_b = float(np.sum(r_b * r_b))
     converged = done and message.startswith("converged")
     verdict, unc = judge_point(objective, r_b, J_b, theta_best, converged=converged, message=message, noise=noise,
-                               uncertainty=uncertainty, roundoff_samples=roundoff_samples,
+                               uncertainty=uncertainty, roundoff_samples=roundoff_samples, sampling_seeds=sampling_seeds,
                                reference_noise=reference_noise, threshold=threshold)
     return FitResult(keys=keys, theta={k: float(v) for k, v in zip(keys, theta_best)}, loss=float(loss_b),
                      iterations=len(hist["loss"]), wall_s=float(hist["wall_s"][-1]) if len(hist["wall_s"]) else 0.0,

@@ -400,6 +400,11 @@ class Objective:
         """(r, prediction) at θ. ``prediction`` holds ``status`` and the modelled ``h``/``front``."""
         return self._residuals(self._theta(theta), self._state, self._base)
 
+    def residuals_resampled(self, theta, seed: int):
+        """(r, prediction) at θ with the scene's particles sampled with ``seed`` instead
+        (``Scene.resampled``): the same objective on another draw of the same body."""
+        return self._residuals(self._theta(theta), self.scene.resampled(seed), self._base)
+
     def residuals_and_jacobian(self, theta, jacobian: str | None = None):
         """(r, J, prediction) at θ, with J = dr/dθ (m × n) from forward-mode autodiff
         (``jacobian="ad"``, the default) or from central differences with relative steps

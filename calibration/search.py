@@ -210,16 +210,16 @@ def search(objective, starts: int | np.ndarray = DEFAULT_STARTS, *, seed: int = 
            init: Mapping[str, float] | None = None, steps: int = 30, xtol: float = 1e-6, ftol: float = 1e-7,
            stat_tol: float = 0.1, max_rejections: int = 6, cluster_tol: float = 0.01,
            noise: Mapping[str, float] | float | None = None, uncertainty: bool = True, shrink: bool = True,
-           roundoff_samples: int = ROUNDOFF_SAMPLES, reference_noise: float = 0.01, threshold: float = 0.1,
-           progress: bool = False) -> SearchResult:
+           roundoff_samples: int = ROUNDOFF_SAMPLES, sampling_seeds: int = 0, reference_noise: float = 0.01,
+           threshold: float = 0.1, progress: bool = False) -> SearchResult:
     """Multi-start LM from ``starts`` design points (an int k) or from given physical starts
     ((k, n) array). ``init`` (physical values by key, as for ``fit``): one more start, placed
     first. ``steps``: the maximum number of model evaluations per start, as in ``fit``.
     ``cluster_tol``: endpoints closer than this fraction of every bound range are one minimum.
     ``noise``: the known noise per block (None: estimated from the best point's residual
     structure). ``shrink``: evaluate only the active starts (padded to a power of two).
-    ``roundoff_samples``, ``reference_noise``, ``threshold``: for the best point's verdict and
-    uncertainty, as in ``fit``."""
+    ``roundoff_samples``, ``sampling_seeds``, ``reference_noise``, ``threshold``: for the best
+    point's verdict and uncertainty, as in ``fit``."""
     clock0 = time.perf_counter()
     steps = _check_int("steps", steps, 1)
     if not (math.isfinite(cluster_tol) and 0 < cluster_tol < 1):
@@ -294,7 +294,7 @@ def search(objective, starts: int | np.ndarray = DEFAULT_STARTS, *, seed: int = 
     theta_b, r_b, J_b = cur.theta[i_best], cur.residuals[i_best], cur.jacobian[i_best]
     verdict, unc = judge_point(objective, r_b, J_b, theta_b, converged=converged[i_best], message=messages[i_best],
                                noise=noise, uncertainty=uncertainty and bool(np.all(np.isfinite(J_b))),
-                               roundoff_samples=roundoff_samples if uncertainty else 0,
+                               roundoff_samples=roundoff_samples if uncertainty else 0, sampling_seeds=sampling_seeds,
                                reference_noise=reference_noise, threshold=threshold)
     wall = time.perf_counter() - clock0
     histories = [history.arrays(i) for i in range(k)]

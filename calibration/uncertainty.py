@@ -56,7 +56,8 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 
 __all__ = ["NOISE_FLOOR", "ROUNDOFF_SAMPLES", "ModelScatter", "Uncertainty", "Verdict", "assess_fit", "block_noise",
-           "chi2_of", "chi2_quantile", "gauss_newton_uncertainty", "judge_point", "model_scatter", "structural_noise"]
+           "chi2_of", "chi2_quantile", "gauss_newton_uncertainty", "judge_point", "model_scatter", "sampling_scatter",
+           "structural_noise"]
 
 Z95 = 1.959963984540054
 #: Noise (relative units) below which no misfit is told apart from the run's own round-off.
@@ -69,6 +70,8 @@ MIN_NOISE_POINTS = 5
 ROUNDOFF_SAMPLES = 8
 #: Their relative size: far below any interval, far above the rounding of θ itself (float32: 8e-8).
 ROUNDOFF_STEP = 1e-6
+#: Other draws of the particles behind ``sampling_scatter`` when asked for (one forward run each).
+SAMPLING_SEEDS = 4
 #: A stopped optimiser's remaining Gauss–Newton step within this quantile of χ²_n (in the metric
 #: of the run's scatter) counts as converged.
 ROUNDOFF_P = 0.99
@@ -129,10 +132,11 @@ class ModelScatter:
     """The run's own (round-off) scatter at a point; see the module docstring."""
 
     samples: int  # perturbed runs used (failed runs left out)
-    step: float  # their relative size
+    step: float  # their relative size (0 for the sampling's scatter: same θ, other particles)
     noise: dict[str, float]  # σ_num by block, in the block's relative units
     cov: np.ndarray  # (n, n): the covariance of θ the scatter alone produces
     wall_s: float
+    kind: str = "round-off"  # or "sampling" (``sampling_scatter``)
 
     @property
     def stderr(self) -> np.ndarray:
@@ -144,8 +148,24 @@ class ModelScatter:
         return float(math.sqrt(max(float(delta @ _inverse(self.cov) @ delta), 0.0)))
 
     def to_dict(self, keys: Sequence[str]) -> dict[str, Any]:
-        return {"samples": self.samples, "relative_step": self.step, "noise": self.noise,
-                "stderr": {k: float(v) for k, v in zip(keys, self.stderr)}, "wall_s": round(self.wall_s, 3)}
+        out = {"samples": self.samples, "noise": self.noise,
+               "stderr": {k: float(v) for k, v in zip(keys, self.stderr)}, "wall_s": round(self.wall_s, 3)}
+        if self.kind == "round-off":
+            out["relative_step"] = self.step
+        return out
+
+
+def _scatter_of(S, J, blocks, row_scale, kind, step, clock) -> ModelScatter:
+    """σ by block and the covariance of θ = J⁺ s from the spread of the residual rows S."""
+    import time
+
+    dev = S - S.mean(axis=0)
+    e = dev / np.asarray(row_scale, float)[None, :]
+    noise = {name: float(math.sqrt(np.sum(e[:, sl] ** 2) / ((len(S) - 1) * max(sl.stop - sl.start, 1))))
+             for name, sl in blocks.items()}
+    P = np.linalg.lstsq(J, S.T, rcond=None)[0].T
+    cov = np.atleast_2d(np.cov(P, rowvar=False, ddof=1))
+    return ModelScatter(len(S) - 1, float(step), noise, cov, time.perf_counter() - clock, kind)
 
 
 def model_scatter(objective, theta, r, J, *, samples: int = ROUNDOFF_SAMPLES, step: float = ROUNDOFF_STEP,
@@ -178,14 +198,37 @@ def model_scatter(objective, theta, r, J, *, samples: int = ROUNDOFF_SAMPLES, st
         kept.append(r_k - J @ d)
     if len(kept) < 3:
         return None
-    S = np.stack(kept)
-    dev = S - S.mean(axis=0)
-    e = dev / np.asarray(objective.row_scale, float)[None, :]
-    noise = {name: float(math.sqrt(np.sum(e[:, sl] ** 2) / ((len(kept) - 1) * max(sl.stop - sl.start, 1))))
-             for name, sl in objective.blocks.items()}
-    P = np.linalg.lstsq(J, S.T, rcond=None)[0].T  # (samples + 1, n)
-    cov = np.atleast_2d(np.cov(P, rowvar=False, ddof=1))
-    return ModelScatter(len(kept) - 1, float(step), noise, cov, time.perf_counter() - clock)
+    return _scatter_of(np.stack(kept), J, objective.blocks, objective.row_scale, "round-off", step, clock)
+
+
+def sampling_scatter(objective, theta, r, J, *, seeds: int = SAMPLING_SEEDS) -> ModelScatter | None:
+    """The scatter that the particle sampling puts into the prediction at θ: the residuals with
+    the scene's body drawn with ``seeds`` other seeds (``Objective.residuals_resampled``), beside
+    its own ``r``. Their spread gives σ by block and, through J⁺, the covariance of θ that the
+    choice of one draw of the particles produces: a fitted value that moves by more than its
+    statistical interval from one draw to the next is a property of the discretisation, not of
+    the material. None when the objective cannot redraw its particles (a lattice, a composite)
+    or fewer than two redrawn runs succeed."""
+    import time
+
+    seeds = int(seeds)
+    if seeds < 2:
+        raise ValueError(f"seeds must be >= 2, got {seeds!r}")
+    scene = getattr(objective, "scene", None)
+    if scene is None or getattr(scene, "sampler", None) is None or not hasattr(objective, "residuals_resampled"):
+        return None
+    clock = time.perf_counter()
+    own = scene.meta.get("seed", 0)
+    kept = [np.asarray(r, float)]
+    for seed in [s for s in range(seeds + 1) if s != own][:seeds]:
+        r_s, pred = objective.residuals_resampled(theta, seed)
+        r_s = np.asarray(r_s, float)
+        if int(np.asarray(pred["status"])) == 0 and np.all(np.isfinite(r_s)):
+            kept.append(r_s)
+    if len(kept) < 3:
+        return None
+    return _scatter_of(np.stack(kept), np.asarray(J, float), objective.blocks, objective.row_scale, "sampling", 0.0,
+                       clock)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -294,6 +337,7 @@ class Uncertainty:
     verdict: Verdict | None = None
     stderr_statistical: np.ndarray | None = None  # from the data's noise alone
     stderr_numerical: np.ndarray | None = None  # from the run's round-off scatter alone (None: not measured)
+    sampling: ModelScatter | None = None  # the particle sampling's scatter (None: not measured)
 
     @property
     def withheld(self) -> bool:
@@ -307,9 +351,14 @@ class Uncertainty:
                "constrained": list(self.constrained), "statement": self.statement}
         if not self.withheld:
             out["stderr"] = by_key(self.stderr)
-            if self.stderr_numerical is not None:
+            if self.stderr_numerical is not None or self.sampling is not None:
                 out["stderr_statistical"] = by_key(self.stderr_statistical)
+            if self.stderr_numerical is not None:
                 out["stderr_numerical"] = by_key(self.stderr_numerical)
+            if self.sampling is not None:
+                out["stderr_sampling"] = by_key(self.sampling.stderr)
+        if self.sampling is not None:
+            out["sampling"] = self.sampling.to_dict(self.keys)
             out["ci95"] = {k: [float(lo), float(hi)] for k, (lo, hi) in zip(self.keys, self.ci95)}
             out["relative_halfwidth_at_reference_noise"] = by_key(self.relative_halfwidth)
         return out
@@ -336,6 +385,7 @@ def gauss_newton_uncertainty(
     J, r, keys: Sequence[str], theta, blocks: Mapping[str, slice], row_scale,
     *, noise: Mapping[str, float] | float | None = None, reference_noise: float = 0.01,
     threshold: float = 0.1, bounds=None, verdict: Verdict | None = None, scatter: ModelScatter | None = None,
+    sampling: ModelScatter | None = None,
 ) -> Uncertainty:
     """Covariance, standard errors and identifiability at the optimum.
 
@@ -346,7 +396,8 @@ def gauss_newton_uncertainty(
     is not a fit of the data, every interval (stderr, ci95, cov, the half-widths and the
     constrained keys) is withheld and the statement says why; only the local geometry
     (correlations, Fisher eigen-directions) is kept. ``scatter`` (``model_scatter``; default:
-    the verdict's): its covariance of θ, the run's round-off, is added to the statistical one.
+    the verdict's): its covariance of θ, the run's round-off, is added to the statistical one;
+    so is ``sampling``'s (``sampling_scatter``), the particle draw's.
     """
     keys = tuple(keys)
     J = np.asarray(J, float)
@@ -377,7 +428,7 @@ def gauss_newton_uncertainty(
     cov_stat = _inverse(fisher)
     if scatter is None and verdict is not None:
         scatter = verdict.scatter
-    cov = cov_stat + scatter.cov if scatter is not None else cov_stat
+    cov = cov_stat + sum(sc.cov for sc in (scatter, sampling) if sc is not None)
     stderr = np.sqrt(np.maximum(np.diag(cov), 0.0))
     with np.errstate(invalid="ignore", divide="ignore"):
         corr = cov / np.outer(stderr, stderr)
@@ -421,26 +472,35 @@ def gauss_newton_uncertainty(
         geometry = [line for line in lines if not line.startswith(("The data constrain", "They do not"))]
         statement = " ".join([verdict.statement] + (["Local geometry only:"] + geometry if geometry else []))
         return Uncertainty(keys, theta, None, None, corr, None, used, estimated, None, None, (), evals, evecs,
-                           statement, verdict)
+                           statement, verdict, sampling=sampling)
     se_stat = np.sqrt(np.maximum(np.diag(cov_stat), 0.0))
     if scatter is not None:
         dominated = [k for k, a, b in zip(keys, se_stat, scatter.stderr) if b > a]
         if dominated:
             lines.append(f"The run's own round-off ({scatter.samples} perturbed runs) dominates the interval of "
                          f"{', '.join(dominated)}: the data resolve more than the simulator can reproduce.")
+    if sampling is not None:
+        moved = [f"{k} (±{Z95 * b:.2g} against ±{Z95 * a:.2g})" for k, a, b in zip(keys, se_stat, sampling.stderr)
+                 if b > a]
+        if moved:
+            lines.append(f"Another draw of the particles ({sampling.samples} seeds) moves " + ", ".join(moved)
+                         + " by more than the data's interval: at this resolution that part of the answer is a "
+                         "property of the discretisation, not of the material.")
     return Uncertainty(keys, theta, stderr, cov, corr, ci95, used, estimated, se_ref, rel, constrained,
                        evals, evecs, " ".join(lines), verdict, se_stat,
-                       scatter.stderr if scatter is not None else None)
+                       scatter.stderr if scatter is not None else None, sampling)
 
 
 def judge_point(objective, r, J, theta, *, converged: bool, message: str,
                 noise: Mapping[str, float] | float | None = None, uncertainty: bool = True,
-                roundoff_samples: int = ROUNDOFF_SAMPLES, reference_noise: float = 0.01, threshold: float = 0.1):
+                roundoff_samples: int = ROUNDOFF_SAMPLES, sampling_seeds: int = 0, reference_noise: float = 0.01,
+                threshold: float = 0.1):
     """The verdict on a fit's end point and, when ``uncertainty``, its Gauss–Newton uncertainty
     (intervals withheld unless the verdict is a fit): what ``fit`` and ``search`` report for
     their best point. ``roundoff_samples`` perturbed runs measure the run's own scatter there
-    (``model_scatter``; 0: not measured, the verdict and interval then assume a smooth run).
-    Returns ``(verdict, uncertainty or None)``."""
+    (``model_scatter``; 0: not measured, the verdict and interval then assume a smooth run);
+    ``sampling_seeds`` other draws of the particles measure the sampling's share of the interval
+    (``sampling_scatter``; 0, the default: not measured). Returns ``(verdict, uncertainty or None)``."""
     J = np.asarray(J, float)
     scatter = None
     if roundoff_samples and np.all(np.isfinite(J)) and hasattr(objective, "residuals"):
@@ -450,8 +510,11 @@ def judge_point(objective, r, J, theta, *, converged: bool, message: str,
                          scatter=scatter)
     unc = None
     if uncertainty:
+        sampling = None
+        if sampling_seeds and np.all(np.isfinite(J)):
+            sampling = sampling_scatter(objective, theta, r, J, seeds=sampling_seeds)
         unc = gauss_newton_uncertainty(J, r, objective.keys, theta, objective.blocks, objective.row_scale,
                                        noise=noise, bounds=objective.bounds, verdict=verdict, scatter=scatter,
-                                       reference_noise=reference_noise, threshold=threshold)
+                                       sampling=sampling, reference_noise=reference_noise, threshold=threshold)
     return verdict, unc
 

@@ -254,3 +254,30 @@ def test_the_runs_round_off_verifies_a_stopped_minimum_and_widens_its_interval(f
     np.testing.assert_allclose(unc.stderr ** 2, unc.stderr_statistical ** 2 + scatter.stderr ** 2, rtol=1e-10)
     out = unc.to_dict()
     assert set(out["stderr_numerical"]) == set(KEYS) and "ci95" in out
+
+
+def test_the_particle_draw_s_share_of_the_interval(found, objective):
+    """Scene.resampled redraws the body with another seed (same count, other positions; the own seed
+    gives the same state); sampling_scatter turns the redrawn runs' spread into a covariance of θ
+    that the interval adds; a lattice has no seed to redraw."""
+    from calibration.uncertainty import sampling_scatter
+
+    scene = objective.scene
+    again, other = scene.resampled(scene.meta["seed"]), scene.resampled(scene.meta["seed"] + 1)
+    np.testing.assert_array_equal(np.asarray(again.x), np.asarray(scene.state.x))
+    assert other.x.shape == scene.state.x.shape and not np.allclose(np.asarray(other.x), np.asarray(scene.state.x))
+    i = found.best_start
+    theta, r, J = found.finals[i], found.residuals[i], found.best.jacobian
+    sampling = sampling_scatter(objective, theta, r, J, seeds=3)
+    assert sampling.kind == "sampling" and sampling.samples == 3 and sampling.noise["profile"] > 1e-6
+    assert np.all(np.linalg.eigvalsh(sampling.cov) >= 0)
+    unc = gauss_newton_uncertainty(J, r, KEYS, theta, objective.blocks, objective.row_scale, bounds=objective.bounds,
+                                   verdict=found.best.verdict, sampling=sampling, noise=0.01)
+    np.testing.assert_allclose(unc.stderr ** 2, unc.stderr_statistical ** 2 + sampling.stderr ** 2
+                               + (0.0 if unc.stderr_numerical is None else unc.stderr_numerical ** 2), rtol=1e-10)
+    assert set(unc.to_dict()["stderr_sampling"]) == set(KEYS)
+    lattice = Objective(scenes.cohesive_collapse(dx=0.089 / 4, t_end=0.1, sampling="lattice", ppc=2), KEYS,
+                        profile=objective.profiles[0])
+    assert sampling_scatter(lattice, theta, r, J) is None
+    with pytest.raises(ValueError, match="no seeded sampling"):
+        lattice.scene.resampled(1)

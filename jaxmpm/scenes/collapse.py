@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from typing import Any
+from typing import Any, Callable
 
 from ..boundary import Wall
 from ..config import Config, Grid
@@ -56,9 +56,21 @@ class Scene:
     state: State
     params: Params
     meta: dict[str, Any]  # geometry and set-up facts (L, H, slope, initial front, ...)
+    #: seed -> the same body sampled with another seed (None: the scene's sampling has no seed).
+    sampler: Callable[[int], State] | None = dataclasses.field(default=None, compare=False, repr=False)
 
     def __iter__(self):
         return iter((self.config, self.state, self.params))
+
+    def resampled(self, seed: int) -> State:
+        """The initial state of this scene with its particles sampled with ``seed`` instead of its
+        own (same body, grid, walls and parameters; same particle count for lattice samplings):
+        for ensembles over the sampling and for the sampling's share of a fit's uncertainty."""
+        if self.sampler is None:
+            raise ValueError(f"scene {self.name!r} has no seeded sampling to redraw")
+        if not (isinstance(seed, int) and seed >= 0):
+            raise ValueError(f"seed must be an integer >= 0, got {seed!r}")
+        return self.sampler(seed)
 
 
 def _check_positive(**values):
@@ -199,13 +211,25 @@ def collapse(
         frame_times=tuple(t_end * (k + 1) / frames for k in range(frames)),
     )
     upper = (length, height) + ((width,) if dim == 3 else ())
-    x, vol = seed_box((0.0,) * dim, upper, dx, ppc, sampling=sampling, seed=seed)
-    lift = floor_lift(x[:, 1], dx, wall_gap)
-    x[:, 1] += lift
+
+    def body(seed_):
+        x_, vol_ = seed_box((0.0,) * dim, upper, dx, ppc, sampling=sampling, seed=seed_)
+        lift_ = floor_lift(x_[:, 1], dx, wall_gap)
+        x_[:, 1] += lift_
+        return x_, vol_, lift_
+
+    x, vol, lift = body(seed)
     meta = {"L": length, "H": height, "slope_deg": slope_deg, "front0": length, "dim": dim, "dx": dx,
             "ppc": ppc, "sampling": sampling, "seed": seed, "wall_gap": lift, "side_gap": gap_x, "width": channel,
             "particles_per_cell": particles_per_cell(len(x), (0.0,) * dim, upper, dx)}
-    return Scene(name, config, init_state(config, x, vol, dtype=dtype), params, meta)
+    sampler = None
+    if sampling != "lattice":  # a regular lattice has no seed
+
+        def sampler(seed_):
+            x_, vol_, _ = body(seed_)
+            return init_state(config, x_, vol_, dtype=dtype)
+
+    return Scene(name, config, init_state(config, x, vol, dtype=dtype), params, meta, sampler)
 
 
 #: S2's own default particles per cell: with dx = 1.5 mm, the cheapest setting whose runouts, top
