@@ -156,7 +156,8 @@ def _fit(args) -> int:
     scene, objective = _scene_and_objective(args, keys)
     noise = args.noise
     steps = args.steps or (25 if args.method == "lm" else 150)
-    judging = {"roundoff_samples": args.roundoff_samples, "reference_noise": args.reference_noise,
+    judging = {"roundoff_samples": args.roundoff_samples, "sampling_seeds": args.sampling_seeds,
+               "reference_noise": args.reference_noise,
                "threshold": args.threshold}
     found = None
     if starts > 1:
@@ -181,6 +182,10 @@ def _fit(args) -> int:
                      meta={"command": "python -m calibration " + " ".join(sys.argv[1:]), "data": args.data,
                            "front": args.front}, **judging)
     out = found.to_json() if found is not None else result.to_json()
+    metres = objective.in_metres(result.residuals)
+    profile = [v for name, v in metres.items() if "profile" in name]
+    out["residual_rms_m"] = (float(np.sqrt(np.mean(np.concatenate(profile) ** 2))) if profile else None)
+    out["residual_rms_m_by_block"] = {name: float(np.sqrt(np.mean(v ** 2))) for name, v in metres.items()}
     if objective.bound_notes:
         out["bound_notes"] = list(objective.bound_notes)
     if found is None:
@@ -469,6 +474,9 @@ def build_parser() -> argparse.ArgumentParser:
     fit.add_argument("--coarse", type=float, default=None, metavar="F",
                      help="coarse-to-fine search: the starts run first at F times the grid spacing, then the best "
                           "--refine minima are refined at the requested one (F > 1; needs a search)")
+    fit.add_argument("--sampling-seeds", type=int, default=0, metavar="K",
+                     help="K other draws of the particles at the end point: the sampling's share of the interval "
+                          "(stderr_sampling; one forward run each; default 0: not measured)")
     fit.add_argument("--refine", type=int, default=2, metavar="N",
                      help="coarse minima refined at the requested resolution (default 2; all within the noise of "
                           "the best if more)")
@@ -556,6 +564,9 @@ def _check_options(args) -> None:
             if given and weight == 0:
                 raise ValueError(f"{option} 0 gives the {what} data no weight: their residuals would all be zero and "
                                  f"their uncertainty undefined; leave out {what} instead")
+    seeds = getattr(args, "sampling_seeds", 0)
+    if seeds != 0 and seeds < 2:
+        raise ValueError(f"--sampling-seeds must be 0 (not measured) or >= 2, got {seeds}")
     samples = getattr(args, "roundoff_samples", 0)
     if samples != 0 and samples < 2:
         raise ValueError(f"--roundoff-samples must be 0 (not measured) or >= 2, got {samples}")

@@ -223,6 +223,10 @@ class Objective:
     front_threshold: the height (m) below which the deposit counts as ended, for the front
         (default: half a particle spacing, below the height of one isolated particle).
     x_ref: where the front is measured from (default: the back wall, x = 0).
+    mirror: the x where the profile's kernel is mirrored (``deposit_profile``): "back-wall"
+        (the default) takes the scene's ``back_face`` (x = 0 for a collapse with a back wall;
+        none for one without); None turns the mirror off (the kernel then reads half the height
+        at the wall).
     bounds: overrides of ``calibration.bounds.DEFAULT_BOUNDS`` by key.
     check_data: refuse data that cannot come from ``scene`` (a deposit taller than 1.5 columns or
         lower than 1 % of one, more than twice the column's area, material or a front outside the
@@ -234,7 +238,7 @@ class Objective:
                  weights: Mapping[str, float] | None = None, sigma: float | None = None,
                  front_threshold: float | None = None, x_ref: float = 0.0,
                  bounds: Mapping[str, tuple[float, float]] | None = None, jacobian: str = "ad",
-                 fd_step: float = 1e-2, check_data: bool = True):
+                 fd_step: float = 1e-2, check_data: bool = True, mirror: float | str | None = "back-wall"):
         keys = tuple(keys)
         if jacobian not in ("ad", "fd"):
             raise ValueError(f"jacobian must be 'ad' or 'fd', got {jacobian!r}")
@@ -280,6 +284,13 @@ class Objective:
             if not (math.isfinite(value) and value > 0):
                 raise ValueError(f"{name} must be > 0, got {value!r}")
         self.x_ref = float(x_ref)
+        if isinstance(mirror, str):
+            if mirror != "back-wall":
+                raise ValueError(f"mirror must be 'back-wall', None or a wall's x (m), got {mirror!r}")
+            mirror = getattr(scene, "back_face", None)
+        elif mirror is not None and not math.isfinite(float(mirror)):
+            raise ValueError(f"mirror must be finite, got {mirror!r}")
+        self.mirror = None if mirror is None else float(mirror)
         self.length = float(meta.get("L", 1.0))
         width = meta.get("width") if meta.get("dim", 2) == 3 else None
 
@@ -341,12 +352,13 @@ class Objective:
         offsets = np.cumsum([0] + [p[0].size for p in self._profiles])
         self._prof_slices = [slice(int(a), int(b)) for a, b in zip(offsets[:-1], offsets[1:])]
         sigma_, thr, x_ref_, xs_front = self.sigma, self.front_threshold, self.x_ref, self._xs_front
+        mirror_ = self.mirror
 
         def observer(state, params):
             vol = particle_volumes(state)
             dtype = state.x.dtype
-            h = deposit_profile(state.x, vol, jnp.asarray(x_data, dtype), sigma_, width=width)
-            h_front = deposit_profile(state.x, vol, jnp.asarray(xs_front, dtype), sigma_, width=width)
+            h = deposit_profile(state.x, vol, jnp.asarray(x_data, dtype), sigma_, width=width, mirror=mirror_)
+            h_front = deposit_profile(state.x, vol, jnp.asarray(xs_front, dtype), sigma_, width=width, mirror=mirror_)
             return {"h": h, "front": front_from_profile(jnp.asarray(xs_front, dtype), h_front, thr, x_ref_)}
 
         self._rollout = make_rollout(self.config, observer)
@@ -425,6 +437,15 @@ class Objective:
         pred = jax.tree.map(lambda a: a[0], preds)
         pred["status"] = jnp.bitwise_or.reduce(preds["status"])
         return rs[0], J, pred
+
+    def in_metres(self, r) -> dict[str, np.ndarray]:
+        """The weighted residuals ``r`` back in metres (model − data), by block: profile heights
+        and front positions."""
+        e = np.asarray(r, float) / self.row_scale
+        scale = np.concatenate([np.full(p[0].size, p[2]) for p in self._profiles]
+                               + ([np.full(self._t_front.size, self.length)] if self.front is not None else []))
+        metres = e * scale
+        return {name: metres[sl] for name, sl in self.blocks.items()}
 
     def _fd_steps(self, theta):
         span = jnp.asarray(self.bounds.upper, self.dtype) - jnp.asarray(self.bounds.lower, self.dtype)
@@ -508,7 +529,7 @@ class Objective:
             "t_end": float(self.config.t_end),
             "fixed": {k: float(v) for k, v in self._base.to_dict().items() if k not in self.keys},
             "weights": {k: float(v) for k, v in self.weights.items()}, "sigma": self.sigma,
-            "front_threshold": self.front_threshold, "x_ref": self.x_ref,
+            "front_threshold": self.front_threshold, "x_ref": self.x_ref, "mirror": self.mirror,
             "bounds": {k: [lo, hi] for k, lo, hi in zip(self.keys, self.bounds.lower, self.bounds.upper)},
             "dtype": np.dtype(self.dtype).name, "jacobian": self.jacobian, "fd_step": self.fd_step,
             "n_particles": int(self._state.x.shape[0]),
@@ -561,6 +582,13 @@ class CompositeObjective:
         outs = [m.residual_fn(theta) for m in self.members]
         status = functools.reduce(jnp.bitwise_or, [o[1]["status"] for o in outs])
         return jnp.concatenate([o[0] for o in outs]), {"status": status, "members": [o[1] for o in outs]}
+
+    def in_metres(self, r) -> dict[str, np.ndarray]:
+        """The residuals in metres by block (``Objective.in_metres`` of each member)."""
+        r = np.asarray(r, float)
+        offsets = np.cumsum([0] + [m.n_residuals for m in self.members])
+        return {f"{i}/{name}": v for i, m in enumerate(self.members)
+                for name, v in m.in_metres(r[offsets[i]:offsets[i + 1]]).items()}
 
     def residuals(self, theta):
         outs = [m.residuals(theta) for m in self.members]

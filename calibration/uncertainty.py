@@ -357,10 +357,10 @@ class Uncertainty:
                 out["stderr_numerical"] = by_key(self.stderr_numerical)
             if self.sampling is not None:
                 out["stderr_sampling"] = by_key(self.sampling.stderr)
-        if self.sampling is not None:
-            out["sampling"] = self.sampling.to_dict(self.keys)
             out["ci95"] = {k: [float(lo), float(hi)] for k, (lo, hi) in zip(self.keys, self.ci95)}
             out["relative_halfwidth_at_reference_noise"] = by_key(self.relative_halfwidth)
+        if self.sampling is not None:
+            out["sampling"] = self.sampling.to_dict(self.keys)
         return out
 
 

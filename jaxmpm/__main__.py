@@ -157,7 +157,7 @@ def _run(args) -> int:
         sigma = config.grid.dx / scene.meta.get("ppc", 2)
         xs = np.arange(x[:, 0].min() - 3 * sigma, x[:, 0].max() + 3 * sigma, sigma / 2)
         h = np.asarray(deposit_profile(result.state.x, particle_volumes(result.state), xs, sigma,
-                                       width=scene.meta.get("width")))
+                                       width=scene.meta.get("width"), mirror=scene.back_face))
         profile = (xs, h)
         if args.profile_csv:
             output("--profile-csv", lambda: tables.write_profile_csv(args.profile_csv, xs, h, {

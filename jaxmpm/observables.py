@@ -22,7 +22,7 @@ import jax.numpy as jnp
 
 from .linalg import det
 
-__all__ = ["deposit_profile", "front_from_profile", "front_position", "particle_volumes"]
+__all__ = ["back_wall_x", "deposit_profile", "front_from_profile", "front_position", "particle_volumes"]
 
 
 def particle_volumes(state):
@@ -31,14 +31,34 @@ def particle_volumes(state):
     return state.vol0 * det(state.F) * jnp.exp(eps_v_p)
 
 
-def deposit_profile(x, volumes, xs, sigma, width=None):
+def deposit_profile(x, volumes, xs, sigma, width=None, mirror=None):
     """Height h(xs) of the deposit from particle positions ``x`` (N, dim) and ``volumes`` (N,),
     sampled at ``xs`` (M,), with a Gaussian of width ``sigma`` (m). In 3D pass the channel
-    ``width`` (m); the profile is then the width average."""
+    ``width`` (m); the profile is then the width average.
+
+    ``mirror``: the x (m) of a wall the deposit rests against on its left (a collapse's back
+    wall, ``back_wall_x``). Without it the kernel reads half the height at the wall, where half
+    of it lies behind the wall on no material; with it each particle's image behind the wall
+    fills that half (the reflection method), and h is 0 behind the wall."""
     area = volumes if width is None else volumes / width
-    z = (jnp.asarray(xs)[:, None] - x[None, :, 0]) / sigma
-    kernel = jnp.exp(-0.5 * z * z) / (sigma * jnp.sqrt(2.0 * jnp.pi))
-    return kernel @ area
+    xs = jnp.asarray(xs)
+
+    def smoothed(px):
+        z = (xs[:, None] - px[None, :]) / sigma
+        return (jnp.exp(-0.5 * z * z) / (sigma * jnp.sqrt(2.0 * jnp.pi))) @ area
+
+    if mirror is None:
+        return smoothed(x[:, 0])
+    return jnp.where(xs >= mirror, smoothed(x[:, 0]) + smoothed(2.0 * mirror - x[:, 0]), 0.0)
+
+
+def back_wall_x(walls) -> float | None:
+    """The x (m) of the fixed wall facing +x (a collapse's back wall) that deposit profiles are
+    mirrored at, the rightmost if several; None without one (gates that lift are not walls the
+    deposit rests against)."""
+    xs = [float(w.point[0]) for w in walls
+          if not w.moving and w.normal[0] == 1.0 and not any(c != 0.0 for c in w.normal[1:])]
+    return max(xs) if xs else None
 
 
 def front_position(x, volumes, sigma):

@@ -33,6 +33,13 @@ def test_fit_prints_the_documented_json_and_writes_history_and_figures(capsys, t
     assert out["verdict"]["verdict"] == "not a fit of the data" and not out["verdict"]["verified_minimum"]
     assert "stderr" not in out and "ci95" not in out and "No Gauss–Newton interval" in out["statement"]
     assert out["search"]["starts"] == 1
+    # One profile: the loss is the mean squared misfit relative to the data's peak, so the RMS in metres
+    # is its root times that peak.
+    from calibration import load_profile
+
+    peak = float(np.max(load_profile(S4).h))
+    assert out["residual_rms_m"] == pytest.approx(np.sqrt(out["loss"]) * peak, rel=1e-5)
+    assert out["residual_rms_m_by_block"] == {"profile": pytest.approx(out["residual_rms_m"])}
     assert (tmp_path / "fit.h5").exists()
     for fig in out["figures"]:
         assert pathlib.Path(fig).stat().st_size > 5_000

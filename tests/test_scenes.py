@@ -135,3 +135,19 @@ def test_incline_critical_start_sets_pc_to_twice_the_lithostatic_pressure():
     np.testing.assert_allclose(pc, 2.0 * p, rtol=1e-10)
     with pytest.raises(ValueError, match="xi > 0"):
         jm.scenes.incline(24.0, dx=0.038 / 8, critical_start=True, xi=0.0)
+
+
+def test_profile_mirrored_at_the_back_face_reads_the_full_height_at_the_wall():
+    """Without the mirror the kernel reads half the height at a wall (half of it lies behind the wall);
+    mirrored at the body's back face it reads the height, and nothing behind the wall."""
+    spacing = 0.001
+    gx, gy = np.meshgrid(np.arange(0.5, 100) * spacing, np.arange(0.5, 50) * spacing, indexing="ij")
+    x = jnp.asarray(np.stack([gx.ravel(), gy.ravel()], axis=1))
+    vol = jnp.full(x.shape[0], spacing ** 2)
+    xs = jnp.asarray([-0.002, 0.0, 0.05])
+    plain = np.asarray(deposit_profile(x, vol, xs, 2 * spacing))
+    mirrored = np.asarray(deposit_profile(x, vol, xs, 2 * spacing, mirror=0.0))
+    np.testing.assert_allclose(plain[1:], [0.025, 0.05], rtol=0.02)
+    np.testing.assert_allclose(mirrored, [0.0, 0.05, 0.05], rtol=0.02, atol=1e-12)
+    assert scenes.cohesive_collapse(dx=0.089 / 4).back_face == 0.0  # the wall plane sits 0.501 dx behind it
+    assert scenes.gates_collapse(dx=0.004).back_face is None  # lifted gates, no wall to rest against

@@ -17,6 +17,7 @@ from typing import Any, Callable
 from ..boundary import Wall
 from ..config import Config, Grid
 from ..materials.critical_state import CriticalState
+from ..observables import back_wall_x
 from ..params import Params
 from ..sampling import SAMPLINGS, particles_per_cell, seed_box
 from ..state import State, init_state
@@ -61,6 +62,16 @@ class Scene:
 
     def __iter__(self):
         return iter((self.config, self.state, self.params))
+
+    @property
+    def back_face(self) -> float | None:
+        """The x (m) of the body's back face where it rests against a fixed back wall: where an
+        experiment's back wall is (x = 0 for the collapses; the model's wall plane sits
+        ``meta["side_gap"]`` behind it so that no particle starts on the edge of its stencil).
+        Deposit profiles are mirrored here (``jaxmpm.observables.deposit_profile``). None
+        without a fixed wall facing +x."""
+        wall = back_wall_x(self.config.walls)
+        return None if wall is None else wall + float(self.meta.get("side_gap") or 0.0)
 
     def resampled(self, seed: int) -> State:
         """The initial state of this scene with its particles sampled with ``seed`` instead of its
