@@ -246,13 +246,14 @@ def test_resume_refuses_a_different_fit(problem, tmp_path):
         fit(objective, {"beta": 0.2}, method="adam", steps=2, out=tmp_path / "f.h5", resume=True)
 
 
+@pytest.mark.slow  # 40-60 s; the resume logic itself is tested in-process above and by the CLI in test_robust_calibration
 def test_killed_command_line_fit_resumes(tmp_path):
     """SIGKILL a running ``python -m calibration fit`` once its file holds two iterations; the
     resumed run keeps them and finishes with the same history as an uninterrupted one."""
     data = ROOT / "experiments_data" / "synthetic" / "S4_beta0.25.csv"
     args = [sys.executable, "-m", "calibration", "fit", "--scene", "cohesive-collapse", "--data", str(data),
             "--fit", "beta,mu1", "--init", "beta=0.15", "--dx", str(0.089 / 6),
-            "--steps", "4", "--no-progress", "--json"]
+            "--steps", "4", "--roundoff-samples", "0", "--no-progress", "--json"]
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
     out = tmp_path / "fit.h5"
     proc = subprocess.Popen(args + ["--out", str(out)], cwd=tmp_path, env=env, stdout=subprocess.PIPE,

@@ -33,6 +33,7 @@ def test_fit_prints_the_documented_json_and_writes_history_and_figures(capsys, t
     assert out["verdict"]["verdict"] == "not a fit of the data" and not out["verdict"]["verified_minimum"]
     assert "stderr" not in out and "ci95" not in out and "No Gauss–Newton interval" in out["statement"]
     assert out["search"]["starts"] == 1
+    assert out["roundoff"]["samples"] == 8  # the default: the run's own scatter, measured at the end point
     # One profile: the loss is the mean squared misfit relative to the data's peak, so the RMS in metres
     # is its root times that peak.
     from calibration import load_profile
@@ -47,7 +48,7 @@ def test_fit_prints_the_documented_json_and_writes_history_and_figures(capsys, t
 
 def test_fit_reads_a_webplotdigitizer_export_with_units(capsys):
     code, out = run(capsys, "fit", "--scene", "cohesive-collapse", "--data", WPD, "--units", "mm", "--t-end",
-                    "0.5", "--fit", "mu1", "--steps", "1", "--starts", "2", *TINY)
+                    "0.5", "--fit", "mu1", "--steps", "1", "--starts", "2", "--roundoff-samples", "0", *TINY)
     assert code == 0 and set(out["params"]) == {"mu1"}
     # Without --init the fit is a global search (here of two starts, one iteration each).
     assert out["method"] == "lm-search" and out["search"]["starts"] == 2 and out["search"]["minima"]
@@ -92,7 +93,8 @@ def test_twin_recovers_the_constrained_parameters(capsys):
     2 % (the issue's criterion; in fact all of them, to ~1e-3)."""
     # An interval needs a verified minimum. In float64 LM verifies this one after 8 iterations; in
     # float32 it can end on 6 rejected steps at the round-off floor (loss ~1e-12): no interval then.
-    code, out = run(capsys, "twin", "--fit", "beta,mu1", "--steps", "12", "--dtype", "float64", *TINY)
+    code, out = run(capsys, "twin", "--fit", "beta,mu1", "--steps", "12", "--dtype", "float64", "--roundoff-samples",
+                    "0", *TINY)
     assert code == 0
     assert out["verdict"]["is_fit"] and out["converged"], out["verdict"]
     for key in ("params", "stderr", "loss", "iterations", "wall_s", "true", "rel_error", "constrained"):

@@ -45,7 +45,7 @@ def objective():
 
 @pytest.fixture(scope="module")
 def found(objective):
-    return search(objective, K, seed=0, steps=7, shrink=False)
+    return search(objective, K, seed=0, steps=7, shrink=False, roundoff_samples=0)  # float64: no round-off to see
 
 
 def test_the_search_finds_the_truth_of_a_twin_from_no_start(found):
@@ -205,7 +205,8 @@ def test_coarse_to_fine_refines_the_coarse_minima_and_finds_the_truth(objective)
 
     coarse = Objective(scenes.cohesive_collapse(dx=0.089 / 3, t_end=0.1), KEYS,
                        profile=ProfileTarget(objective.profiles[0].x, objective.profiles[0].h))
-    result = coarse_to_fine(objective, coarse, K, refine=2, seed=0, coarse_options={"steps": 5}, steps=12)
+    result = coarse_to_fine(objective, coarse, K, refine=2, seed=0, coarse_options={"steps": 5}, steps=12,
+                            roundoff_samples=0)
     assert result.coarse is not None and len(result.coarse.starts) == K
     assert 1 <= len(result.starts) <= max(2, len(result.coarse.within_noise))
     placed = [objective.bounds.move_inside(list(m.theta.values()))[0] for m in result.coarse.minima]
