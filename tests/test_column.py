@@ -4,6 +4,7 @@ gradients with respect to the calibration parameters match finite differences.""
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 
 import jaxmpm as jm
 
@@ -23,6 +24,10 @@ def test_column_collapses_end_to_end_without_flags():
     assert float(result.state.internal["mu_I"].max()) <= float(params.mu2) + 1e-6
 
 
+# 40 s: slow-marked to keep the default suite under CI's 15 minutes; the same critical-state gradients
+# through a rollout are checked against central differences by tests/test_gradients.py and, on S4, by
+# tests/test_calibration.py::test_jacobian_matches_central_differences.
+@pytest.mark.slow
 def test_column_gradients_match_finite_differences():
     """d(loss)/d(β, μ1, μ2, I0, ξ, p_c0) through ~200 steps of the collapse (float64, plastic
     flow with rate dependence under way), against central differences with relative step 1e-5:
