@@ -1,7 +1,8 @@
 """calibration: fit the μ(I) rheology's β, μ1, μ2, I0 and ξ to collapse data with jaxmpm.
 
 The data flow: ``data`` (profiles and front histories, validated) -> ``objective`` (a scene's
-residuals against them) -> ``fit`` (Levenberg–Marquardt or optax Adam, with bounds and a
+residuals against them; ``observe`` holds what the run observes, apart from the data, and
+compiles the pure functions once per way of observing) -> ``fit`` (Levenberg–Marquardt or optax Adam, with bounds and a
 resumable history) -> ``uncertainty`` (Gauss–Newton covariance, identifiability, and the verdict
 whether a point is a fit of the data at all); ``search`` runs LM from many space-filling starts in
 one vmapped batch and reports every minimum within the noise of the best. Both run the
@@ -18,12 +19,13 @@ from .data import FrontHistory, Profile, RunoutLaw, list_datasets, load_front_hi
 from .fit import FitResult, fit
 from .history import read_history
 from .objective import CompositeObjective, FrontTarget, Objective, ProfileTarget
+from .observe import ModelFunctions, Observations, model_functions
 from .search import Minimum, SearchResult, coarse_to_fine, design_starts, search
 from .uncertainty import Uncertainty, Verdict, assess_fit, gauss_newton_uncertainty, structural_noise
 
 __all__ = [
     "DEFAULT_BOUNDS", "FIT_KEYS", "Bounds", "CompositeObjective", "FitResult", "FrontHistory", "FrontTarget",
-    "Minimum", "Objective", "Profile", "ProfileTarget", "RunoutLaw", "SearchResult", "Uncertainty", "Verdict",
+    "Minimum", "ModelFunctions", "Objective", "Observations", "Profile", "ProfileTarget", "RunoutLaw", "SearchResult", "Uncertainty", "Verdict",
     "assess_fit", "design_starts", "fit", "gauss_newton_uncertainty", "list_datasets", "load_front_history",
-    "coarse_to_fine", "load_profile", "load_scaling_law", "read_history", "search", "structural_noise",
+    "coarse_to_fine", "load_profile", "model_functions", "load_scaling_law", "read_history", "search", "structural_noise",
 ]

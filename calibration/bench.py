@@ -114,16 +114,14 @@ def bench(keys=("beta", "mu1", "mu2", "I0", "xi"), dx: float = 0.089 / 16, t_end
     obj = Objective(scene, keys, profile=ProfileTarget(xs, np.ones_like(xs)),
                     front=FrontTarget(times, np.ones_like(times)), check_data=False)  # placeholder data: cost only
     theta = np.array([float(getattr(scene.params, k)) for k in keys])
-    th = obj._theta(theta)
+    th, fns, args = obj.as_theta(theta), obj.functions, obj.arguments()
     # The vmapped batch of all tangents, for comparison with the column passes the objective uses.
-    batch = jax.jit(jax.jacfwd(lambda t, s, b: obj._residual_fn(t, s, b), has_aux=True))
+    batch = jax.jit(jax.jacfwd(fns.residual, has_aux=True))
     timings = {}
-    for name, fn, jitted in (("forward", lambda: obj.residuals(theta), obj._residuals),
-                             ("jacobian", lambda: obj.residuals_and_jacobian(theta), obj._jacobian),
-                             ("jacfwd_batch", lambda: batch(th, obj._state, obj._base), batch),
-                             ("grad_rev", lambda: obj.value_and_grad(theta), obj._value_and_grad)):
-        compile_s, run_s = _timed(fn, repeat)
-        timings[name] = Timing(compile_s, run_s, _temp_bytes(jitted, th, obj._state, obj._base))
+    for name, jitted in (("forward", fns.residuals), ("jacobian", fns.jacobian), ("jacfwd_batch", batch),
+                         ("grad_rev", fns.value_and_grad)):
+        compile_s, run_s = _timed(lambda: jitted(th, *args), repeat)
+        timings[name] = Timing(compile_s, run_s, _temp_bytes(jitted, th, *args))
     return BenchResult(scene=scene.name, keys=tuple(keys), n_residuals=obj.n_residuals,
                        n_particles=int(scene.state.x.shape[0]), max_steps=obj.config.max_steps, dx=dx,
                        dtype=str(obj.dtype), machine=platform.machine(), backend=jax.default_backend(),

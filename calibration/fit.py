@@ -131,6 +131,7 @@ def _evaluator(objective, rev: bool) -> Callable[[np.ndarray], Evaluation]:
     """The model at the rows of z (k, n), one run each: residuals and their Jacobian from the
     objective (forward mode, or its differences), or with ``rev`` the reverse-mode gradient alone."""
     bounds = objective.bounds
+    z_space = hasattr(objective, "residuals_and_jacobian_z") and getattr(objective, "jacobian", "ad") == "ad"
 
     def one(z):
         theta = np.asarray(bounds.to_physical(jnp.asarray(z)))
@@ -140,9 +141,18 @@ def _evaluator(objective, rev: bool) -> Callable[[np.ndarray], Evaluation]:
             r = J = Jz = None
             g = np.asarray(g)
         else:
-            r, J, pred = objective.residuals_and_jacobian(theta)
-            r, J = np.asarray(r, float), np.asarray(J, float)
-            loss, g, Jz = np.sum(r * r), 2.0 * J.T @ r, J * dtheta_dz[None, :]
+            if z_space:  # dr/dz from autodiff through the bounds transform; J = dr/dθ from it
+                r, Jz, pred = objective.residuals_and_jacobian_z(jnp.asarray(z))
+                r, Jz = np.asarray(r, float), np.asarray(Jz, float)
+                with np.errstate(divide="ignore", invalid="ignore", over="ignore"):  # dθ/dz = 0 at a bound
+                    J = Jz / dtheta_dz[None, :]
+            else:  # central differences in θ
+                r, J, pred = objective.residuals_and_jacobian(theta)
+                r, J = np.asarray(r, float), np.asarray(J, float)
+                Jz = J * dtheta_dz[None, :]
+            with np.errstate(invalid="ignore", over="ignore"):
+                loss, g = np.sum(r * r), 2.0 * J.T @ r
+            return theta, float(loss), int(np.asarray(pred["status"])), g, r, J, Jz, 2.0 * Jz.T @ r, pred
         return theta, float(loss), int(np.asarray(pred["status"])), g, r, J, Jz, g * dtheta_dz, pred
 
     def evaluate(z):

@@ -19,6 +19,13 @@ data times), with the checkpointed blocks of ``jaxmpm.make_rollout``, so reverse
 stays bounded. ``residuals_and_jacobian`` uses forward mode, one Jacobian column per tangent
 pass (``jacobian_by_columns``): on the CPU a ``jax.jacfwd`` batch of n tangents costs more than
 n single passes (docs/calibration.md, "Cost").
+
+What is observed (``objective.observations``: the profile's points and times, the front's
+times, the kernel and the mirror; ``calibration.observe``) is kept apart from what was measured
+(``objective.data``: heights, fronts and the residuals' scales). The jitted pure functions
+(``objective.functions``, ``calibration.observe.model_functions``) take the data as arguments,
+so objectives that observe the same run the same way share one compilation; their z-variants
+map the unconstrained variables through the bounds inside the traced run.
 """
 
 from __future__ import annotations
@@ -34,10 +41,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxmpm import PARAM_KEYS, make_rollout, validate_params
-from jaxmpm.observables import deposit_profile, front_from_profile, particle_volumes
+from jaxmpm import PARAM_KEYS, validate_params
 
 from .bounds import Bounds
+from .observe import Observations, jacobian_by_columns, model_functions
 
 __all__ = ["jacobian_by_columns", "Objective", "CompositeObjective", "ProfileTarget", "FrontTarget"]
 
@@ -84,11 +91,11 @@ MATERIAL_FRACTION = 0.01
 def _check_profile_plausible(label: str, x: np.ndarray, h: np.ndarray, scene, x_lo: float, x_hi: float, dtype):
     """Refuse a profile that cannot be a deposit of ``scene`` (units off by 10^3, another scene's
     data, numbers beyond the run's precision), naming ``label`` (the file)."""
-    meta = scene.meta
+    info = scene.info
     if not (_representable(x, dtype) and _representable(h, dtype)):
         raise ValueError(f"{label}: values beyond the range of {np.dtype(dtype).name}, in which the run computes")
     h_max = float(h.max())
-    height, length = meta.get("H"), meta.get("L")
+    height, length = info.height, info.length
     where = f"scene {scene.name}'s column (H = {height:g} m)" if height else ""
     if height:
         if h_max > MAX_HEIGHT_RATIO * height:
@@ -130,7 +137,7 @@ def _check_front_plausible(label: str, t: np.ndarray, xf: np.ndarray, scene, x_l
         k = int(np.argmax(outside))
         raise ValueError(f"{label}: the front at t = {t[k]:g} s, x = {xf[k]:g} m, lies outside the scene's grid, "
                          f"x = {x_lo:g} .. {x_hi:g} m, which the model's front never leaves (wrong units?)")
-    front0 = scene.meta.get("front0")
+    front0 = scene.info.front0
     if front0 and float(xf.max()) < 0.5 * front0:
         raise ValueError(f"{label}: every front position (at most {float(xf.max()):g} m) lies behind half the "
                          f"initial front x = {front0:g} m of scene {scene.name}, which the front only leaves "
@@ -147,23 +154,6 @@ def _digest(*arrays) -> str:
     return h.hexdigest()[:16]
 
 
-def jacobian_by_columns(fn, x):
-    """Forward-mode Jacobian of ``fn(x) -> (y, aux)`` (x a vector): ``(dy/dx, (y, aux))``.
-
-    The columns are ``jax.jvp`` passes in a ``lax.map``, one after the other, not ``jax.jacfwd``'s
-    vmapped batch: on the CPU the batch carries every tangent through each scatter and gather of
-    the step together and costs more than the passes one at a time (at the S4 fit of issue 10,
-    dx = 4 mm, two parameters: jacfwd 7.2 forward runs, two passes 3.7). Each pass recomputes
-    the primal, so the residuals come from the first."""
-    def column(tangent):
-        y, dy, aux = jax.jvp(fn, (x,), (tangent,), has_aux=True)
-        return dy, y, aux
-
-    dy, y, aux = jax.lax.map(column, jnp.eye(x.shape[0], dtype=x.dtype))
-    first = lambda a: a[0]  # noqa: E731
-    return jnp.moveaxis(dy, 0, -1), (first(y), jax.tree.map(first, aux))
-
-
 def _engine_bounds(bounds: Bounds, params) -> tuple[Bounds, tuple[str, ...]]:
     """``bounds`` narrowed so that every θ inside them keeps the engine's rule μ1 ≤ μ2 with the
     scene's value of the one not fitted (μ1's upper bound at most μ2; μ2's lower at least μ1),
@@ -171,18 +161,17 @@ def _engine_bounds(bounds: Bounds, params) -> tuple[Bounds, tuple[str, ...]]:
     (``Objective.check_thetas``)."""
     lower, upper, notes = list(bounds.lower), list(bounds.upper), []
     keys = bounds.keys
-    if "mu1" in keys and "mu2" not in keys:
-        i, mu2 = keys.index("mu1"), float(params.mu2)
-        if upper[i] > mu2:
-            notes.append(f"mu1's upper bound {upper[i]:g} lowered to the scene's mu2 = {mu2:g} (the engine needs "
-                         "mu1 <= mu2)")
-            upper[i] = mu2
-    if "mu2" in keys and "mu1" not in keys:
-        i, mu1 = keys.index("mu2"), float(params.mu1)
-        if lower[i] < mu1:
-            notes.append(f"mu2's lower bound {lower[i]:g} raised to the scene's mu1 = {mu1:g} (the engine needs "
-                         "mu1 <= mu2)")
-            lower[i] = mu1
+    # (fitted key, the scene's key it is held against, the bound of the fitted key that moves)
+    for key, other, side in (("mu1", "mu2", "upper"), ("mu2", "mu1", "lower")):
+        if key not in keys or other in keys:
+            continue
+        i, value = keys.index(key), float(getattr(params, other))
+        limits = upper if side == "upper" else lower
+        if (limits[i] > value) if side == "upper" else (limits[i] < value):
+            verb = "lowered" if side == "upper" else "raised"
+            notes.append(f"{key}'s {side} bound {limits[i]:g} {verb} to the scene's {other} = {value:g} (the engine "
+                         "needs mu1 <= mu2)")
+            limits[i] = value
     for k, lo, hi in zip(keys, lower, upper):
         if not lo < hi:
             raise ValueError(f"bounds[{k!r}]: ({lo:g}, {hi:g}) is empty once mu1 <= mu2 is imposed with the "
@@ -276,8 +265,8 @@ class Objective:
         self.scene = scene
         self.bounds, self.bound_notes = _engine_bounds(self.bounds, scene.params)
         config = scene.config
-        meta = scene.meta
-        spacing = config.grid.dx / meta.get("ppc", 2)
+        info = scene.info
+        spacing = config.grid.dx / info.ppc
         self.sigma = float(sigma) if sigma is not None else spacing
         self.front_threshold = float(front_threshold) if front_threshold is not None else 0.5 * spacing
         for name, value in (("sigma", self.sigma), ("front_threshold", self.front_threshold)):
@@ -291,8 +280,8 @@ class Objective:
         elif mirror is not None and not math.isfinite(float(mirror)):
             raise ValueError(f"mirror must be finite, got {mirror!r}")
         self.mirror = None if mirror is None else float(mirror)
-        self.length = float(meta.get("L", 1.0))
-        width = meta.get("width") if meta.get("dim", 2) == 3 else None
+        self.length = float(info.length)
+        width = info.width if info.dim == 3 else None
 
         times, blocks, scales = [], {}, []
         m = 0
@@ -338,38 +327,28 @@ class Objective:
         self.blocks = blocks
         self.row_scale = np.concatenate(scales)
         self.n_residuals = m
-        self._prof_index = [self.times.index(p[3]) for p in self._profiles]
-        self._front_index = (np.array([self.times.index(float(t)) for t in self._t_front])
-                             if self.front is not None else None)
 
         # Uniform points for the front integral: from x_ref to the far edge of the grid.
         upper = config.grid.origin[0] + config.grid.cells[0] * config.grid.dx
-        self._xs_front = np.arange(self.x_ref, upper, 0.5 * spacing)
-        self.config = dataclasses.replace(config, frame_times=self.times,
-                                          max_steps=config.max_steps + len(self.times))
-        # All profiles' points in one array; each profile reads its own slice of its own frame.
-        x_data = np.concatenate([p[0] for p in self._profiles]) if self._profiles else np.zeros(1)
-        offsets = np.cumsum([0] + [p[0].size for p in self._profiles])
-        self._prof_slices = [slice(int(a), int(b)) for a, b in zip(offsets[:-1], offsets[1:])]
-        sigma_, thr, x_ref_, xs_front = self.sigma, self.front_threshold, self.x_ref, self._xs_front
-        mirror_ = self.mirror
-
-        def observer(state, params):
-            vol = particle_volumes(state)
-            dtype = state.x.dtype
-            h = deposit_profile(state.x, vol, jnp.asarray(x_data, dtype), sigma_, width=width, mirror=mirror_)
-            h_front = deposit_profile(state.x, vol, jnp.asarray(xs_front, dtype), sigma_, width=width, mirror=mirror_)
-            return {"h": h, "front": front_from_profile(jnp.asarray(xs_front, dtype), h_front, thr, x_ref_)}
-
-        self._rollout = make_rollout(self.config, observer)
+        # Where and when the run is observed (no measured value), and what was measured.
+        self.observations = Observations(
+            profile_x=tuple(p[0] for p in self._profiles), profile_times=tuple(p[3] for p in self._profiles),
+            front_times=self._t_front if self.front is not None else None,
+            front_points=np.arange(self.x_ref, upper, 0.5 * spacing), sigma=self.sigma,
+            front_threshold=self.front_threshold, x_ref=self.x_ref, mirror=self.mirror, width=width)
+        h_data = [p[1] for p in self._profiles]
+        self.data = {
+            "h": jnp.asarray(np.concatenate(h_data) if h_data else np.zeros(0), self.dtype),
+            "h_scale": jnp.asarray(np.concatenate([np.full(p[0].size, p[2]) for p in self._profiles])
+                                   if h_data else np.zeros(0), self.dtype),
+            "front": jnp.asarray(self._xf_data if self.front is not None else np.zeros(0), self.dtype),
+            "front_scale": jnp.asarray(self.length, self.dtype),
+            "row_scale": jnp.asarray(self.row_scale, self.dtype),
+        }
+        self.functions = model_functions(config, self.observations, self.keys)
+        self.config = self.functions.config
         self._state = scene.state
         self._base = scene.params
-
-        self._residuals = jax.jit(self._residual_fn)
-        self._jacobian = jax.jit(lambda th, s, b: jacobian_by_columns(
-            lambda t: self._residual_fn(t, s, b), th))
-        self._value_and_grad = jax.jit(jax.value_and_grad(self._loss_fn, has_aux=True))
-        self._batched = jax.jit(jax.vmap(self._residual_fn, in_axes=(0, None, None)))
 
     # ---- pure functions of (theta, state, base params) ------------------------------------
     def params_of(self, theta, base=None):
@@ -378,44 +357,41 @@ class Objective:
         theta = jnp.asarray(theta, self.dtype)
         return base.replace(**{k: theta[i] for i, k in enumerate(self.keys)})
 
-    def _predict_fn(self, theta, state, base):
-        final, frames = self._rollout(state, self.params_of(theta, base))
-        out = {"status": final.status}
-        if self._profiles:
-            out["h"] = jnp.concatenate([frames["h"][i, sl] for i, sl in zip(self._prof_index, self._prof_slices)])
-        if self.front is not None:
-            out["front"] = frames["front"][jnp.asarray(self._front_index)]
-        return out
+    def arguments(self, state=None) -> tuple:
+        """``(state, base params, data)``: the arguments after θ (or z, lower, upper) of
+        ``functions``' members for this objective (``state``: another initial state)."""
+        return (self._state if state is None else state), self._base, self.data
 
-    def _residual_fn(self, theta, state, base):
-        pred = self._predict_fn(theta, state, base)
-        parts = []
-        if self._profiles:
-            h_data = np.concatenate([p[1] for p in self._profiles])
-            h_scale = np.concatenate([np.full(p[0].size, p[2]) for p in self._profiles])
-            parts.append((pred["h"] - jnp.asarray(h_data, self.dtype)) / jnp.asarray(h_scale, self.dtype))
-        if self.front is not None:
-            parts.append((pred["front"] - jnp.asarray(self._xf_data, self.dtype)) / self.length)
-        r = jnp.concatenate(parts) * jnp.asarray(self.row_scale, self.dtype)
-        return r, pred
-
-    def _loss_fn(self, theta, state, base):
-        r, pred = self._residual_fn(theta, state, base)
-        return jnp.sum(r * r), pred
+    def lower_upper(self):
+        """The bounds as arrays of the run's dtype, the ``lower, upper`` of ``functions.jacobian_z``."""
+        return jnp.asarray(self.bounds.lower, self.dtype), jnp.asarray(self.bounds.upper, self.dtype)
 
     # ---- the public calls (jitted once per objective; new θ never recompiles) --------------
     def residual_fn(self, theta):
         """Pure, unjitted θ -> (r, prediction): for ``jax.vmap`` and sweeps."""
-        return self._residual_fn(theta, self._state, self._base)
+        return self.functions.residual(theta, *self.arguments())
+
+    def predict(self, theta):
+        """The model's observations at θ, no data involved: {"status", "h" (every profile's
+        points, concatenated), "front" (at the front's times)}."""
+        return self.functions.predictions(self.as_theta(theta), self._state, self._base)
 
     def residuals(self, theta):
         """(r, prediction) at θ. ``prediction`` holds ``status`` and the modelled ``h``/``front``."""
-        return self._residuals(self._theta(theta), self._state, self._base)
+        return self.functions.residuals(self.as_theta(theta), *self.arguments())
 
     def residuals_resampled(self, theta, seed: int):
         """(r, prediction) at θ with the scene's particles sampled with ``seed`` instead
         (``Scene.resampled``): the same objective on another draw of the same body."""
-        return self._residuals(self._theta(theta), self.scene.resampled(seed), self._base)
+        return self.functions.residuals(self.as_theta(theta), *self.arguments(self.scene.resampled(seed)))
+
+    def residuals_and_jacobian_z(self, z, bounds: Bounds | None = None):
+        """(r, dr/dz, prediction) at the unconstrained z of ``bounds`` (default: the
+        objective's), θ = lo + (hi − lo) sigmoid(z) inside the traced run (forward mode)."""
+        bounds = self.bounds if bounds is None else bounds
+        lower, upper = (jnp.asarray(b, self.dtype) for b in (bounds.lower, bounds.upper))
+        Jz, (r, pred) = self.functions.jacobian_z(self.as_theta(z, "z"), lower, upper, *self.arguments())
+        return r, Jz, pred
 
     def residuals_and_jacobian(self, theta, jacobian: str | None = None):
         """(r, J, prediction) at θ, with J = dr/dθ (m × n) from forward-mode autodiff
@@ -424,15 +400,15 @@ class Objective:
         discrete run; in long, violent flows (tall columns) that derivative can be dominated by
         the run's chaotic sensitivity and no longer describe the trend over finite steps: then
         use "fd" (``check_jacobian`` compares the two)."""
-        theta = self._theta(theta)
+        theta = self.as_theta(theta)
         if (jacobian or self.jacobian) == "ad":
-            J, (r, pred) = self._jacobian(theta, self._state, self._base)
+            J, (r, pred) = self.functions.jacobian(theta, *self.arguments())
             return r, J, pred
         steps = self._fd_steps(theta)
         n = len(self.keys)
         eye = jnp.eye(n, dtype=self.dtype) * steps[None, :]
         batch = jnp.concatenate([theta[None, :], theta[None, :] + eye, theta[None, :] - eye])
-        rs, preds = self._batched(batch, self._state, self._base)
+        rs, preds = self.functions.batched(batch, *self.arguments())
         J = ((rs[1:n + 1] - rs[n + 1:]) / (2.0 * steps[:, None])).T
         pred = jax.tree.map(lambda a: a[0], preds)
         pred["status"] = jnp.bitwise_or.reduce(preds["status"])
@@ -462,16 +438,17 @@ class Objective:
 
     def value_and_grad(self, theta):
         """((loss, prediction), dloss/dθ) from reverse mode through the checkpointed rollout."""
-        return self._value_and_grad(self._theta(theta), self._state, self._base)
+        return self.functions.value_and_grad(self.as_theta(theta), *self.arguments())
 
     def loss(self, theta) -> float:
         r, _ = self.residuals(theta)
         return float(jnp.sum(r * r))
 
-    def _theta(self, theta):
+    def as_theta(self, theta, name: str = "theta"):
+        """``theta`` as an array of the run's dtype, its shape checked against ``keys``."""
         theta = jnp.asarray(theta, self.dtype)
         if theta.shape != (len(self.keys),):
-            raise ValueError(f"theta must have shape ({len(self.keys)},) for keys {self.keys}, got {theta.shape}")
+            raise ValueError(f"{name} must have shape ({len(self.keys)},) for keys {self.keys}, got {theta.shape}")
         return theta
 
     def initial(self) -> dict[str, float]:
@@ -519,13 +496,13 @@ class Objective:
         data = [a for x, h, _, t in self._profiles for a in (x, h, [t])]
         if self.front is not None:
             data += [self._t_front, self._xf_data]
-        meta = self.scene.meta
+        info = self.scene.info
         config = json.dumps(self.config.to_dict(), sort_keys=True, default=str)
         return {
             "scene": self.scene.name, "data": _digest(*data), "keys": list(self.keys),
-            "dx": float(self.config.grid.dx), "ppc": meta.get("ppc"), "sampling": meta.get("sampling"),
-            "seed": meta.get("seed"), "dim": meta.get("dim"), "width": meta.get("width"),
-            "slope_deg": meta.get("slope_deg"), "L": meta.get("L"), "H": meta.get("H"),
+            "dx": float(self.config.grid.dx), "ppc": info.ppc, "sampling": info.sampling,
+            "seed": info.seed, "dim": info.dim, "width": info.width,
+            "slope_deg": info.slope_deg, "L": info.length, "H": info.height,
             "t_end": float(self.config.t_end),
             "fixed": {k: float(v) for k, v in self._base.to_dict().items() if k not in self.keys},
             "weights": {k: float(v) for k, v in self.weights.items()}, "sigma": self.sigma,
@@ -594,6 +571,14 @@ class CompositeObjective:
         outs = [m.residuals(theta) for m in self.members]
         status = jnp.bitwise_or.reduce(jnp.stack([o[1]["status"] for o in outs]))
         return jnp.concatenate([o[0] for o in outs]), {"status": status, "members": [o[1] for o in outs]}
+
+    def residuals_and_jacobian_z(self, z):
+        """(r, dr/dz, prediction) at the unconstrained z of the composite's bounds (every member
+        maps z with the composite's bounds, not its own)."""
+        outs = [m.residuals_and_jacobian_z(z, self.bounds) for m in self.members]
+        status = jnp.bitwise_or.reduce(jnp.stack([o[2]["status"] for o in outs]))
+        return (jnp.concatenate([o[0] for o in outs]), jnp.concatenate([o[1] for o in outs]),
+                {"status": status, "members": [o[2] for o in outs]})
 
     def residuals_and_jacobian(self, theta):
         outs = [m.residuals_and_jacobian(theta) for m in self.members]

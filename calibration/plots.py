@@ -10,7 +10,8 @@ import pathlib
 
 import numpy as np
 
-__all__ = ["plot_coverage", "plot_fit", "plot_history", "plot_landscape", "plot_loss_curve", "plot_runout_law"]
+__all__ = ["plot_coverage", "plot_fit", "plot_heldout", "plot_history", "plot_landscape", "plot_loss_curve",
+           "plot_profile_likelihoods", "plot_runout_law"]
 
 
 def _plt():
@@ -33,15 +34,16 @@ def plot_fit(objective, result, path, *, initial_prediction=None, truth_label: s
         inits = initial_prediction.get("members", [initial_prediction])
     panels = []
     for i, (obj, pred) in enumerate(zip(members, preds)):
-        offset = 0
-        for j, (x, h, _, t) in enumerate(obj._profiles):
+        offset, obs, h_all = 0, obj.observations, np.asarray(obj.data["h"], float)
+        for x, t in zip(obs.profile_x, obs.profile_times):
             sl = slice(offset, offset + x.size)
             offset += x.size
             init = None if inits is None else np.asarray(inits[i]["h"])[sl]
-            panels.append(("profile", i, x, h, np.asarray(pred["h"])[sl], init, t))
-        if obj.front is not None:
+            panels.append(("profile", i, x, h_all[sl], np.asarray(pred["h"])[sl], init, t))
+        if obs.front_times is not None:
             init = None if inits is None else np.asarray(inits[i]["front"])
-            panels.append(("front", i, obj._t_front, obj._xf_data, np.asarray(pred["front"]), init, None))
+            panels.append(("front", i, obs.front_times, np.asarray(obj.data["front"], float),
+                           np.asarray(pred["front"]), init, None))
     n = len(panels)
     cols = min(n, 4)
     rows = -(-n // cols)
@@ -231,6 +233,87 @@ def plot_coverage(result, path, *, title: str | None = None):
     axes[0][0].set_ylabel("noise seed")
     fig.suptitle(title or f"95 % intervals over {len(result.rows)} seeds, {100 * result.noise:.3g} % noise "
                  "(grey: true noise given; x: not a fit, no interval)", fontsize=10)
+    fig.tight_layout()
+    path = pathlib.Path(path)
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return path
+
+
+def plot_profile_likelihoods(profiles, path, *, truth=None, posterior=None):
+    """One panel per ``calibration.likelihood.ProfileLikelihood``: Δχ² against the key's value
+    with the Wilks 95 % level (3.84), the profile interval (shaded), the Gauss–Newton one (bars)
+    and, from a ``GridPosterior``, its marginal (right axis); a 2D posterior adds a panel of its
+    density with the fit's point."""
+    from .likelihood import DELTA_CHI2_95
+
+    plt = _plt()
+    n = len(profiles) + (1 if posterior is not None and len(posterior.keys) == 2 else 0)
+    fig, axes = plt.subplots(1, n, figsize=(4.2 * n, 3.4), squeeze=False)
+    for ax, prof in zip(axes[0], profiles):
+        ax.plot(prof.values, prof.delta_chi2, "o-", color="C0", ms=3, label="profile likelihood")
+        ax.axhline(DELTA_CHI2_95, color="0.5", lw=0.8, ls="--")
+        lo, hi = prof.ci95
+        if lo is not None and hi is not None:
+            ax.axvspan(lo, hi, color="C0", alpha=0.12, label="profile 95 %")
+        if prof.gn_ci95 is not None:
+            ax.errorbar([prof.theta_hat], [DELTA_CHI2_95], xerr=[[prof.theta_hat - prof.gn_ci95[0]],
+                        [prof.gn_ci95[1] - prof.theta_hat]], fmt="s", color="C3", capsize=3,
+                        label="Gauss-Newton 95 %")
+        if truth is not None and prof.key in truth:
+            ax.axvline(truth[prof.key], color="k", lw=1, label="truth")
+        if posterior is not None and prof.key in posterior.keys:
+            j = posterior.keys.index(prof.key)
+            twin = ax.twinx()
+            twin.plot(posterior.axes[j], posterior.marginal(prof.key), color="C2", lw=1.2)
+            twin.set_ylabel("posterior density", color="C2")
+            twin.set_ylim(bottom=0)
+        ax.set_xlabel(prof.key)
+        ax.set_ylabel(r"$\Delta\chi^2$")
+        ax.set_ylim(0, max(3 * DELTA_CHI2_95, 1.1 * float(np.nanmax(prof.delta_chi2[np.isfinite(prof.delta_chi2)]))
+                           if np.any(np.isfinite(prof.delta_chi2)) else 3 * DELTA_CHI2_95))
+        ax.legend(fontsize=7, loc="upper center")
+    if n > len(profiles):
+        ax = axes[0][-1]
+        a, b = posterior.axes
+        ax.contourf(a, b, posterior.density.T, levels=12, cmap="Greens")
+        dchi2 = posterior.chi2 - np.nanmin(posterior.chi2)
+        ax.contour(a, b, dchi2.T, levels=[2 * np.log(1 / 0.05)], colors="k", linewidths=0.8)  # 95 % region (2 dof)
+        ax.plot(posterior.theta_hat[posterior.keys[0]], posterior.theta_hat[posterior.keys[1]], "r+", ms=10,
+                label="fit")
+        if truth is not None:
+            ax.plot(truth.get(posterior.keys[0], np.nan), truth.get(posterior.keys[1], np.nan), "kx", label="truth")
+        ax.set_xlabel(posterior.keys[0])
+        ax.set_ylabel(posterior.keys[1])
+        ax.set_title("posterior (flat prior), 95 % region", fontsize=9)
+        ax.legend(fontsize=7)
+    fig.tight_layout()
+    path = pathlib.Path(path)
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return path
+
+
+def plot_heldout(heldout, path, *, title: str | None = None):
+    """The held-out data against the fitted model's prediction and its 95 % band, by block."""
+    plt = _plt()
+    names = list(heldout.blocks)
+    fig, axes = plt.subplots(1, len(names), figsize=(4.6 * len(names), 3.2), squeeze=False)
+    for ax, name in zip(axes[0], names):
+        b = heldout.blocks[name]
+        front = name == "front"
+        x = b["at"] if front else 100 * b["at"]
+        ax.fill_between(x, 100 * (b["predicted"] - b["band"]), 100 * (b["predicted"] + b["band"]), color="C0",
+                        alpha=0.25, label="prediction 95 %")
+        ax.plot(x, 100 * b["predicted"], color="C0", label="predicted")
+        ax.plot(x, 100 * b["data"], "k.", ms=3, label="held-out data")
+        ax.set_xlabel("t (s)" if front else "x (cm)")
+        ax.set_ylabel("front x (cm)" if front else f"{name}: h (cm)")
+        ax.set_title(f"{name}: RMS {1000 * heldout.rms[name]:.2g} mm, {100 * heldout.inside[name]:.0f} % inside",
+                     fontsize=9)
+        ax.legend(fontsize=7)
+    if title:
+        fig.suptitle(title, fontsize=10)
     fig.tight_layout()
     path = pathlib.Path(path)
     fig.savefig(path, dpi=120)

@@ -184,7 +184,8 @@ _CACHE: dict = {}
 
 
 def _batch_fn(objective):
-    """jit(vmap(z -> (r, dr/dz, prediction))) for the objective, cached on it."""
+    """jit(vmap(z -> (r, dr/dz, prediction))) for the objective: an ``Objective``'s own
+    (``functions.batched_jacobian_z``), any other's (a composite) built and cached on it."""
     hit = _CACHE.get(id(objective))
     if hit is not None and hit[0] is objective:
         return hit[1]
@@ -194,6 +195,16 @@ def _batch_fn(objective):
     if getattr(objective, "jacobian", "ad") != "ad":
         raise ValueError("search uses forward-mode Jacobians: the objective's jacobian='fd' is not supported "
                          "(a single-start fit is)")
+    functions = getattr(objective, "functions", None)
+    if functions is not None:  # an Objective: its compiled batch, shared with equal objectives
+        lower, upper = objective.lower_upper()
+        args = objective.arguments()
+
+        def fn(Z):
+            Jz, (r, pred) = functions.batched_jacobian_z(Z, lower, upper, *args)
+            return r, Jz, pred
+
+        return fn
     bounds = objective.bounds
 
     def member(z):

@@ -66,7 +66,7 @@ def twin_data(scene, keys, truth: np.ndarray, noise: float = 0.0, seed: int = 0,
     rng = np.random.default_rng(seed)
     if noise > 0:
         h = h + noise * h.max(axis=1, keepdims=True) * rng.standard_normal(h.shape)
-        front = front + noise * float(scene.meta["L"]) * rng.standard_normal(front.shape)
+        front = front + noise * float(scene.info.length) * rng.standard_normal(front.shape)
     profiles = [ProfileTarget(xs, h[i], t) for i, t in enumerate(PROFILE_TIMES)]
     return profiles, FrontTarget(times, front)
 

@@ -51,6 +51,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import time
 from typing import Any, Mapping, Sequence
 
 import numpy as np
@@ -157,7 +158,6 @@ class ModelScatter:
 
 def _scatter_of(S, J, blocks, row_scale, kind, step, clock) -> ModelScatter:
     """σ by block and the covariance of θ = J⁺ s from the spread of the residual rows S."""
-    import time
 
     dev = S - S.mean(axis=0)
     e = dev / np.asarray(row_scale, float)[None, :]
@@ -176,7 +176,6 @@ def model_scatter(objective, theta, r, J, *, samples: int = ROUNDOFF_SAMPLES, st
     from r only by the round-off (the curvature term is ~step² smaller). Their sample spread gives
     σ_num by block and, through p_k = J⁺ s_k, the covariance of θ due to the scatter. Returns None
     when fewer than two runs succeeded (then nothing is known about the scatter)."""
-    import time
 
     samples = int(samples)
     if samples < 2:
@@ -209,7 +208,6 @@ def sampling_scatter(objective, theta, r, J, *, seeds: int = SAMPLING_SEEDS) -> 
     statistical interval from one draw to the next is a property of the discretisation, not of
     the material. None when the objective cannot redraw its particles (a lattice, a composite)
     or fewer than two redrawn runs succeed."""
-    import time
 
     seeds = int(seeds)
     if seeds < 2:
@@ -218,7 +216,7 @@ def sampling_scatter(objective, theta, r, J, *, seeds: int = SAMPLING_SEEDS) -> 
     if scene is None or getattr(scene, "sampler", None) is None or not hasattr(objective, "residuals_resampled"):
         return None
     clock = time.perf_counter()
-    own = scene.meta.get("seed", 0)
+    own = scene.info.seed
     kept = [np.asarray(r, float)]
     for seed in [s for s in range(seeds + 1) if s != own][:seeds]:
         r_s, pred = objective.residuals_resampled(theta, seed)

@@ -126,13 +126,13 @@ def _run(args) -> int:
         "x_min": float(x[:, 0].min()),
         "x_max": float(x[:, 0].max()),
         "y_max": float(x[:, 1].max()),
-        "runout": float(x[:, 0].max() - scene.meta["front0"]),
+        "runout": float(x[:, 0].max() - scene.info.front0),
         "status": result.status,
         "status_text": describe_status(result.status),
         "compile_s": round(result.compile_s, 3),
         "run_s": round(result.run_s, 3),
     }
-    meta = {"scene": scene.name, **{k: v for k, v in scene.meta.items() if v is not None}}
+    meta = {"scene": scene.name, **scene.info.to_dict()}
     # The outputs were checked before the run; should one still fail (a full disk, a folder
     # removed meanwhile), the others are written and the summary is printed all the same.
     errors = {}
@@ -154,10 +154,10 @@ def _run(args) -> int:
             if getattr(args, option[2:].replace("-", "_")):
                 errors[option] = "not written: the final positions are not finite (see status_text)"
     elif args.profile_csv or args.plot:
-        sigma = config.grid.dx / scene.meta.get("ppc", 2)
+        sigma = config.grid.dx / scene.info.ppc
         xs = np.arange(x[:, 0].min() - 3 * sigma, x[:, 0].max() + 3 * sigma, sigma / 2)
         h = np.asarray(deposit_profile(result.state.x, particle_volumes(result.state), xs, sigma,
-                                       width=scene.meta.get("width"), mirror=scene.back_face))
+                                       width=scene.info.width, mirror=scene.back_face))
         profile = (xs, h)
         if args.profile_csv:
             output("--profile-csv", lambda: tables.write_profile_csv(args.profile_csv, xs, h, {
@@ -166,7 +166,7 @@ def _run(args) -> int:
                 # float32 leaves printed to the precision they hold (0.3, not 0.30000001192092896)
                 "parameters": {k: float(f"{v:.7g}") if args.dtype == "float32" else v
                                for k, v in params.to_dict().items()},
-                "scene": {k: v for k, v in scene.meta.items() if v is not None}, "status": result.status,
+                "scene": scene.info.to_dict(), "status": result.status,
             }))
     if args.plot and profile is not None:
         from .plots import plot_run

@@ -66,8 +66,8 @@ def observe(scene_name, scene, state) -> dict:
     """The study's observables of a final ``state`` (see the module docstring)."""
     x = np.asarray(state.x)
     xs = _xs(scene_name)
-    h = np.asarray(deposit_profile(state.x, particle_volumes(state), xs, SIGMA, width=scene.meta.get("width")))
-    L = scene.meta["L"]
+    h = np.asarray(deposit_profile(state.x, particle_volumes(state), xs, SIGMA, width=scene.info.width))
+    L = scene.info.length
     out = {"top": float(x[:, 1].max()), "profile": h}
     if scene_name == "gates-collapse":
         out.update(left=float(-x[:, 0].min()), right=float(x[:, 0].max() - L))
@@ -83,7 +83,7 @@ def run_case(scene_name, dx, ppc=2, sampling="lattice", seed=0, **kw) -> dict:
     result = simulate(*scene, throw=False, timed=True)  # compiled before the clock starts
     obs = observe(scene_name, scene, result.state)
     return {"scene": scene_name, "dx": dx, "ppc": ppc, "sampling": sampling, "seed": seed,
-            "n_particles": scene.state.n_particles, "particles_per_cell": round(scene.meta["particles_per_cell"], 3),
+            "n_particles": scene.state.n_particles, "particles_per_cell": round(scene.info.particles_per_cell, 3),
             "n_steps": int(result.state.steps), "particle_steps": int(result.state.steps) * scene.state.n_particles,
             "run_s": round(result.run_s, 2), "status": result.status, **obs}
 
@@ -241,11 +241,11 @@ def cross_code(quick=False, plot_dir=None, converged=None, seeds=(0, 1, 2)) -> d
     runs with several sampling ``seeds`` (the spread is the observables' own sampling noise; the
     reference code ran one Poisson-disk sample)."""
     converged = converged or {"dx": 0.001, "ppc": 3, "sampling": "jitter"}
-    defaults = scenes.build_scene("gates-collapse", dx=0.003).meta
+    defaults = scenes.build_scene("gates-collapse", dx=0.003).info
     rows = []
-    plan = [("defaults", 0.003, 2.98e-3, defaults["ppc"], defaults["sampling"], seeds if not quick else seeds[:1])]
+    plan = [("defaults", 0.003, 2.98e-3, defaults.ppc, defaults.sampling, seeds if not quick else seeds[:1])]
     if not quick:
-        plan += [("defaults", 0.0015, 1.5e-3, defaults["ppc"], defaults["sampling"], seeds[:1]),
+        plan += [("defaults", 0.0015, 1.5e-3, defaults.ppc, defaults.sampling, seeds[:1]),
                  # the reference code's own sampling: Poisson disk, about 6 particles per cell
                  ("reference-like", 0.003, 2.98e-3, 2.45, "poisson", seeds),
                  ("reference-like", 0.0015, 1.5e-3, 2.45, "poisson", seeds[:1]),

@@ -53,9 +53,10 @@ def plot_run(scene, result, path, profile=None):
 
     p = np.asarray(invariants(result.state.tau)[0])
     fig, ax = plt.subplots(figsize=(8, 3.2))
-    L, H = scene.meta.get("L"), scene.meta.get("H")
-    if L is not None:
-        ax.plot([0, 0, L, L], [0, H, H, 0], "k:", lw=1, label="initial column")
+    info = scene.info
+    if info.wall_gap is not None and info.wall_gap <= 2 * info.dx:  # a body that starts on the bed (not a drop)
+        x0, x1, H = info.front0 - info.length, info.front0, info.height
+        ax.plot([x0, x0, x1, x1], [0, H, H, 0], "k:", lw=1, label="initial column")
     # 1st-99th percentile colour range: a few particles pressed on a wall would wash the map out
     art = ax.scatter(x[:, 0], x[:, 1], s=2, c=p, cmap="viridis", lw=0, vmin=min(0.0, float(np.percentile(p, 1))),
                      vmax=float(np.percentile(p, 99)))

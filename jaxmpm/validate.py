@@ -73,25 +73,25 @@ def bagnold(quick=False, plot_dir=None, alpha=0.95, slopes=(22.0, 24.0, 26.0, 28
             scene = scenes.incline(slope, dx=0.038 / div, t_end=t_end, frames=16, alpha=alpha, critical_start=True)
             if xpic:
                 scene = dataclasses.replace(scene, config=dataclasses.replace(scene.config, xpic=xpic))
-            gap = scene.meta["wall_gap"]
+            gap = scene.info.wall_gap
             result, wall = _timed(scene, _profile_observer)
             frames = {k: np.asarray(v) for k, v in result.frames.items()}
             # The critical start sets ε_v^p at t = 0; the volume change is counted from there.
             frames["vol"] = frames["vol"] / np.exp(np.asarray(scene.state.internal["eps_v_p"]))
             late = range(12, 16)
             v_s, v_a, prof = [], [], []
-            row = scene.config.grid.cells[0] * scene.meta["ppc"]
+            row = scene.config.grid.cells[0] * scene.info.ppc
             v_max = float(scenes.bagnold_velocity(0.038, 0.038, slope, scene.params))
             for k in late:
                 vx, z, vol = frames["vx"][k], frames["y"][k] - gap, frames["vol"][k]
-                h = vol.sum() / scene.meta["length"]
+                h = vol.sum() / scene.info.length
                 analytic = scenes.bagnold_velocity(z, h, slope, scene.params)
                 top = np.argsort(z)[-row:]
                 v_s.append(vx[top].mean())
                 v_a.append(analytic[top].mean())
                 prof.append(np.sqrt(np.mean((vx - analytic) ** 2)) / v_max)
             case = {
-                "slope_deg": slope, "dx": scene.meta["dx"], "n_particles": scene.state.n_particles,
+                "slope_deg": slope, "dx": scene.info.dx, "n_particles": scene.state.n_particles,
                 "v_surface": float(np.mean(v_s)), "v_surface_analytic": v_max,
                 "rel_error": float(np.mean(v_s) / v_max - 1.0),
                 "rel_error_local": float(np.mean(v_s) / np.mean(v_a) - 1.0), "profile_rel_error": float(np.mean(prof)),
@@ -122,14 +122,14 @@ def bagnold_from_rest(quick=False, plot_dir=None, alpha=0.95, slope=24.0, divisi
                            critical_start=True, start_from_analytic=False)
     if xpic:
         scene = dataclasses.replace(scene, config=dataclasses.replace(scene.config, xpic=xpic))
-    gap = scene.meta["wall_gap"]
+    gap = scene.info.wall_gap
     result, wall = _timed(scene, _profile_observer)
     fr = {k: np.asarray(v) for k, v in result.frames.items()}
     v_max = float(scenes.bagnold_velocity(0.038, 0.038, slope, scene.params))
     edges = np.linspace(0.0, 0.038, 20)
     mid = 0.5 * (edges[1:] + edges[:-1])
     analytic_mid = scenes.bagnold_velocity(mid, 0.038, slope, scene.params)
-    row = scene.config.grid.cells[0] * scene.meta["ppc"]
+    row = scene.config.grid.cells[0] * scene.info.ppc
     snapshots = []
     for k, t in enumerate(result.frame_times):
         vx, z = fr["vx"][k], fr["y"][k] - gap
@@ -141,7 +141,7 @@ def bagnold_from_rest(quick=False, plot_dir=None, alpha=0.95, slope=24.0, divisi
                           "surface_rel": float(vx[top].mean() / v_max),
                           "profile_rel_error": float(np.sqrt(np.mean((vx - analytic) ** 2)) / v_max),
                           "profile": [None if not np.isfinite(v) else float(v) for v in prof]})
-    out = {"study": "bagnold-from-rest", "slope_deg": slope, "dx": scene.meta["dx"], "alpha": alpha, "xpic": xpic,
+    out = {"study": "bagnold-from-rest", "slope_deg": slope, "dx": scene.info.dx, "alpha": alpha, "xpic": xpic,
            "dtype": str(jax.numpy.zeros(()).dtype), "t_end": t_end, "v_max_analytic": v_max,
            "z_bins": mid.tolist(), "analytic": analytic_mid.tolist(), "snapshots": snapshots,
            "status": result.status, "wall_s": round(wall, 1)}
@@ -223,7 +223,7 @@ def convergence(quick=False, plot_dir=None) -> dict:
         h, front, runout = _s3_observe(scene, result.state, xs)
         profiles.append(h)
         rows.append({
-            "dx": scene.meta["dx"], "ppc": scene.meta["ppc"], "sampling": scene.meta["sampling"],
+            "dx": scene.info.dx, "ppc": scene.info.ppc, "sampling": scene.info.sampling,
             "n_particles": scene.state.n_particles, "front": front, "runout": runout,
             "front_diff": abs(front - front_ref), "runout_diff": abs(runout - runout_ref),
             "profile_l2_rel": float(np.linalg.norm(h - h_ref) / np.linalg.norm(h_ref)),
@@ -373,7 +373,7 @@ def speed_accuracy(quick=False, plot_dir=None) -> dict:
             jax.config.update("jax_enable_x64", False)
         h, front, runout = _s3_observe(scene, result.state, xs)
         rows.append({
-            "dx": v["dx"], "ppc": scene.meta["ppc"], "sampling": scene.meta["sampling"],
+            "dx": v["dx"], "ppc": scene.info.ppc, "sampling": scene.info.sampling,
             "transfer": v.get("transfer", "aflip"), "xpic": v.get("xpic", 0),
             "dtype": v.get("dtype", "float32"), "cfl": v.get("cfl", 0.5), "n_particles": scene.state.n_particles,
             "n_steps": int(result.state.steps), "wall_s": round(result.run_s, 3),
@@ -386,7 +386,7 @@ def speed_accuracy(quick=False, plot_dir=None) -> dict:
                               for o in rows if o is not r)
     out = {"study": "speed-accuracy", "scene": "slope-collapse 10°", "t_end": t_end,
            "sigma_m": S3_SIGMA, "front_threshold_m": S3_FRONT_THRESHOLD,
-           "reference": {"dx": ref_dx, "ppc": ref_scene.meta["ppc"], "sampling": ref_scene.meta["sampling"],
+           "reference": {"dx": ref_dx, "ppc": ref_scene.info.ppc, "sampling": ref_scene.info.sampling,
                          "transfer": "aflip", "wall_s": round(ref.run_s, 2), "front": front_ref, "runout": runout_ref},
            "runs": rows}
     if plot_dir:
@@ -420,7 +420,7 @@ def _stability_case(label, scene, baseline_runout):
     v = np.asarray(result.state.v)
     finite = bool(np.isfinite(v).all() and np.isfinite(np.asarray(result.state.x)).all())
     vmax = float(np.abs(v).max()) if finite else float("nan")
-    runout = float(np.asarray(result.state.x)[:, 0].max() - scene.meta["front0"]) if finite else float("nan")
+    runout = float(np.asarray(result.state.x)[:, 0].max() - scene.info.front0) if finite else float("nan")
     deviation = None if baseline_runout is None or not finite else abs(runout - baseline_runout) / abs(baseline_runout)
     if result.status:
         outcome = "flagged"

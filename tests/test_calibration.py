@@ -174,20 +174,27 @@ def test_front_from_profile_and_empty_profile_gradients():
 
 
 def test_several_profiles_and_composite_objective(problem):
+    """Two profiles at two times in one objective; objectives that observe the same run the same
+    way share one compilation whatever their data; a composite's loss is its members' sum."""
     scene, truth, _ = problem
     xs = np.linspace(0.0, 0.16, 9)
-    p1, _ = synthetic(scene, KEYS, truth, xs=xs, times=(0.05,))
-    gen = Objective(scene, KEYS, profile=ProfileTarget(xs, np.ones_like(xs), 0.05), check_data=False)
+    gen = Objective(scene, KEYS, profile=[ProfileTarget(xs, np.ones_like(xs), 0.05), ProfileTarget(xs, np.ones_like(xs))],
+                    check_data=False)  # placeholders
     _, pred = gen.residuals(truth)
-    early = ProfileTarget(xs, np.asarray(pred["h"]), 0.05)
-    both = Objective(scene, KEYS, profile=[early, p1])
+    h = np.asarray(pred["h"])
+    early, late = ProfileTarget(xs, h[:9], 0.05), ProfileTarget(xs, h[9:])
+    both = Objective(scene, KEYS, profile=[early, late])
+    assert both.functions is gen.functions and both.observations == gen.observations
     r, _ = both.residuals(truth)
     np.testing.assert_array_equal(np.asarray(r), 0.0)
     assert set(both.blocks) == {"profile[0]", "profile[1]"}
-    comp = CompositeObjective([both, Objective(scene, KEYS, profile=p1)])
+    np.testing.assert_array_equal(np.asarray(both.predict(truth)["h"]), h)  # the prediction needs no data
+    other = Objective(scene, KEYS, profile=[early, ProfileTarget(xs, 1.1 * h[9:])])
+    comp = CompositeObjective([both, other])
     r, J, pred = comp.residuals_and_jacobian(truth * 1.1)
-    assert r.shape == (27,) and J.shape == (27, 2) and int(pred["status"]) == 0
-    assert comp.loss(truth * 1.1) == pytest.approx(both.loss(truth * 1.1) + comp.members[1].loss(truth * 1.1))
+    assert r.shape == (36,) and J.shape == (36, 2) and int(pred["status"]) == 0
+    assert comp.loss(truth * 1.1) == pytest.approx(both.loss(truth * 1.1) + other.loss(truth * 1.1))
+    assert other.loss(truth) > 0 and both.loss(truth) == 0.0  # same compiled run, each its own data
 
 
 # ---- fitting ---------------------------------------------------------------------------

@@ -29,8 +29,12 @@ def test_run_writes_h5_csv_and_json(tmp_path):
     assert abs(summary["runout"] - (summary["x_max"] - 0.089)) < 1e-6
     data = jm.io.read_h5(path)
     assert len(data["frames"]) == 2 and abs(data["attrs"]["param/beta"] - 0.1) < 1e-7
+    attrs = data["attrs"]  # the scene's description, SceneInfo.to_dict()
+    assert (attrs["length"], attrs["height"], attrs["front0"]) == (0.089, 0.089, 0.089) and "L" not in attrs
     lines = csv.read_text().splitlines()
     assert lines[0].startswith("# experiment: cohesive-collapse (synthetic") and "x_m,h_m" in lines
+    scene = json.loads(next(line for line in lines if line.startswith("# scene: "))[len("# scene: "):])
+    assert scene["length"] == 0.089 and scene["sampling"] == "jitter" and "L" not in scene
     rows = np.loadtxt(csv, delimiter=",", comments="#", skiprows=lines.index("x_m,h_m") + 1)
     assert rows.shape[1] == 2 and np.all(rows[:, 1] >= 0) and np.all(np.diff(rows[:, 0]) > 0)
 

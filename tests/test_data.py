@@ -364,8 +364,8 @@ def _check_params(setup, scene):
     numerics = setup["numerics"]
     assert (cfg.transfer, cfg.alpha, cfg.cfl) == (numerics["transfer"]["value"], numerics["alpha"]["value"],
                                                   numerics["cfl"]["value"])
-    assert scene.meta["ppc"] == numerics["ppc"]["value"]
-    assert scene.meta["sampling"] == numerics["sampling"]["value"]
+    assert scene.info.ppc == numerics["ppc"]["value"]
+    assert scene.info.sampling == numerics["sampling"]["value"]
 
 
 def _gate_speeds(scene):
@@ -379,19 +379,19 @@ def test_setups_agree_with_scene_builders():
     scene = scenes.gates_collapse()
     _check_params(s2, scene)
     g = s2["geometry"]
-    assert (scene.meta["L"], scene.meta["H"]) == (g["column_length_m"]["value"], g["column_height_m"]["value"])
+    assert (scene.info.length, scene.info.height) == (g["column_length_m"]["value"], g["column_height_m"]["value"])
     assert _gate_speeds(scene) == [s2["boundaries"]["gate_speed_m_per_s"]["value"]] * 2
     assert scene.config.t_end == s2["run"]["t_end_s"]["value"]
     assert math.isclose(s2["run"]["frames"]["value"] / s2["run"]["frame_rate_fps"]["value"], 0.4198, rel_tol=1e-4)
-    assert scene.meta["dx"] == s2["numerics"]["dx_m"]["value"]
+    assert scene.info.dx == s2["numerics"]["dx_m"]["value"]
 
     s3 = load_setup("setups/S3_slope_collapse")
     scene = scenes.slope_collapse()
     _check_params(s3, scene)
     g = s3["geometry"]
-    assert (scene.meta["L"], scene.meta["H"]) == (g["column_length_m"]["value"], g["column_height_m"]["value"])
-    assert scene.meta["slope_deg"] == g["default_slope_deg"]["value"] and _gate_speeds(scene) == []
-    assert scene.meta["dx"] == s3["numerics"]["dx_m"]["value"]
+    assert (scene.info.length, scene.info.height) == (g["column_length_m"]["value"], g["column_height_m"]["value"])
+    assert scene.info.slope_deg == g["default_slope_deg"]["value"] and _gate_speeds(scene) == []
+    assert scene.info.dx == s3["numerics"]["dx_m"]["value"]
     m = s3["material"]
     assert math.isclose(m["rho"]["value"], m["packing_fraction"]["value"] * m["rho_s"]["value"])
     assert "project choice" in m["pc0"]["source"] and "project choice" in m["xi"]["source"]
@@ -403,18 +403,18 @@ def test_setups_agree_with_scene_builders():
         s4_beta["material"]["beta"]["value"] = beta
         _check_params(s4_beta, scene)
     g = s4["geometry"]
-    assert (scene.meta["L"], scene.meta["H"]) == (g["column_length_m"]["value"], g["column_height_m"]["value"])
+    assert (scene.info.length, scene.info.height) == (g["column_length_m"]["value"], g["column_height_m"]["value"])
     assert _gate_speeds(scene) == [s4["boundaries"]["gate_speed_m_per_s"]["value"]]
     assert scene.config.t_end == s4["run"]["t_end_s"]["value"]
-    assert math.isclose(scene.meta["dx"], s4["numerics"]["dx_m"]["value"])
+    assert math.isclose(scene.info.dx, s4["numerics"]["dx_m"]["value"])
     m = s4["material"]
     assert math.isclose(m["rho"]["value"], m["packing_fraction"]["value"] * m["rho_s"]["value"])
 
     s5 = load_setup("setups/S5_aspect_ratio")
     scene = scenes.aspect_ratio_collapse()
     _check_params(s5, scene)
-    assert scene.meta["L"] == s5["geometry"]["L0_m"]["value"]
-    assert scene.meta["a"] == s5["geometry"]["default_aspect_ratio"]["value"]
+    assert scene.info.length == s5["geometry"]["L0_m"]["value"]
+    assert scene.info.aspect == s5["geometry"]["default_aspect_ratio"]["value"]
     assert "project choice" in s5["material"]["pc0"]["source"]
 
     s1 = load_setup("setups/S1_incline")

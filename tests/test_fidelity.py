@@ -64,7 +64,7 @@ def test_s2_defaults_at_3mm_within_3_percent_of_the_reference_code():
     from jaxmpm.fidelity import REFERENCE_S2, run_case
     from jaxmpm.scenes import build_scene
 
-    meta = build_scene("gates-collapse", dx=0.003).meta
-    row = run_case("gates-collapse", 0.003, meta["ppc"], meta["sampling"], 0)
+    info = build_scene("gates-collapse", dx=0.003).info
+    row = run_case("gates-collapse", 0.003, info.ppc, info.sampling, 0)
     for key, ref in REFERENCE_S2[2.98e-3].items():
         assert abs(row[key] / ref - 1.0) < 0.03, (key, row[key], ref)

@@ -66,7 +66,8 @@ def no_work(monkeypatch):
     def tripwire(*args, **kwargs):
         raise AssertionError("the model was evaluated: the input should have been refused before")
 
-    for name in ("residuals", "residuals_and_jacobian", "value_and_grad"):
+    for name in ("residuals", "residuals_and_jacobian", "residuals_and_jacobian_z", "value_and_grad", "predict",
+                 "residuals_resampled"):
         monkeypatch.setattr(Objective, name, tripwire)
     monkeypatch.setattr(SWEEP_MODULE, "_Evaluator", tripwire)
     monkeypatch.setattr(SEARCH_MODULE, "_batch_fn", tripwire)

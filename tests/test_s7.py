@@ -21,7 +21,7 @@ def test_scene_has_the_documented_geometry_and_parameters():
     scene = aluminium_bars()
     config, state, params = scene
     assert scene.name == "aluminium-bars"
-    assert (scene.meta["L"], scene.meta["H"], scene.meta["slope_deg"], scene.meta["dim"]) == (0.2, 0.1, 0.0, 2)
+    assert (scene.info.length, scene.info.height, scene.info.slope_deg, scene.info.dim) == (0.2, 0.1, 0.0, 2)
     assert config.grid.dx == 0.1 / 16 and config.t_end == 1.0 and state.n_particles == 4608
     # the column [0, L] x [0, H], half a cell above the no-slip floor, in front of the back wall
     x = np.asarray(state.x)
@@ -56,9 +56,9 @@ def test_setup_json_agrees_with_the_builder():
         assert math.isclose(got[key], material[key]["value"], rel_tol=1e-12), key
     assert math.isclose(math.degrees(math.atan(material["mu1"]["value"])), material["friction_angle_deg"]["value"])
     g, n = setup["geometry"], setup["numerics"]
-    assert (scene.meta["L"], scene.meta["H"]) == (g["column_length_m"]["value"], g["column_height_m"]["value"])
-    assert scene.meta["dx"] == n["dx_m"]["value"] and scene.config.t_end == setup["run"]["t_end_s"]["value"]
-    assert (scene.meta["ppc"], scene.meta["sampling"]) == (n["ppc"]["value"], n["sampling"]["value"])
+    assert (scene.info.length, scene.info.height) == (g["column_length_m"]["value"], g["column_height_m"]["value"])
+    assert scene.info.dx == n["dx_m"]["value"] and scene.config.t_end == setup["run"]["t_end_s"]["value"]
+    assert (scene.info.ppc, scene.info.sampling) == (n["ppc"]["value"], n["sampling"]["value"])
     assert (scene.config.transfer, scene.config.alpha, scene.config.cfl) == (
         n["transfer"]["value"], n["alpha"]["value"], n["cfl"]["value"])
     # what was not measured says so

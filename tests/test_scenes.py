@@ -31,17 +31,42 @@ def test_scene_builds_and_runs(build):
     scene = build()
     config, state, params = scene
     x = np.asarray(state.x)
-    gap, dx = scene.meta["wall_gap"], scene.meta["dx"]
+    gap, dx = scene.info.wall_gap, scene.info.dx
     np.testing.assert_allclose(x[:, 1].min(), 0.501 * dx, rtol=1e-12)
-    if scene.meta.get("sampling", "lattice") == "lattice":  # rows of spacing H / round(H ppc / dx)
-        height = scene.meta.get("H", scene.meta.get("depth"))
-        spacing = height / round(height * scene.meta["ppc"] / dx)
+    if scene.info.sampling == "lattice":  # rows of spacing H / round(H ppc / dx)
+        height = scene.info.height
+        spacing = height / round(height * scene.info.ppc / dx)
         np.testing.assert_allclose(gap, 0.501 * dx - 0.5 * spacing, rtol=1e-9)
-    if "L" in scene.meta:
-        assert x[:, 0].min() > 0 and x[:, 0].max() < scene.meta["L"] and x[:, 1].max() < scene.meta["H"] + gap
+    assert x[:, 0].min() > 0 and x[:, 0].max() < scene.info.length and x[:, 1].max() < scene.info.height + gap
     assert _stencil_nodes_behind_walls(config, state) == 0
     result = jm.simulate(config, state, params)
     assert result.status == 0 and float(result.state.t) == config.t_end
+
+
+def test_scene_info_is_one_typed_description():
+    """Every scene describes itself with a SceneInfo: one name per fact (length, height, ...),
+    None where a fact does not apply; to_dict() keeps the facts that apply, as JSON values."""
+    import dataclasses
+    import json
+
+    column = scenes.aspect_ratio_collapse(2.0, dx=0.025, t_end=0.02)
+    layer = scenes.incline(26.0, dx=0.038 / 4, t_end=0.01)
+    block = scenes.falling_block(n_particles=64, t_end=0.01)
+    assert (column.info.length, column.info.height, column.info.aspect) == (0.05, 0.1, 2.0)
+    assert column.info.critical_start is None and column.info.width is None and column.info.side_gap > 0
+    assert (layer.info.height, layer.info.length, layer.info.critical_start) == (0.038, 4 * 0.038 / 4, False)
+    assert layer.info.aspect is None and layer.info.side_gap is None and layer.info.slope_deg == 26.0
+    assert block.info.length == block.info.height == 0.5 and block.info.seed is None
+    assert block.info.front0 == pytest.approx(float(np.asarray(block.state.x)[:, 0].max()) + block.info.dx / 4)
+    out = column.info.to_dict()
+    assert json.loads(json.dumps(out)) == out and "critical_start" not in out and out["aspect"] == 2.0
+    assert isinstance(out["ppc"], int) and isinstance(out["particles_per_cell"], float)
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        column.info.length = 1.0
+    with pytest.raises(ValueError, match="SceneInfo.dim"):
+        dataclasses.replace(column.info, dim=4)
+    with pytest.raises(ValueError, match="SceneInfo.dx"):
+        dataclasses.replace(column.info, dx=0.0)
 
 
 def _stencil_nodes_behind_walls(config, state):
@@ -92,7 +117,7 @@ def test_flow_reaching_the_grid_edge_sets_the_edge_bit():
 
 def test_incline_starts_on_the_bagnold_profile():
     scene = scenes.incline(24.0, dx=0.038 / 8)
-    z, v = np.asarray(scene.state.x[:, 1]) - scene.meta["wall_gap"], np.asarray(scene.state.v[:, 0])
+    z, v = np.asarray(scene.state.x[:, 1]) - scene.info.wall_gap, np.asarray(scene.state.v[:, 0])
     np.testing.assert_allclose(v, scenes.bagnold_velocity(z, 0.038, 24.0, scene.params), rtol=1e-6)
     # MODEL.md §6 worked example: v_max = 1.483 m/s at 24° for h = 0.038 m.
     assert abs(scenes.bagnold_velocity(0.038, 0.038, 24.0, scene.params) - 1.483) < 2e-3
@@ -129,7 +154,7 @@ def test_incline_critical_start_sets_pc_to_twice_the_lithostatic_pressure():
 
     scene = jm.scenes.incline(24.0, dx=0.038 / 8, critical_start=True)
     params = scene.params
-    z = np.asarray(scene.state.x[:, 1]) - scene.meta["wall_gap"]
+    z = np.asarray(scene.state.x[:, 1]) - scene.info.wall_gap
     p = float(params.rho) * 9.81 * math.cos(math.radians(24.0)) * (0.038 - z)
     pc = float(params.pc0) * np.exp(-float(params.xi) * np.asarray(scene.state.internal["eps_v_p"]))
     np.testing.assert_allclose(pc, 2.0 * p, rtol=1e-10)

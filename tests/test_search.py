@@ -178,7 +178,8 @@ def test_bad_search_options_are_refused_before_any_work(monkeypatch, tmp_path, c
         raise AssertionError("the model was compiled: the input should have been refused before")
 
     monkeypatch.setattr(SEARCH_MODULE, "_batch_fn", tripwire)
-    monkeypatch.setattr(Objective, "residuals_and_jacobian", tripwire)
+    for name in ("residuals", "residuals_and_jacobian", "residuals_and_jacobian_z"):
+        monkeypatch.setattr(Objective, name, tripwire)
     monkeypatch.chdir(tmp_path)
     with pytest.raises(SystemExit) as exc:
         main(["fit", "--scene", "cohesive-collapse", "--data", str(S4), "--fit", "beta,mu1", *extra,
@@ -205,8 +206,9 @@ def test_coarse_to_fine_refines_the_coarse_minima_and_finds_the_truth(objective)
 
     coarse = Objective(scenes.cohesive_collapse(dx=0.089 / 3, t_end=0.1), KEYS,
                        profile=ProfileTarget(objective.profiles[0].x, objective.profiles[0].h))
-    result = coarse_to_fine(objective, coarse, K, refine=2, seed=0, coarse_options={"steps": 5}, steps=12,
-                            roundoff_samples=0)
+    # shrink=False: one compiled batch size per stage (the search pads the active starts to it)
+    result = coarse_to_fine(objective, coarse, K, refine=2, seed=0, coarse_options={"steps": 5, "shrink": False},
+                            steps=12, roundoff_samples=0, shrink=False)
     assert result.coarse is not None and len(result.coarse.starts) == K
     assert 1 <= len(result.starts) <= max(2, len(result.coarse.within_noise))
     placed = [objective.bounds.move_inside(list(m.theta.values()))[0] for m in result.coarse.minima]
@@ -265,7 +267,7 @@ def test_the_particle_draw_s_share_of_the_interval(found, objective):
     from calibration.uncertainty import sampling_scatter
 
     scene = objective.scene
-    again, other = scene.resampled(scene.meta["seed"]), scene.resampled(scene.meta["seed"] + 1)
+    again, other = scene.resampled(scene.info.seed), scene.resampled(scene.info.seed + 1)
     np.testing.assert_array_equal(np.asarray(again.x), np.asarray(scene.state.x))
     assert other.x.shape == scene.state.x.shape and not np.allclose(np.asarray(other.x), np.asarray(scene.state.x))
     i = found.best_start

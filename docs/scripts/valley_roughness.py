@@ -42,7 +42,7 @@ def objective(cfg, profile):
         return CompositeObjective([cal.Objective(build_scene("cohesive-collapse", dx=DX, values=VALUES, seed=s), KEYS,
                                                  profile=profile) for s in range(cfg["seeds"])])
     scene = build_scene("cohesive-collapse", dx=DX, values=VALUES, ppc=cfg.get("ppc"))
-    sigma = cfg["sigma_factor"] * DX / scene.meta["ppc"] if "sigma_factor" in cfg else None
+    sigma = cfg["sigma_factor"] * DX / scene.info.ppc if "sigma_factor" in cfg else None
     return cal.Objective(scene, KEYS, profile=profile, sigma=sigma)
 
 

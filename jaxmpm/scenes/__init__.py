@@ -6,10 +6,11 @@ from .collapse import (
 )
 from .elastic import falling_block
 from .incline import S1_PARAMS, bagnold_velocity, incline
+from .info import SceneInfo
 
 __all__ = [
     "SCENE_NAMES", "add_scene_arguments", "build_scene", "parse_set", "scene_from_args",
-    "DEFAULT_PPC", "DEFAULT_SAMPLING", "S1_PARAMS", "bagnold_velocity", "incline", "S2_PARAMS", "S3_PARAMS", "S4_PARAMS", "S5_PARAMS", "S7_PARAMS", "Scene", "aluminium_bars", "aspect_ratio_collapse", "cohesive_collapse",
+    "DEFAULT_PPC", "DEFAULT_SAMPLING", "S1_PARAMS", "bagnold_velocity", "incline", "S2_PARAMS", "S3_PARAMS", "S4_PARAMS", "S5_PARAMS", "S7_PARAMS", "Scene", "SceneInfo", "aluminium_bars", "aspect_ratio_collapse", "cohesive_collapse",
     "collapse", "falling_block", "gates_collapse", "height_law", "runout_law", "slope_collapse",
 ]
 

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from typing import Any, Callable
+from typing import Callable
 
 from ..boundary import Wall
 from ..config import Config, Grid
@@ -22,6 +22,7 @@ from ..params import Params
 from ..sampling import SAMPLINGS, particles_per_cell, seed_box
 from ..state import State, init_state
 from ..step import step_budget
+from .info import SceneInfo
 
 __all__ = [
     "DEFAULT_PPC", "DEFAULT_SAMPLING", "S2_DEFAULT_PPC", "Scene", "floor_lift", "S2_PARAMS", "S3_PARAMS", "S4_PARAMS", "S5_PARAMS",
@@ -56,7 +57,7 @@ class Scene:
     config: Config
     state: State
     params: Params
-    meta: dict[str, Any]  # geometry and set-up facts (L, H, slope, initial front, ...)
+    info: SceneInfo  # geometry and set-up facts (body extents, slope, initial front, sampling, ...)
     #: seed -> the same body sampled with another seed (None: the scene's sampling has no seed).
     sampler: Callable[[int], State] | None = dataclasses.field(default=None, compare=False, repr=False)
 
@@ -67,11 +68,11 @@ class Scene:
     def back_face(self) -> float | None:
         """The x (m) of the body's back face where it rests against a fixed back wall: where an
         experiment's back wall is (x = 0 for the collapses; the model's wall plane sits
-        ``meta["side_gap"]`` behind it so that no particle starts on the edge of its stencil).
+        ``info.side_gap`` behind it so that no particle starts on the edge of its stencil).
         Deposit profiles are mirrored here (``jaxmpm.observables.deposit_profile``). None
         without a fixed wall facing +x."""
         wall = back_wall_x(self.config.walls)
-        return None if wall is None else wall + float(self.meta.get("side_gap") or 0.0)
+        return None if wall is None else wall + float(self.info.side_gap or 0.0)
 
     def resampled(self, seed: int) -> State:
         """The initial state of this scene with its particles sampled with ``seed`` instead of its
@@ -230,9 +231,9 @@ def collapse(
         return x_, vol_, lift_
 
     x, vol, lift = body(seed)
-    meta = {"L": length, "H": height, "slope_deg": slope_deg, "front0": length, "dim": dim, "dx": dx,
-            "ppc": ppc, "sampling": sampling, "seed": seed, "wall_gap": lift, "side_gap": gap_x, "width": channel,
-            "particles_per_cell": particles_per_cell(len(x), (0.0,) * dim, upper, dx)}
+    info = SceneInfo(dim=dim, dx=dx, ppc=ppc, sampling=sampling, seed=seed, front0=length, length=length,
+                     height=height, width=channel, slope_deg=slope_deg, wall_gap=lift, side_gap=gap_x,
+                     particles_per_cell=particles_per_cell(len(x), (0.0,) * dim, upper, dx))
     sampler = None
     if sampling != "lattice":  # a regular lattice has no seed
 
@@ -240,7 +241,7 @@ def collapse(
             x_, vol_, _ = body(seed_)
             return init_state(config, x_, vol_, dtype=dtype)
 
-    return Scene(name, config, init_state(config, x, vol, dtype=dtype), params, meta, sampler)
+    return Scene(name, config, init_state(config, x, vol, dtype=dtype), params, info, sampler)
 
 
 #: S2's own default particles per cell: with dx = 1.5 mm, the cheapest setting whose runouts, top
@@ -313,8 +314,7 @@ def aspect_ratio_collapse(a: float = 1.0, L0: float = 0.05, dx: float | None = N
     t_end = t_end if t_end is not None else 4.0 * math.sqrt(height / G) + 0.1
     scene = collapse("aspect-ratio", L0, height, dx=dx, ppc=ppc, dim=dim, width=width, t_end=t_end,
                      frames=frames, base_params=S5_PARAMS, **kw)
-    scene.meta["a"] = a
-    return scene
+    return dataclasses.replace(scene, info=dataclasses.replace(scene.info, aspect=a))
 
 
 #: S7 aluminium bars (Bui, Fukagawa, Sako & Ohno 2008), every value with its source

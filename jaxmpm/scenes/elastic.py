@@ -12,6 +12,7 @@ from ..sampling import seed_box
 from ..state import init_state
 from ..step import step_budget
 from .collapse import Scene
+from .info import SceneInfo
 
 __all__ = ["falling_block"]
 
@@ -61,5 +62,6 @@ def falling_block(
     )
     x, vol = seed_box(lower, upper, dx, 2)
     state = init_state(config, x, vol, dtype=dtype)
-    meta = {"front0": float(upper[0]), "dx": dx, "ppc": 2}
-    return Scene("elastic-block", config, state, Params.create(dtype=dtype, **param_values), meta)
+    info = SceneInfo(dim=dim, dx=dx, ppc=2, sampling="lattice", front0=float(upper[0]), length=width,
+                     height=width, wall_gap=lift)
+    return Scene("elastic-block", config, state, Params.create(dtype=dtype, **param_values), info)

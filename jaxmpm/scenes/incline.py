@@ -4,7 +4,7 @@ A layer of depth h on a rough (no-slip) bed at y = 0, periodic along the slope (
 rotated to g = 9.81 (sin θ, -cos θ). The periodic length is a few cells: the steady state is
 uniform in x, so nothing is gained by a longer domain. As in the collapses (``collapse.py``),
 the layer is raised so that its lowest particle lies half a cell above the bed (no particle's
-stencil reaches a node below it); its lower face then stands ``meta["wall_gap"]`` above the bed
+stencil reaches a node below it); its lower face then stands ``info.wall_gap`` above the bed
 (dx/4 for a 2 × 2 lattice), and z = y - wall_gap is the height in the layer.
 """
 
@@ -20,6 +20,7 @@ from ..sampling import seed_box
 from ..state import init_state
 from ..step import step_budget
 from .collapse import G, Scene, floor_lift
+from .info import SceneInfo
 
 __all__ = ["incline", "S1_PARAMS", "bagnold_velocity"]
 
@@ -94,13 +95,13 @@ def incline(slope_deg: float = 24.0, dx: float | None = None, ppc: int = 2, dept
     v = None
     if start_from_analytic:
         v = [[vx, 0.0] for vx in bagnold_velocity(z, depth, slope_deg, params)]
-    meta = {"slope_deg": slope_deg, "depth": depth, "dx": dx, "ppc": ppc, "length": length_cells * dx,
-            "front0": float(length_cells * dx), "critical_start": bool(critical_start), "wall_gap": gap,
-            "sampling": sampling, "seed": seed}
+    info = SceneInfo(dim=2, dx=dx, ppc=ppc, sampling=sampling, seed=seed, front0=float(length_cells * dx),
+                     length=length_cells * dx, height=depth, slope_deg=slope_deg, wall_gap=gap,
+                     critical_start=bool(critical_start))
     state = init_state(config, x, vol, v=v, dtype=dtype)
     if critical_start:
         state = _at_critical_state(state, z, depth, theta, params)
-    return Scene("incline", config, state, params, meta)
+    return Scene("incline", config, state, params, info)
 
 
 def _at_critical_state(state, y, depth, theta, params):

@@ -1,0 +1,216 @@
+"""What a calibration run observes, kept apart from what was measured.
+
+``Observations`` says where and when a run is looked at: the x points of each deposit profile
+and its time, the times of the front, and how both are read (the kernel width σ, the mirror at
+the back wall, the front's threshold and reference point). It holds no measured value.
+
+``model_functions(config, observations, keys)`` builds the pure functions a fit needs, jitted
+once per distinct (run configuration, observations, fitted keys) in the process: the data (what
+was measured, and the scales of the residuals) are arguments, not constants of the trace. A
+twin's generator and its fit, the seeds of a coverage study or two objectives of the same
+experiment against different files share one compiled run. Functions of the unconstrained z
+take the bounds as arguments and map z -> θ inside the traced function, so autodiff supplies
+the chain rule of the bounds transform.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+from typing import Callable, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxmpm import make_rollout
+from jaxmpm.config import Config
+from jaxmpm.observables import deposit_profile, front_from_profile, particle_volumes
+
+__all__ = ["ModelFunctions", "Observations", "jacobian_by_columns", "model_functions", "to_physical"]
+
+#: Compiled (configuration, observations, keys) kept at once; each holds a compiled rollout.
+CACHE_SIZE = 4
+
+
+def _frozen(a) -> np.ndarray:
+    a = np.array(a, float)
+    a.setflags(write=False)
+    return a
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class Observations:
+    """Where and when a run is observed.
+
+    profile_x: the x points (m) of each profile; profile_times: the time (s) of each.
+    front_times: the times (s) of the front (None: no front). front_points: the uniform x (m)
+    on which the front's profile is read (``jaxmpm.observables.front_from_profile``).
+    sigma: the profile kernel's width (m); front_threshold: the height (m) below which the
+    deposit has ended; x_ref: where the front is measured from (m); mirror: the x (m) where
+    the kernel is mirrored (None: nowhere); width: the channel width (m) of a 3D run (None in
+    2D). Equal observations (by content) compile to the same functions."""
+
+    profile_x: tuple[np.ndarray, ...]
+    profile_times: tuple[float, ...]
+    front_times: np.ndarray | None
+    front_points: np.ndarray
+    sigma: float
+    front_threshold: float
+    x_ref: float = 0.0
+    mirror: float | None = None
+    width: float | None = None
+
+    def __post_init__(self):
+        set_ = functools.partial(object.__setattr__, self)
+        set_("profile_x", tuple(_frozen(x) for x in self.profile_x))
+        set_("profile_times", tuple(float(t) for t in self.profile_times))
+        set_("front_times", None if self.front_times is None else _frozen(self.front_times))
+        set_("front_points", _frozen(self.front_points))
+        if len(self.profile_x) != len(self.profile_times):
+            raise ValueError(f"profile_times: {len(self.profile_times)} times for {len(self.profile_x)} profiles")
+        if not self.profile_x and self.front_times is None:
+            raise ValueError("observations: no profile and no front: nothing is observed")
+
+    @property
+    def times(self) -> tuple[float, ...]:
+        """Every observation time, sorted, each once: the run's frame times."""
+        front = () if self.front_times is None else tuple(float(t) for t in self.front_times)
+        return tuple(sorted(set(self.profile_times) | set(front)))
+
+    @property
+    def n_profile(self) -> int:
+        return int(sum(x.size for x in self.profile_x))
+
+    @property
+    def n_front(self) -> int:
+        return 0 if self.front_times is None else int(self.front_times.size)
+
+    def _key(self):
+        arrays = self.profile_x + ((self.front_times,) if self.front_times is not None else ()) + (self.front_points,)
+        return (tuple((a.shape, a.tobytes()) for a in arrays), self.profile_times, self.front_times is None,
+                self.sigma, self.front_threshold, self.x_ref, self.mirror, self.width)
+
+    def __eq__(self, other):
+        return isinstance(other, Observations) and self._key() == other._key()
+
+    def __hash__(self):
+        return hash(self._key())
+
+    def observer(self) -> Callable:
+        """``(state, params) -> {"h": heights at every profile's points, "front": front x}``."""
+        x_all = np.concatenate(self.profile_x) if self.profile_x else np.zeros(1)
+        sigma, thr, x_ref, mirror, width, xs_front = (self.sigma, self.front_threshold, self.x_ref, self.mirror,
+                                                      self.width, self.front_points)
+
+        def observe(state, params):
+            vol = particle_volumes(state)
+            dtype = state.x.dtype
+            h = deposit_profile(state.x, vol, jnp.asarray(x_all, dtype), sigma, width=width, mirror=mirror)
+            h_front = deposit_profile(state.x, vol, jnp.asarray(xs_front, dtype), sigma, width=width, mirror=mirror)
+            return {"h": h, "front": front_from_profile(jnp.asarray(xs_front, dtype), h_front, thr, x_ref)}
+
+        return observe
+
+
+def to_physical(z, lower, upper):
+    """θ = lower + (upper − lower) sigmoid(z) (``calibration.bounds.Bounds.to_physical``)."""
+    return lower + (upper - lower) * jax.nn.sigmoid(z)
+
+
+def jacobian_by_columns(fn, x):
+    """Forward-mode Jacobian of ``fn(x) -> (y, aux)`` (x a vector): ``(dy/dx, (y, aux))``.
+
+    The columns are ``jax.jvp`` passes in a ``lax.map``, one after the other, not ``jax.jacfwd``'s
+    vmapped batch: on the CPU the batch carries every tangent through each scatter and gather of
+    the step together and costs more than the passes one at a time (at the S4 fit of issue 10,
+    dx = 4 mm, two parameters: jacfwd 7.2 forward runs, two passes 3.7). Each pass recomputes
+    the primal, so the residuals come from the first."""
+    def column(tangent):
+        y, dy, aux = jax.jvp(fn, (x,), (tangent,), has_aux=True)
+        return dy, y, aux
+
+    dy, y, aux = jax.lax.map(column, jnp.eye(x.shape[0], dtype=x.dtype))
+    first = lambda a: a[0]  # noqa: E731
+    return jnp.moveaxis(dy, 0, -1), (first(y), jax.tree.map(first, aux))
+
+
+class ModelFunctions(NamedTuple):
+    """The pure functions of one (configuration, observations, keys). ``data`` is the dict of
+    measured values and scales (``Objective.data``): ``h``, ``h_scale`` (profile points),
+    ``front``, ``front_scale`` (front times), ``row_scale`` (every residual). θ: physical
+    values of ``keys``; z: unconstrained, with θ = ``to_physical(z, lower, upper)``.
+
+    - ``predict(theta, state, base)``: {"status", "h", "front"} (unjitted); ``predictions``: jit(predict);
+    - ``residual(theta, state, base, data)``: (r, prediction) (unjitted, for vmap and grad);
+    - ``residuals``: jit(residual); ``jacobian``: jit, (dr/dθ, (r, prediction));
+    - ``jacobian_z(z, lower, upper, state, base, data)``: jit, (dr/dz, (r, prediction));
+    - ``value_and_grad``: jit, ((Σ r², prediction), dΣr²/dθ);
+    - ``batched``: jit(vmap(residual)) over rows of θ; ``batched_jacobian_z``: over rows of z."""
+
+    config: Config
+    predict: Callable
+    predictions: Callable
+    residual: Callable
+    residuals: Callable
+    jacobian: Callable
+    jacobian_z: Callable
+    value_and_grad: Callable
+    batched: Callable
+    batched_jacobian_z: Callable
+
+
+def model_functions(config: Config, observations: Observations, keys: tuple[str, ...]) -> ModelFunctions:
+    """The ``ModelFunctions`` of ``keys`` observed by ``observations`` in runs of ``config``
+    (its frame times are replaced by the observation times), from a cache of ``CACHE_SIZE``."""
+    return _model_functions(config, observations, tuple(keys))
+
+
+@functools.lru_cache(maxsize=CACHE_SIZE)
+def _model_functions(config: Config, observations: Observations, keys: tuple[str, ...]) -> ModelFunctions:
+    times = observations.times
+    config = dataclasses.replace(config, frame_times=times, max_steps=config.max_steps + len(times))
+    rollout = make_rollout(config, observations.observer())
+    offsets = np.cumsum([0] + [x.size for x in observations.profile_x])
+    slices = [slice(int(a), int(b)) for a, b in zip(offsets[:-1], offsets[1:])]
+    prof_index = [times.index(t) for t in observations.profile_times]
+    front_index = (None if observations.front_times is None
+                   else np.array([times.index(float(t)) for t in observations.front_times]))
+
+    def predict(theta, state, base):
+        theta = jnp.asarray(theta, jnp.result_type(base.E))
+        final, frames = rollout(state, base.replace(**{k: theta[i] for i, k in enumerate(keys)}))
+        out = {"status": final.status}
+        if slices:
+            out["h"] = jnp.concatenate([frames["h"][i, sl] for i, sl in zip(prof_index, slices)])
+        if front_index is not None:
+            out["front"] = frames["front"][jnp.asarray(front_index)]
+        return out
+
+    def residual(theta, state, base, data):
+        pred = predict(theta, state, base)
+        parts = []
+        if slices:
+            parts.append((pred["h"] - data["h"]) / data["h_scale"])
+        if front_index is not None:
+            parts.append((pred["front"] - data["front"]) / data["front_scale"])
+        return jnp.concatenate(parts) * data["row_scale"], pred
+
+    def residual_z(z, lower, upper, state, base, data):
+        return residual(to_physical(z, lower, upper), state, base, data)
+
+    def loss(theta, state, base, data):
+        r, pred = residual(theta, state, base, data)
+        return jnp.sum(r * r), pred
+
+    def jac(theta, state, base, data):
+        return jacobian_by_columns(lambda t: residual(t, state, base, data), theta)
+
+    def jac_z(z, lower, upper, state, base, data):
+        return jacobian_by_columns(lambda z_: residual_z(z_, lower, upper, state, base, data), z)
+
+    return ModelFunctions(
+        config=config, predict=predict, predictions=jax.jit(predict), residual=residual, residuals=jax.jit(residual), jacobian=jax.jit(jac),
+        jacobian_z=jax.jit(jac_z), value_and_grad=jax.jit(jax.value_and_grad(loss, has_aux=True)),
+        batched=jax.jit(jax.vmap(residual, in_axes=(0, None, None, None))),
+        batched_jacobian_z=jax.jit(jax.vmap(jac_z, in_axes=(0, None, None, None, None, None))))
