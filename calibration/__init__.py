@@ -11,20 +11,23 @@ one vmapped batch and reports every minimum within the noise of the best. Both r
 parameter sets at once. The studies return dataclasses whose ``to_json()`` the command line
 prints: ``twin`` fits data with known parameters (``TwinResult``), ``scaling`` fits the S5 runout
 law (``LawResult``), ``bench`` times an evaluation (``BenchResult``), ``coverage`` runs twins over
-noise seeds (``CoverageResult``).
+noise seeds (``CoverageResult``). ``likelihood`` goes beyond Gauss–Newton: profile likelihoods, the
+posterior of one or two keys on a grid, and predictions of held-out data with a band.
 """
 
 from .bounds import DEFAULT_BOUNDS, FIT_KEYS, Bounds
 from .data import FrontHistory, Profile, RunoutLaw, list_datasets, load_front_history, load_profile, load_scaling_law
 from .fit import FitResult, fit
 from .history import read_history
+from .likelihood import GridPosterior, HeldOut, ProfileLikelihood, grid_posterior, predict_heldout, profile_likelihood
 from .objective import CompositeObjective, FrontTarget, Objective, ProfileTarget
 from .observe import ModelFunctions, Observations, model_functions
 from .search import Minimum, SearchResult, coarse_to_fine, design_starts, search
 from .uncertainty import Uncertainty, Verdict, assess_fit, gauss_newton_uncertainty, structural_noise
 
 __all__ = [
-    "DEFAULT_BOUNDS", "FIT_KEYS", "Bounds", "CompositeObjective", "FitResult", "FrontHistory", "FrontTarget",
+    "DEFAULT_BOUNDS", "FIT_KEYS", "Bounds", "GridPosterior", "HeldOut", "ProfileLikelihood", "grid_posterior",
+    "predict_heldout", "profile_likelihood", "CompositeObjective", "FitResult", "FrontHistory", "FrontTarget",
     "Minimum", "ModelFunctions", "Objective", "Observations", "Profile", "ProfileTarget", "RunoutLaw", "SearchResult", "Uncertainty", "Verdict",
     "assess_fit", "design_starts", "fit", "gauss_newton_uncertainty", "list_datasets", "load_front_history",
     "coarse_to_fine", "load_profile", "model_functions", "load_scaling_law", "read_history", "search", "structural_noise",

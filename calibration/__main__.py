@@ -198,9 +198,40 @@ def _fit(args) -> int:
     if near:
         out["warning"] = f"{near} ended at a bound: the data push them outside the physical range"
     errors: dict[str, str] = {}
+    profiles, posterior = _beyond_gauss_newton(args, objective, result, out)
     if args.plot:
         out["figures"] = _guard(errors, "--plot", lambda: _plots(args.plot, objective, result, prefix="fit"))
+        if profiles:
+            from .plots import plot_profile_likelihoods
+
+            path = pathlib.Path(args.plot) / "fit_likelihood.png"
+            out["figures"] = (out["figures"] or []) + (_guard(errors, "--plot", lambda: [str(
+                plot_profile_likelihoods(profiles, path, posterior=posterior))]) or [])
     return _finish(out, args, errors)
+
+
+def _beyond_gauss_newton(args, objective, result, out):
+    """--profiles N and --posterior N on the fit's point: the JSON blocks "profile_likelihood"
+    and "posterior"; skipped, with the reason, where the point has no interval to scan around."""
+    if not (args.profiles or args.posterior):
+        return [], None
+    if result.uncertainty is None or result.uncertainty.withheld:
+        out["profile_likelihood_skipped"] = "the point is not a fit of the data: no interval to scan around"
+        return [], None
+    from .likelihood import grid_posterior, profile_likelihood
+
+    profiles = [profile_likelihood(objective, result, k, n=args.profiles, noise=args.noise) for k in result.keys
+                ] if args.profiles else []
+    if profiles:
+        out["profile_likelihood"] = {p.key: p.to_json() for p in profiles}
+    posterior = None
+    if args.posterior:
+        if len(result.keys) > 2:
+            out["posterior_skipped"] = f"{len(result.keys)} keys: the grid posterior is for one or two"
+        else:
+            posterior = grid_posterior(objective, result, n=args.posterior, noise=args.noise)
+            out["posterior"] = posterior.to_json()
+    return profiles, posterior
 
 
 def _finish(out, args, errors) -> int:
@@ -477,6 +508,12 @@ def build_parser() -> argparse.ArgumentParser:
     fit.add_argument("--sampling-seeds", type=int, default=0, metavar="K",
                      help="K other draws of the particles at the end point: the sampling's share of the interval "
                           "(stderr_sampling; one forward run each; default 0: not measured)")
+    fit.add_argument("--profiles", type=int, default=0, metavar="N",
+                     help="profile likelihood of every fitted key at N values over +-4 standard errors, the others "
+                          "refitted at each (calibration.likelihood; default 0: off)")
+    fit.add_argument("--posterior", type=int, default=0, metavar="N",
+                     help="the posterior of one or two keys (flat prior) by quadrature on an N-point grid per key "
+                          "over +-4 standard errors (N^k runs; default 0: off)")
     fit.add_argument("--refine", type=int, default=2, metavar="N",
                      help="coarse minima refined at the requested resolution (default 2; all within the noise of "
                           "the best if more)")
@@ -630,6 +667,10 @@ def main(argv=None) -> int:
             value = getattr(args, name, None)
             if value is not None and value < 1:
                 raise ValueError(f"--{name} must be >= 1, got {value}")
+        for name in ("profiles", "posterior"):
+            value = getattr(args, name, 0)
+            if value and value < 3:
+                raise ValueError(f"--{name} must be 0 (off) or >= 3, got {value}")
         for name in ("noise", "reference_noise", "threshold"):
             value = getattr(args, name, None)
             if value is not None and not (math.isfinite(value) and value >= 0):

@@ -244,7 +244,7 @@ def plot_profile_likelihoods(profiles, path, *, truth=None, posterior=None):
     """One panel per ``calibration.likelihood.ProfileLikelihood``: Δχ² against the key's value
     with the Wilks 95 % level (3.84), the profile interval (shaded), the Gauss–Newton one (bars)
     and, from a ``GridPosterior``, its marginal (right axis); a 2D posterior adds a panel of its
-    density with the fit's point."""
+    density (its grid points grey) and 95 % region with the fit's point."""
     from .likelihood import DELTA_CHI2_95
 
     plt = _plt()
@@ -263,9 +263,8 @@ def plot_profile_likelihoods(profiles, path, *, truth=None, posterior=None):
         if truth is not None and prof.key in truth:
             ax.axvline(truth[prof.key], color="k", lw=1, label="truth")
         if posterior is not None and prof.key in posterior.keys:
-            j = posterior.keys.index(prof.key)
             twin = ax.twinx()
-            twin.plot(posterior.axes[j], posterior.marginal(prof.key), color="C2", lw=1.2)
+            twin.plot(*posterior.marginal(prof.key), color="C2", lw=1.2)
             twin.set_ylabel("posterior density", color="C2")
             twin.set_ylim(bottom=0)
         ax.set_xlabel(prof.key)
@@ -275,10 +274,14 @@ def plot_profile_likelihoods(profiles, path, *, truth=None, posterior=None):
         ax.legend(fontsize=7, loc="upper center")
     if n > len(profiles):
         ax = axes[0][-1]
-        a, b = posterior.axes
-        ax.contourf(a, b, posterior.density.T, levels=12, cmap="Greens")
-        dchi2 = posterior.chi2 - np.nanmin(posterior.chi2)
-        ax.contour(a, b, dchi2.T, levels=[2 * np.log(1 / 0.05)], colors="k", linewidths=0.8)  # 95 % region (2 dof)
+        # The grid is structured (regular in the whitened coordinates): contour it as a curvilinear grid.
+        a, b = (posterior.points[:, i].reshape(posterior.shape) for i in (0, 1))
+        w = np.ma.masked_invalid(np.where(np.isfinite(posterior.chi2), posterior.weight, np.nan).reshape(
+            posterior.shape))
+        ax.contourf(a, b, w / w.max(), levels=12, cmap="Greens")
+        dchi2 = np.ma.masked_invalid((posterior.chi2 - np.nanmin(posterior.chi2)).reshape(posterior.shape))
+        ax.contour(a, b, dchi2, levels=[2 * np.log(1 / 0.05)], colors="k", linewidths=0.8)  # 95 % (2 dof)
+        ax.plot(a.ravel(), b.ravel(), ".", color="0.6", ms=1)
         ax.plot(posterior.theta_hat[posterior.keys[0]], posterior.theta_hat[posterior.keys[1]], "r+", ms=10,
                 label="fit")
         if truth is not None:

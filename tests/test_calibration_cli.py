@@ -48,8 +48,11 @@ def test_fit_prints_the_documented_json_and_writes_history_and_figures(capsys, t
 
 def test_fit_reads_a_webplotdigitizer_export_with_units(capsys):
     code, out = run(capsys, "fit", "--scene", "cohesive-collapse", "--data", WPD, "--units", "mm", "--t-end",
-                    "0.5", "--fit", "mu1", "--steps", "1", "--starts", "2", "--roundoff-samples", "0", *TINY)
+                    "0.5", "--fit", "mu1", "--steps", "1", "--starts", "2", "--roundoff-samples", "0",
+                    "--profiles", "5", *TINY)
     assert code == 0 and set(out["params"]) == {"mu1"}
+    # One iteration is no verified minimum: no interval, and no profile likelihood around it either.
+    assert "profile_likelihood" not in out and "not a fit of the data" in out["profile_likelihood_skipped"]
     # Without --init the fit is a global search (here of two starts, one iteration each).
     assert out["method"] == "lm-search" and out["search"]["starts"] == 2 and out["search"]["minima"]
 
@@ -109,3 +112,30 @@ def test_twin_quick_with_noise_intervals_contain_the_truth(capsys):
     code, out = run(capsys, "twin", "--quick", "--noise", "0.02", "--no-progress", "--json")
     assert code == 0
     assert all(out["in_ci95"].values()), out["ci95"]
+
+
+@pytest.mark.slow  # 40 s; the library's profile likelihood and posterior are tested by default (test_likelihood.py)
+def test_fit_with_profiles_and_posterior_draws_them(capsys, tmp_path):
+    """A tiny twin file (dx = L/6, 0.3 s, 1 % noise) fitted for mu1 with --profiles and --posterior:
+    the profile interval and the posterior's sd agree with Gauss–Newton on this near-linear fit."""
+    from jaxmpm.__main__ import main as run_main
+
+    profile = tmp_path / "p.csv"
+    assert run_main(["run", "cohesive-collapse", "--dx", str(0.089 / 6), "--set", "beta=0.25", "--t-end", "0.3",
+                     "--profile-csv", str(profile), "--no-progress", "--json"]) == 0
+    capsys.readouterr()
+    from calibration import load_profile
+
+    data = load_profile(profile)
+    noisy = np.maximum(data.h + 0.01 * data.h.max() * np.random.default_rng(1).standard_normal(data.h.shape), 0)
+    lines = [line for line in profile.read_text().splitlines() if line.startswith("#")]
+    profile.write_text("\n".join(lines + ["x_m,h_m"] + [f"{a:.6e},{b:.6e}" for a, b in zip(data.x, noisy)]) + "\n")
+    code, out = run(capsys, "fit", "--scene", "cohesive-collapse", "--data", str(profile), "--fit", "mu1",
+                    "--set", "beta=0.25", "--init", "mu1=0.4", "--steps", "8", "--roundoff-samples", "0",
+                    "--profiles", "5", "--posterior", "7", "--plot", str(tmp_path / "figs"), *TINY)
+    assert code == 0 and out["verdict"]["is_fit"]
+    lo, hi = out["profile_likelihood"]["mu1"]["ci95_profile"]
+    gn_lo, gn_hi = out["ci95"]["mu1"]
+    assert 0.7 < (hi - lo) / (gn_hi - gn_lo) < 1.4
+    assert 0.7 < out["posterior"]["sd_over_gauss_newton"]["mu1"] < 1.4
+    assert any(f.endswith("fit_likelihood.png") for f in out["figures"])

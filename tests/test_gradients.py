@@ -31,13 +31,15 @@ def test_sym_functions_match_eigendecomposition(dim):
     np.testing.assert_allclose(q2 @ jnp.diag(lam2) @ q2.T, a, atol=1e-13)
 
 
-@pytest.mark.parametrize("dim", [2, 3])
+# 3D: 15 s each, slow-marked to keep the default suite under CI's 15 minutes (3D values are checked
+# against the eigendecomposition by default; 2D gradients run by default).
+@pytest.mark.parametrize("dim", [2, pytest.param(3, marks=pytest.mark.slow)])
 @pytest.mark.parametrize("repeated", [False, True])
 def test_sym_function_gradients(dim, repeated):
     a = _spd(dim, 1, repeated)
     for fn in (sym_log, sym_exp):
         check_grads(jax.jit(lambda a: fn(jm.linalg.sym(a))), (a,), order=1, modes=("fwd", "rev"))
-        g = jax.grad(lambda a: jnp.sum(fn(a) ** 2))(a)
+        g = jax.jit(jax.grad(lambda a: jnp.sum(fn(a) ** 2)))(a)
         assert np.all(np.isfinite(g))
     # Nearly repeated eigenvalues: the divided differences switch branch smoothly.
     near = jnp.diag(jnp.asarray([1.0, 1.0 + 1e-9, 1.0 - 2e-9][:dim]))
@@ -50,9 +52,9 @@ def test_hencky_stress_gradients(dim):
     eye = jnp.eye(dim)
     rng = np.random.default_rng(2)
     F = jnp.asarray(np.eye(dim) + 0.1 * rng.normal(size=(dim, dim)))
+    stress = jax.jit(lambda F, E, nu: hencky_stress(F, params.replace(E=E, nu=nu)))  # compiled once for all points
     for point in (eye, F, 1.1 * eye):
-        check_grads(jax.jit(lambda F, E, nu: hencky_stress(F, params.replace(E=E, nu=nu))), (point, params.E, params.nu),
-                    order=1, modes=("fwd", "rev"), eps=1e-6)
+        check_grads(stress, (point, params.E, params.nu), order=1, modes=("fwd", "rev"), eps=1e-6)
     # Small strain: Hencky reduces to linear elasticity.
     G, lam = params.E / (2 * (1 + params.nu)), params.E * params.nu / ((1 + params.nu) * (1 - 2 * params.nu))
     eps = 1e-7 * jnp.asarray(rng.normal(size=(dim, dim)))
@@ -110,6 +112,7 @@ def test_rollout_gradient_matches_finite_differences():
         np.testing.assert_allclose(getattr(grads, key), fd, rtol=1e-5, err_msg=key)
 
 
+@pytest.mark.slow  # 25 s; the checkpointed rollout's gradient is checked against differences by default
 def test_checkpointed_and_plain_rollouts_agree():
     cfg, s0 = _small_scene(frames=(0.01, 0.02))
     params = jm.Params.create()
@@ -124,6 +127,7 @@ def test_checkpointed_and_plain_rollouts_agree():
         np.testing.assert_allclose(a, b, rtol=1e-10, atol=1e-30)
 
 
+@pytest.mark.slow  # 15 s; float32 Jacobians are used by default in tests/test_search.py's round-off test
 def test_float32_forward_jacobian_is_finite_and_matches_jvp():
     """The forward-mode Jacobian in one parameter (jacfwd: vmap of jvp with a batch of one, as
     the S5 law fit of μ1 alone uses it) through 20 float32 rollout steps of the tall S5 column:

@@ -1,0 +1,399 @@
+"""Uncertainty beyond Gauss–Newton: profile likelihoods, a grid posterior and held-out predictions.
+
+The Gauss–Newton interval (``calibration.uncertainty``) is the curvature at the minimum; along a
+curved β–μ1 valley, or where the run's response is not linear over one standard error, it can be
+too narrow or too wide. Three checks that do not linearise:
+
+- ``profile_likelihood(objective, fit_result, key)``: χ²(θ_key) with the other keys refitted
+  at every value (damped Gauss–Newton on them, warm-started from the neighbouring value). The
+  95 % interval is where χ² − χ²_min crosses ``chi2_quantile(0.95, 1)`` = 3.84 (Wilks); "open"
+  where the scanned range does not reach it.
+- ``grid_posterior(objective, fit_result)``: for one or two fitted keys the posterior under a
+  flat prior inside the bounds, p ∝ exp(−χ²/2), by quadrature on a grid regular in the whitened
+  coordinates of the Gauss–Newton covariance (so a narrow correlated valley is resolved across
+  as well as along; every grid point one run, batched with ``calibration.sweep``): exact up to
+  the grid's resolution, no sampler, no convergence to diagnose. Marginal means, standard
+  deviations and equal-tailed 95 % credible intervals.
+- ``predict_heldout(fit_result, objective)``: what the fitted model predicts for observations
+  the fit never saw (another objective, its data only compared with afterwards), with a 95 %
+  band from the fit's covariance propagated through the prediction's Jacobian (delta method).
+
+χ² is Σ_b Σ (e_b / σ_b)² with the noise σ_b of each block that the fit used (given, or estimated
+from the residuals' second differences: ``fit_result.uncertainty.noise``), so the three are on
+the scale of the fit's own interval. ``python -m calibration profile`` runs the first two and
+draws them.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+from typing import Any, Mapping, Sequence
+
+import jax.numpy as jnp
+import numpy as np
+
+from .sweep import sweep
+from .uncertainty import NOISE_FLOOR, chi2_of, chi2_quantile
+
+__all__ = ["GridPosterior", "HeldOut", "ProfileLikelihood", "grid_posterior", "predict_heldout",
+           "profile_likelihood"]
+
+#: Δχ² of a 95 % interval of one parameter (Wilks' theorem).
+DELTA_CHI2_95 = chi2_quantile(0.95, 1)
+
+
+def _sigma(objective, fit_result, noise) -> dict[str, float]:
+    """σ by block: the given ``noise`` (a float: every block), else the fit's."""
+    if noise is not None:
+        sigma = ({name: float(noise) for name in objective.blocks} if not isinstance(noise, Mapping)
+                 else {k: float(v) for k, v in noise.items()})
+    else:
+        unc = getattr(fit_result, "uncertainty", None)
+        if unc is None or not unc.noise:
+            raise ValueError("fit_result: it carries no noise level (fit with uncertainty=True, or pass noise=)")
+        sigma = dict(unc.noise)
+    missing = sorted(name for name in objective.blocks if sigma.get(name) is None)
+    if missing:
+        raise ValueError(f"noise: no level for the block(s) {missing} of the objective")
+    return sigma
+
+
+def _stderr(fit_result) -> np.ndarray | None:
+    unc = getattr(fit_result, "uncertainty", None)
+    return None if unc is None or unc.withheld else np.asarray(unc.stderr, float)
+
+
+def _check_span(span, n):
+    if not (math.isfinite(span) and span > 0):
+        raise ValueError(f"span must be > 0 (standard errors), got {span!r}")
+    if not (isinstance(n, int) and n >= 3):
+        raise ValueError(f"n must be an integer >= 3, got {n!r}")
+
+
+def _crossings(values, dchi2, centre: float, level: float) -> tuple[float | None, float | None]:
+    """Where Δχ² first reaches ``level`` either side of ``centre`` (linear interpolation between
+    grid points); None where it does not within ``values``."""
+    i0 = int(np.argmin(np.abs(values - centre)))
+
+    def cross(i, k):  # between grid points i (below the level) and k
+        a, b = dchi2[i], dchi2[k]
+        return float(values[i] + (level - a) / (b - a) * (values[k] - values[i]))
+
+    lo = next((cross(i, i - 1) for i in range(i0, 0, -1) if dchi2[i] < level <= dchi2[i - 1]), None)
+    hi = next((cross(i, i + 1) for i in range(i0, len(values) - 1) if dchi2[i] < level <= dchi2[i + 1]), None)
+    return lo, hi
+
+
+@dataclasses.dataclass(frozen=True)
+class ProfileLikelihood:
+    """χ² of the fit's noise along ``key`` with the other keys refitted (``others``, physical
+    values, one row per value), its minimum, the Wilks 95 % interval (None where the scan does
+    not reach Δχ² = 3.84) beside the Gauss–Newton one."""
+
+    key: str
+    keys: tuple[str, ...]
+    values: np.ndarray
+    chi2: np.ndarray
+    others: np.ndarray
+    status: np.ndarray
+    theta_hat: float
+    chi2_hat: float
+    ci95: tuple[float | None, float | None]
+    gn_ci95: tuple[float, float] | None
+    noise: dict[str, float]
+    wall_s: float
+
+    @property
+    def delta_chi2(self) -> np.ndarray:
+        return self.chi2 - min(self.chi2_hat, float(np.nanmin(self.chi2)))
+
+    def to_json(self) -> dict[str, Any]:
+        return {"key": self.key, "keys": list(self.keys), "values": self.values.tolist(), "chi2": self.chi2.tolist(),
+                "others": {k: self.others[:, j].tolist() for j, k in enumerate(k for k in self.keys if k != self.key)},
+                "status": self.status.tolist(), "theta_hat": self.theta_hat, "chi2_hat": self.chi2_hat,
+                "ci95_profile": list(self.ci95), "ci95_gauss_newton": None if self.gn_ci95 is None else list(self.gn_ci95),
+                "delta_chi2_95": DELTA_CHI2_95, "noise": self.noise, "wall_s": round(self.wall_s, 2)}
+
+
+def _refit_others(objective, z, fixed: int, sigma, steps: int, lam0: float = 1e-3):
+    """Damped Gauss–Newton on every z but ``fixed``; returns (z, r, status). Steps capped at
+    2 in z (``calibration.lm.MAX_STEP``)."""
+    from .lm import MAX_STEP
+
+    free = [j for j in range(z.size) if j != fixed]
+    r, Jz, pred = (np.asarray(a, float) if i < 2 else a for i, a in enumerate(objective.residuals_and_jacobian_z(z)))
+    loss, lam = float(r @ r), lam0
+    for _ in range(steps):
+        Jf = Jz[:, free]
+        A = Jf.T @ Jf
+        g = Jf.T @ r
+        if not (np.all(np.isfinite(A)) and np.all(np.isfinite(g))):
+            break
+        accepted = False
+        for _ in range(6):
+            dz = -np.linalg.solve(A + lam * np.diag(np.maximum(np.diag(A), 1e-30)), g)
+            dz *= min(1.0, MAX_STEP / max(float(np.max(np.abs(dz))), 1e-300))
+            trial = z.copy()
+            trial[free] += dz
+            r_t, J_t, p_t = objective.residuals_and_jacobian_z(trial)
+            r_t = np.asarray(r_t, float)
+            if int(np.asarray(p_t["status"])) == 0 and np.isfinite(r_t @ r_t) and r_t @ r_t < loss:
+                z, r, Jz, pred, loss, lam = trial, r_t, np.asarray(J_t, float), p_t, float(r_t @ r_t), lam / 3
+                accepted = True
+                break
+            lam *= 10
+        if not accepted or np.max(np.abs(dz)) < 1e-7:
+            break
+    return z, r, int(np.asarray(pred["status"]))
+
+
+def profile_likelihood(objective, fit_result, key: str, *, span: float = 4.0, n: int = 13, steps: int = 8,
+                       values: Sequence[float] | None = None,
+                       noise: Mapping[str, float] | float | None = None) -> ProfileLikelihood:
+    """The profile likelihood of ``key`` around ``fit_result``'s point: ``n`` values over
+    ± ``span`` Gauss–Newton standard errors (clipped inside the bounds; or the given
+    ``values``; the fit's own value is one of the grid's), the other keys refitted at each (``steps`` damped Gauss–Newton steps, warm
+    started from the neighbour nearer the fit). ``noise``: σ by block (default: the fit's)."""
+    clock = time.perf_counter()
+    keys = tuple(objective.keys)
+    if key not in keys:
+        raise ValueError(f"key: {key!r} is not a fitted key {keys}")
+    _check_span(span, n)
+    sigma = _sigma(objective, fit_result, noise)
+    j = keys.index(key)
+    theta_hat = np.array([fit_result.theta[k] for k in keys], float)
+    lo_b, hi_b = objective.bounds.lower[j], objective.bounds.upper[j]
+    se = _stderr(fit_result)
+    if values is None:
+        if se is None:
+            raise ValueError("fit_result: no Gauss–Newton interval (not a fit of the data); pass values=")
+        half = span * se[j]
+        margin = 1e-6 * (hi_b - lo_b)
+        lo, hi = max(theta_hat[j] - half, lo_b + margin), min(theta_hat[j] + half, hi_b - margin)
+        below = n // 2  # the fit's value is a grid point, with about as many values either side
+        grid = np.concatenate([np.linspace(lo, theta_hat[j], below + 1)[:-1], np.linspace(theta_hat[j], hi, n - below)])
+    else:
+        grid = np.asarray(values, float)
+        if grid.ndim != 1 or grid.size < 3 or np.any(np.diff(grid) <= 0):
+            raise ValueError("values must be at least 3 increasing numbers")
+        for v in grid:
+            if not lo_b < v < hi_b:
+                raise ValueError(f"values: {key} = {v:g} must lie strictly inside its bounds ({lo_b:g}, {hi_b:g})")
+    chi2 = np.full(grid.size, np.nan)
+    others = np.full((grid.size, len(keys) - 1), np.nan)
+    status = np.zeros(grid.size, int)
+    z_hat = objective.bounds.to_unconstrained(theta_hat)
+    centre = int(np.argmin(np.abs(grid - theta_hat[j])))
+    for order in (range(centre, grid.size), range(centre - 1, -1, -1)):
+        z = z_hat.copy()
+        for i in order:
+            theta = np.array(objective.bounds.to_physical(jnp.asarray(z)), float)
+            theta[j] = grid[i]
+            z = objective.bounds.to_unconstrained(theta)
+            if len(keys) == 1:
+                r, pred = objective.residuals(theta)
+                r, st = np.asarray(r, float), int(np.asarray(pred["status"]))
+            else:
+                z, r, st = _refit_others(objective, z, j, sigma, steps)
+            theta = np.array(objective.bounds.to_physical(jnp.asarray(z)), float)
+            chi2[i] = chi2_of(r, objective.row_scale, objective.blocks, sigma)
+            others[i] = np.delete(theta, j)
+            status[i] = st
+    r_hat = np.asarray(fit_result.residuals, float)
+    chi2_hat = chi2_of(r_hat, objective.row_scale, objective.blocks, sigma)
+    floor = min(chi2_hat, float(np.nanmin(chi2)))
+    ci = _crossings(grid, chi2 - floor, theta_hat[j], DELTA_CHI2_95)
+    gn = None
+    unc = getattr(fit_result, "uncertainty", None)
+    if unc is not None and not unc.withheld:
+        gn = (float(unc.ci95[j, 0]), float(unc.ci95[j, 1]))
+    return ProfileLikelihood(key, keys, grid, chi2, others, status, float(theta_hat[j]), float(chi2_hat), ci, gn,
+                             {k: max(float(v), NOISE_FLOOR) for k, v in sigma.items()}, time.perf_counter() - clock)
+
+
+@dataclasses.dataclass(frozen=True)
+class GridPosterior:
+    """The posterior on a grid (flat prior inside the bounds). The grid is regular in the
+    whitened coordinates u of the fit's Gauss–Newton covariance, θ = θ̂ + L u (L its Cholesky
+    factor; per key ± ``span`` in u), so that a narrow, correlated valley is resolved along and
+    across; without a covariance it is regular in θ over ``ranges``. ``points`` (N, k) are the
+    grid's θ, ``chi2`` and ``weight`` (summing to 1: the quadrature's masses, the map's Jacobian is
+    constant) are per point, ``shape`` the grid's. By key: the marginal ``mean``, ``sd`` and
+    equal-tailed 95 % credible interval (weighted quantiles), beside the fit's point and
+    Gauss–Newton standard error. ``mass_at_edge``: the largest weight on the grid's boundary
+    relative to the largest weight (a grid that cuts the posterior off shows it); ``failed``:
+    grid points whose run failed (weight 0)."""
+
+    keys: tuple[str, ...]
+    points: np.ndarray
+    chi2: np.ndarray
+    weight: np.ndarray
+    shape: tuple[int, ...]
+    whitened: bool
+    mean: dict[str, float]
+    sd: dict[str, float]
+    ci95: dict[str, tuple[float, float]]
+    theta_hat: dict[str, float]
+    gn_stderr: dict[str, float] | None
+    mass_at_edge: float
+    failed: int
+    noise: dict[str, float]
+    wall_s: float
+
+    def marginal(self, key: str, bins: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """(x, density) of ``key``'s marginal: for one key the grid itself; else a weighted
+        histogram with ``bins`` (default: the grid's points per key) bins."""
+        j = self.keys.index(key)
+        x = self.points[:, j]
+        if len(self.keys) == 1:
+            order = np.argsort(x)
+            x, w = x[order], self.weight[order]
+            spacing = np.gradient(x)
+            return x, w / spacing
+        hist, edges = np.histogram(x, bins=bins or self.shape[j], weights=self.weight, density=True)
+        return 0.5 * (edges[1:] + edges[:-1]), hist
+
+    def to_json(self) -> dict[str, Any]:
+        return {"keys": list(self.keys), "points": {k: self.points[:, j].tolist() for j, k in enumerate(self.keys)},
+                "chi2": self.chi2.tolist(), "shape": list(self.shape), "whitened": self.whitened,
+                "mean": self.mean, "sd": self.sd,
+                "ci95": {k: list(v) for k, v in self.ci95.items()}, "theta_hat": self.theta_hat,
+                "gauss_newton_stderr": self.gn_stderr, "sd_over_gauss_newton": None if self.gn_stderr is None else
+                {k: self.sd[k] / self.gn_stderr[k] for k in self.keys}, "mass_at_edge": self.mass_at_edge,
+                "failed": self.failed, "noise": self.noise, "prior": "flat inside the bounds",
+                "method": "quadrature on a grid" + (" in the Gauss-Newton covariance's whitened coordinates"
+                                                    if self.whitened else ""), "wall_s": round(self.wall_s, 2)}
+
+
+def _weighted_quantile(x, w, q):
+    order = np.argsort(x)
+    x, w = x[order], w[order]
+    cdf = np.cumsum(w) - 0.5 * w
+    return float(np.interp(q, cdf / cdf[-1] if cdf[-1] > 0 else cdf, x))
+
+
+def grid_posterior(objective, fit_result, *, span: float = 4.0, n: int = 21,
+                   ranges: Mapping[str, tuple[float, float]] | None = None,
+                   noise: Mapping[str, float] | float | None = None, chunk: int | None = None) -> GridPosterior:
+    """The posterior of one or two fitted keys by quadrature on an ``n``-point grid per key:
+    over ± ``span`` in the whitened coordinates of the fit's Gauss–Newton covariance (the
+    default), or over ``ranges`` by key (regular in θ; needed when the fit has no interval).
+    Points outside the bounds get zero weight (the flat prior's support). Every grid point is
+    one run (``calibration.sweep``, batched)."""
+    clock = time.perf_counter()
+    keys = tuple(objective.keys)
+    if len(keys) > 2:
+        raise ValueError(f"grid_posterior: {len(keys)} keys; quadrature is for one or two (sample more with MCMC)")
+    _check_span(span, n)
+    sigma = _sigma(objective, fit_result, noise)
+    theta_hat = np.array([fit_result.theta[k] for k in keys], float)
+    unc = getattr(fit_result, "uncertainty", None)
+    se = _stderr(fit_result)
+    lower, upper = np.asarray(objective.bounds.lower), np.asarray(objective.bounds.upper)
+    margin = 1e-6 * (upper - lower)
+    u_axes = [np.linspace(-span, span, n)] * len(keys)
+    mesh = np.stack([m.ravel() for m in np.meshgrid(*u_axes, indexing="ij")], axis=1)
+    whitened = not ranges and se is not None
+    if whitened:
+        thetas = theta_hat[None, :] + mesh @ np.linalg.cholesky(np.asarray(unc.cov, float)).T
+    else:
+        ranges = dict(ranges or {})
+        missing = [k for k in keys if k not in ranges]
+        if missing:
+            raise ValueError(f"ranges: give {missing}'s range (the fit has no Gauss–Newton interval)")
+        lo = np.array([float(ranges[k][0]) for k in keys])
+        hi = np.array([float(ranges[k][1]) for k in keys])
+        lo, hi = np.maximum(lo, lower + margin), np.minimum(hi, upper - margin)
+        for k, a, b in zip(keys, lo, hi):
+            if not a < b:
+                raise ValueError(f"ranges[{k!r}]: ({a:g}, {b:g}) is empty inside the bounds")
+        thetas = lo + (mesh + span) / (2 * span) * (hi - lo)
+    inside = np.all((thetas > lower + margin) & (thetas < upper - margin), axis=1)
+    if hasattr(objective, "check_thetas"):  # the engine's rules (mu1 <= mu2 with both fitted): no support
+        ok = np.array([_valid_row(objective, t) for t in thetas])
+        inside &= ok
+    chi2 = np.full(thetas.shape[0], np.nan)
+    if np.any(inside):
+        result = sweep(objective, thetas[inside], chunk=chunk)
+        chi2[inside] = [chi2_of(r, objective.row_scale, objective.blocks, sigma) if np.isfinite(loss) else np.nan
+                        for r, loss in zip(result.residuals, result.loss)]
+    finite = np.isfinite(chi2)
+    if not np.any(finite):
+        raise ValueError("grid_posterior: every grid point is outside the bounds or its run failed")
+    weight = np.where(finite, np.exp(-0.5 * (np.where(finite, chi2, 0.0) - np.nanmin(chi2))), 0.0)
+    weight /= weight.sum()
+    mean, sd, ci = {}, {}, {}
+    for j, k in enumerate(keys):
+        x = thetas[:, j]
+        mean[k] = float(np.sum(weight * x))
+        sd[k] = float(math.sqrt(max(np.sum(weight * (x - mean[k]) ** 2), 0.0)))
+        ci[k] = (_weighted_quantile(x, weight, 0.025), _weighted_quantile(x, weight, 0.975))
+    on_edge = np.any(np.abs(mesh) >= span * (1 - 1e-12), axis=1)
+    return GridPosterior(keys, thetas, chi2, weight, (n,) * len(keys), whitened, mean, sd, ci,
+                         dict(zip(keys, theta_hat.tolist())), None if se is None else dict(zip(keys, se.tolist())),
+                         float(weight[on_edge].max() / weight.max()), int((inside & ~finite).sum()),
+                         {k: float(v) for k, v in sigma.items()}, time.perf_counter() - clock)
+
+
+def _valid_row(objective, theta) -> bool:
+    try:
+        objective.check_thetas(theta[None, :])
+    except ValueError:
+        return False
+    return True
+
+
+@dataclasses.dataclass(frozen=True)
+class HeldOut:
+    """The fitted model's prediction of observations the fit did not use: by block of the
+    held-out objective, where (``at``: x of a profile's points, m; times of a front, s), the
+    measured values (``data``), the prediction at the fit's point
+    (``predicted``) and its 95 % half-width (``band``) from the fit's covariance (delta method,
+    the statistical and numerical parts the fit reported), all in metres; ``rms`` of predicted −
+    data by block and ``inside`` the fraction of points whose data lie within the band."""
+
+    blocks: dict[str, dict[str, np.ndarray]]
+    rms: dict[str, float]
+    inside: dict[str, float]
+    theta: dict[str, float]
+
+    def to_json(self) -> dict[str, Any]:
+        return {"theta": self.theta, "rms_m": self.rms, "inside_band": self.inside,
+                "blocks": {name: {k: v.tolist() for k, v in b.items()} for name, b in self.blocks.items()}}
+
+
+def predict_heldout(fit_result, objective) -> HeldOut:
+    """Predict ``objective``'s data (observations the fit never saw: another time, another
+    quantity, another scene with the same fitted keys) at ``fit_result``'s point, with a 95 %
+    band from its covariance. ``objective`` must fit the same keys."""
+    keys = tuple(objective.keys)
+    if set(keys) != set(fit_result.keys):
+        raise ValueError(f"objective fits {keys}, the fit {tuple(fit_result.keys)}")
+    unc = getattr(fit_result, "uncertainty", None)
+    if unc is None or unc.withheld:
+        raise ValueError("fit_result: no covariance (not a fit of the data, or fitted without uncertainty)")
+    order = [list(fit_result.keys).index(k) for k in keys]
+    cov = np.asarray(unc.cov, float)[np.ix_(order, order)]
+    theta = np.array([fit_result.theta[k] for k in keys], float)
+    r, J, _ = objective.residuals_and_jacobian(theta)
+    r, J = np.asarray(r, float), np.asarray(J, float)
+    err = objective.in_metres(r)  # predicted − data, m
+    cols = [objective.in_metres(J[:, i]) for i in range(len(keys))]  # d(predicted)/dθ_i, m
+    blocks, rms, inside = {}, {}, {}
+    data = {"h": np.asarray(objective.data["h"], float), "front": np.asarray(objective.data["front"], float)}
+    offsets = {"h": 0, "front": 0}
+    obs = objective.observations
+    where = iter(obs.profile_x)
+    for name, e in err.items():
+        G = np.stack([c[name] for c in cols], axis=1)
+        band = 1.959963984540054 * np.sqrt(np.maximum(np.einsum("mi,ij,mj->m", G, cov, G), 0.0))
+        kind = "front" if name == "front" else "h"
+        measured = data[kind][offsets[kind]:offsets[kind] + e.size]
+        offsets[kind] += e.size
+        at = obs.front_times if kind == "front" else next(where)
+        blocks[name] = {"at": np.asarray(at, float), "data": measured, "predicted": measured + e, "band": band}
+        rms[name] = float(np.sqrt(np.mean(e ** 2)))
+        inside[name] = float(np.mean(np.abs(e) <= band))
+    return HeldOut(blocks, rms, inside, dict(zip(keys, theta.tolist())))

@@ -1,0 +1,89 @@
+"""Uncertainty beyond Gauss–Newton (issue 11): profile likelihoods, the grid posterior and a
+held-out prediction with its band, on a tiny S4 twin (dx = L/6, 0.1 s) with 2 % noise."""
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from calibration import FrontTarget, Objective, ProfileTarget, fit
+from calibration.likelihood import DELTA_CHI2_95, grid_posterior, predict_heldout, profile_likelihood
+from jaxmpm import scenes
+
+KEYS = ("beta", "mu1")
+TRUTH = np.array([0.25, 0.38])
+NOISE = 0.02
+XS = np.linspace(0.0, 0.16, 17)
+
+
+@pytest.fixture(scope="module")
+def twin():
+    scene = scenes.cohesive_collapse(dx=0.089 / 6, t_end=0.1, beta=0.25)
+    gen = Objective(scene, KEYS, profile=ProfileTarget(XS, np.ones_like(XS)), check_data=False)  # placeholder
+    h = np.asarray(gen.predict(TRUTH)["h"])
+    noisy = h + NOISE * h.max() * np.random.default_rng(3).standard_normal(h.shape)
+    objective = Objective(scene, KEYS, profile=ProfileTarget(XS, noisy))
+    assert objective.functions is gen.functions  # same observations, other data: one compilation
+    result = fit(objective, dict(zip(KEYS, TRUTH * 1.05)), steps=12, noise=NOISE, roundoff_samples=0)
+    assert result.verdict.is_fit and not result.uncertainty.withheld
+    return scene, objective, result
+
+
+def test_profile_likelihood_matches_gauss_newton_on_a_near_linear_twin(twin):
+    _, objective, result = twin
+    se = result.uncertainty.stderr
+    for j, key in enumerate(KEYS):
+        prof = profile_likelihood(objective, result, key, span=3.0, n=5, steps=3)
+        assert prof.values.size == 5 and np.all(prof.status == 0) and np.all(np.isfinite(prof.chi2))
+        assert prof.values[2] == result.theta[key]  # the fit's value is on the grid
+        # The fit is a minimum: no refitted value lies below it by more than LM's stopping slack.
+        assert np.nanmin(prof.chi2) > prof.chi2_hat - 0.2
+        assert prof.delta_chi2[0] > DELTA_CHI2_95 and prof.delta_chi2[-1] > DELTA_CHI2_95  # closed at ±3 se
+        lo, hi = prof.ci95
+        assert lo < result.theta[key] < hi
+        assert 0.7 < (hi - lo) / (2 * 1.959964 * se[j]) < 1.4  # a near-linear problem: Wilks ≈ Gauss–Newton
+        other = prof.others[:, 0]
+        assert np.ptp(other) > 0  # the other key was refitted along the profile
+    with pytest.raises(ValueError, match="key: 'xi' is not a fitted key"):
+        profile_likelihood(objective, result, "xi")
+
+
+def test_grid_posterior_agrees_with_gauss_newton(twin):
+    _, objective, result = twin
+    post = grid_posterior(objective, result, span=4.0, n=7)
+    assert post.points.shape == (49, 2) and post.shape == (7, 7) and post.whitened and post.failed == 0
+    # The grid is the fit's covariance ellipse: its centre point is the fit.
+    np.testing.assert_allclose(post.points[24], [result.theta[k] for k in KEYS], rtol=1e-12)
+    for j, key in enumerate(KEYS):
+        se = result.uncertainty.stderr[j]
+        assert abs(post.mean[key] - result.theta[key]) < 0.5 * se
+        assert 0.7 < post.sd[key] / se < 1.4
+        lo, hi = post.ci95[key]
+        assert lo < post.mean[key] < hi
+    out = post.to_json()
+    assert out["method"].startswith("quadrature on a grid") and set(out["sd_over_gauss_newton"]) == set(KEYS)
+    three = Objective(objective.scene, ("beta", "mu1", "xi"), profile=objective.profiles[0])
+    with pytest.raises(ValueError, match="quadrature is for one or two"):
+        grid_posterior(three, result)
+
+
+def test_held_out_prediction_with_its_band(twin):
+    """Fit the final profile, predict the front the fit never saw: the prediction at the fit's
+    point, a band from its covariance (twice the covariance's square root: twice the band)."""
+    scene, _, result = twin
+    times = np.array([0.05, 0.1])
+    gen = Objective(scene, KEYS, front=FrontTarget(times, np.full(2, 0.1)), check_data=False)
+    truth_front = np.asarray(gen.predict(TRUTH)["front"])
+    held = Objective(scene, KEYS, front=FrontTarget(times, truth_front))
+    out = predict_heldout(result, held)
+    b = out.blocks["front"]
+    np.testing.assert_allclose(b["predicted"], np.asarray(held.predict(list(result.theta.values()))["front"]),
+                               rtol=1e-10)
+    np.testing.assert_array_equal(b["at"], times)
+    assert np.all(np.isfinite(b["band"])) and np.all(b["band"] > 0)
+    wide = dataclasses.replace(result, uncertainty=dataclasses.replace(result.uncertainty,
+                                                                     cov=4.0 * result.uncertainty.cov))
+    np.testing.assert_allclose(predict_heldout(wide, held).blocks["front"]["band"], 2.0 * b["band"], rtol=1e-9)
+    assert out.rms["front"] == pytest.approx(float(np.sqrt(np.mean((b["predicted"] - truth_front) ** 2))))
+    with pytest.raises(ValueError, match="fits"):
+        predict_heldout(result, Objective(scene, ("mu1",), front=FrontTarget(times, truth_front)))
