@@ -139,3 +139,14 @@ def test_fit_with_profiles_and_posterior_draws_them(capsys, tmp_path):
     assert 0.7 < (hi - lo) / (gn_hi - gn_lo) < 1.4
     assert 0.7 < out["posterior"]["sd_over_gauss_newton"]["mu1"] < 1.4
     assert any(f.endswith("fit_likelihood.png") for f in out["figures"])
+
+
+@pytest.mark.slow  # four compilations of a tiny run (30-60 s)
+def test_bench_prints_compile_apart_from_run_for_every_measure(capsys):
+    from calibration.bench import MEASURES
+
+    code, out = run(capsys, "bench", "--quick", "--fit", "mu1", "--repeat", "1", "--json")
+    assert code == 0 and out["keys"] == ["mu1"] and out["n_params"] == 1
+    for name in MEASURES:
+        assert out[name]["run_s"] > 0 and out[name]["compile_s"] >= 0, name
+    assert out["particle_steps_per_s_forward"] > 0 and out["peak_rss_mb"] > 0
