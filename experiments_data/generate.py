@@ -139,7 +139,7 @@ def front() -> None:
         t=t, x_front=xf, experiment=f"slope-collapse 10 deg front position (synthetic, jaxmpm {__version__})",
         source="python experiments_data/generate.py front", synthetic=True,
         meta={"front_definition": "largest particle x (along the bed, from the back wall) at each frame",
-              "parameters": params.to_dict(), "scene": {k: v for k, v in scene.meta.items() if v is not None},
+              "parameters": params.to_dict(), "scene": scene.info.to_dict(),
               "status": int(result.status)},
     ).to_csv(HERE / "synthetic" / "S3_10deg_front.csv")
     print("wrote experiments_data/synthetic/S3_10deg_front.csv")
