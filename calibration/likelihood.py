@@ -117,18 +117,33 @@ class ProfileLikelihood:
                 "delta_chi2_95": DELTA_CHI2_95, "noise": self.noise, "wall_s": round(self.wall_s, 2)}
 
 
+def _chi2_weights(objective, sigma) -> np.ndarray:
+    """Per residual 1 / (row_scale σ_b): Σ (w r)² is ``chi2_of``'s χ²."""
+    w = 1.0 / np.asarray(objective.row_scale, float)
+    for name, sl in objective.blocks.items():
+        w[sl] /= max(float(sigma[name]), NOISE_FLOOR)
+    return w
+
+
 def _refit_others(objective, z, fixed: int, sigma, steps: int, lam0: float = 1e-3):
-    """Damped Gauss–Newton on every z but ``fixed``; returns (z, r, status). Steps capped at
-    2 in z (``calibration.lm.MAX_STEP``)."""
+    """Damped Gauss–Newton on every z but ``fixed``, minimising χ² (the residuals weighted by
+    each block's noise); returns (z, r, status). Steps capped at 2 in z (``calibration.lm.MAX_STEP``)."""
     from .lm import MAX_STEP
 
+    w = _chi2_weights(objective, sigma)
     free = [j for j in range(z.size) if j != fixed]
-    r, Jz, pred = (np.asarray(a, float) if i < 2 else a for i, a in enumerate(objective.residuals_and_jacobian_z(z)))
-    loss, lam = float(r @ r), lam0
+
+    def evaluate(z_):
+        r_, J_, p_ = objective.residuals_and_jacobian_z(z_)
+        return np.asarray(r_, float), np.asarray(J_, float) * w[:, None], p_
+
+    r, Jz, pred = evaluate(z)
+    chi2 = float(np.sum((w * r) ** 2))
+    lam = lam0
     for _ in range(steps):
         Jf = Jz[:, free]
         A = Jf.T @ Jf
-        g = Jf.T @ r
+        g = Jf.T @ (w * r)
         if not (np.all(np.isfinite(A)) and np.all(np.isfinite(g))):
             break
         accepted = False
@@ -137,10 +152,10 @@ def _refit_others(objective, z, fixed: int, sigma, steps: int, lam0: float = 1e-
             dz *= min(1.0, MAX_STEP / max(float(np.max(np.abs(dz))), 1e-300))
             trial = z.copy()
             trial[free] += dz
-            r_t, J_t, p_t = objective.residuals_and_jacobian_z(trial)
-            r_t = np.asarray(r_t, float)
-            if int(np.asarray(p_t["status"])) == 0 and np.isfinite(r_t @ r_t) and r_t @ r_t < loss:
-                z, r, Jz, pred, loss, lam = trial, r_t, np.asarray(J_t, float), p_t, float(r_t @ r_t), lam / 3
+            r_t, J_t, p_t = evaluate(trial)
+            chi2_t = float(np.sum((w * r_t) ** 2))
+            if int(np.asarray(p_t["status"])) == 0 and np.isfinite(chi2_t) and chi2_t < chi2:
+                z, r, Jz, pred, chi2, lam = trial, r_t, J_t, p_t, chi2_t, lam / 3
                 accepted = True
                 break
             lam *= 10
