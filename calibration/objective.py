@@ -283,7 +283,7 @@ class Objective:
         self.length = float(info.length)
         width = info.width if info.dim == 3 else None
 
-        times, blocks, scales = [], {}, []
+        blocks, scales = {}, []
         m = 0
         t_end = config.t_end
         self.dtype = jnp.result_type(scene.params.E)
@@ -303,7 +303,6 @@ class Objective:
                 raise ValueError(f"{name}.time_s = {t_prof} must lie in (0, t_end = {t_end}]: "
                                  "raise the scene's t_end (--t-end)")
             t_prof = min(t_prof, t_end)
-            times.append(t_prof)
             self._profiles.append((xp, hp, float(hp.max()), t_prof))
             blocks[name] = slice(m, m + xp.size)
             scales.append(np.full(xp.size, math.sqrt(weights["profile"] / xp.size)))
@@ -318,12 +317,10 @@ class Objective:
             if check_data:
                 _check_front_plausible(self.front.source or "front", tf, xf, scene, x_lo, x_hi, self.dtype)
             tf = np.minimum(tf, t_end)
-            times += list(tf)
             self._t_front, self._xf_data = tf, xf
             blocks["front"] = slice(m, m + tf.size)
             scales.append(np.full(tf.size, math.sqrt(weights["front"] / tf.size)))
             m += tf.size
-        self.times = tuple(sorted(set(float(t) for t in times)))
         self.blocks = blocks
         self.row_scale = np.concatenate(scales)
         self.n_residuals = m
@@ -345,6 +342,7 @@ class Objective:
             "front_scale": jnp.asarray(self.length, self.dtype),
             "row_scale": jnp.asarray(self.row_scale, self.dtype),
         }
+        self.times = self.observations.times  # the run's frame times
         self.functions = model_functions(config, self.observations, self.keys)
         self.config = self.functions.config
         self._state = scene.state

@@ -23,6 +23,15 @@ def _plt():
     return plt
 
 
+def _save(plt, fig, path, dpi: int) -> pathlib.Path:
+    """Lay out, write and close ``fig``; the written path."""
+    fig.tight_layout()
+    path = pathlib.Path(path)
+    fig.savefig(path, dpi=dpi)
+    plt.close(fig)
+    return path
+
+
 def plot_fit(objective, result, path, *, initial_prediction=None, truth_label: str = "data", title: str | None = None):
     """Modelled against measured profiles (one panel per profile time) and the front history."""
     plt = _plt()
@@ -72,11 +81,7 @@ def plot_fit(objective, result, path, *, initial_prediction=None, truth_label: s
     axes.flat[0].legend(fontsize=8)
     params = ", ".join(f"{k} = {v:.4g}" for k, v in result.theta.items())
     fig.suptitle(title or f"fit: {params}", fontsize=10)
-    fig.tight_layout()
-    path = pathlib.Path(path)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return _save(plt, fig, path, dpi=110)
 
 
 def plot_history(history, keys, path, *, truth=None, title: str | None = None):
@@ -107,11 +112,7 @@ def plot_history(history, keys, path, *, truth=None, title: str | None = None):
         ax.grid(alpha=0.3)
     if title:
         fig.suptitle(title, fontsize=10)
-    fig.tight_layout()
-    path = pathlib.Path(path)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return _save(plt, fig, path, dpi=110)
 
 
 def plot_landscape(xs, ys, loss, key_x, key_y, path, *, marks=None, failed=None, title: str | None = None):
@@ -140,11 +141,7 @@ def plot_landscape(xs, ys, loss, key_x, key_y, path, *, marks=None, failed=None,
     ax.set_xlabel(key_x)
     ax.set_ylabel(key_y)
     ax.set_title(title or f"loss landscape over ({key_x}, {key_y})", fontsize=10)
-    fig.tight_layout()
-    path = pathlib.Path(path)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return _save(plt, fig, path, dpi=110)
 
 
 def plot_loss_curve(xs, loss, key, path, *, best=None, title: str | None = None):
@@ -166,11 +163,7 @@ def plot_loss_curve(xs, loss, key, path, *, best=None, title: str | None = None)
     ax.set_xlabel(key)
     ax.set_ylabel("loss")
     ax.set_title(title or f"loss over {key}", fontsize=10)
-    fig.tight_layout()
-    path = pathlib.Path(path)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return _save(plt, fig, path, dpi=110)
 
 
 def plot_runout_law(cases, path, *, law, title: str | None = None):
@@ -197,11 +190,7 @@ def plot_runout_law(cases, path, *, law, title: str | None = None):
     ax.grid(alpha=0.3, which="both")
     ax.legend(fontsize=8)
     ax.set_title(title or "runout against aspect ratio", fontsize=10)
-    fig.tight_layout()
-    path = pathlib.Path(path)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return _save(plt, fig, path, dpi=110)
 
 
 def plot_coverage(result, path, *, title: str | None = None):
@@ -233,11 +222,7 @@ def plot_coverage(result, path, *, title: str | None = None):
     axes[0][0].set_ylabel("noise seed")
     fig.suptitle(title or f"95 % intervals over {len(result.rows)} seeds, {100 * result.noise:.3g} % noise "
                  "(grey: true noise given; x: not a fit, no interval)", fontsize=10)
-    fig.tight_layout()
-    path = pathlib.Path(path)
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-    return path
+    return _save(plt, fig, path, dpi=120)
 
 
 def plot_profile_likelihoods(profiles, path, *, truth=None, posterior=None):
@@ -290,11 +275,7 @@ def plot_profile_likelihoods(profiles, path, *, truth=None, posterior=None):
         ax.set_ylabel(posterior.keys[1])
         ax.set_title("posterior (flat prior), 95 % region", fontsize=9)
         ax.legend(fontsize=7)
-    fig.tight_layout()
-    path = pathlib.Path(path)
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-    return path
+    return _save(plt, fig, path, dpi=120)
 
 
 def plot_heldout(heldout, path, *, title: str | None = None):
@@ -317,8 +298,4 @@ def plot_heldout(heldout, path, *, title: str | None = None):
         ax.legend(fontsize=7)
     if title:
         fig.suptitle(title, fontsize=10)
-    fig.tight_layout()
-    path = pathlib.Path(path)
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-    return path
+    return _save(plt, fig, path, dpi=120)
