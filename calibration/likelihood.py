@@ -272,7 +272,9 @@ class GridPosterior:
 
     def to_json(self) -> dict[str, Any]:
         return {"keys": list(self.keys), "points": {k: self.points[:, j].tolist() for j, k in enumerate(self.keys)},
-                "chi2": self.chi2.tolist(), "shape": list(self.shape), "whitened": self.whitened,
+                # null: a point outside the prior's support (the bounds, mu1 <= mu2) or a failed run
+                "chi2": [float(v) if np.isfinite(v) else None for v in self.chi2], "shape": list(self.shape),
+                "whitened": self.whitened,
                 "mean": self.mean, "sd": self.sd,
                 "ci95": {k: list(v) for k, v in self.ci95.items()}, "theta_hat": self.theta_hat,
                 "gauss_newton_stderr": self.gn_stderr, "sd_over_gauss_newton": None if self.gn_stderr is None else

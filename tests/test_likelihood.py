@@ -61,6 +61,7 @@ def test_grid_posterior_agrees_with_gauss_newton(twin):
         lo, hi = post.ci95[key]
         assert lo < post.mean[key] < hi
     out = post.to_json()
+    assert all(v is None or np.isfinite(v) for v in out["chi2"])  # JSON-clean: no NaN printed
     assert out["method"].startswith("quadrature on a grid") and set(out["sd_over_gauss_newton"]) == set(KEYS)
     three = Objective(objective.scene, ("beta", "mu1", "xi"), profile=objective.profiles[0])
     with pytest.raises(ValueError, match="quadrature is for one or two"):
