@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import argparse
 import copy
+import dataclasses
 import json
 import math
 import pathlib
@@ -79,7 +80,7 @@ def _scene_and_objective(args, keys):
 
     from jaxmpm.scenes import scene_from_args
 
-    from .objective import Objective
+    from .objective import FrontTarget, Objective
 
     if args.dtype == "float64":
         jax.config.update("jax_enable_x64", True)
@@ -91,6 +92,8 @@ def _scene_and_objective(args, keys):
         if times:
             args.t_end = max(times)
     scene = scene_from_args(args)
+    if front is not None and getattr(args, "front_correlation_time", None) is not None:
+        front = dataclasses.replace(FrontTarget.of(front), correlation_time=args.front_correlation_time)
     objective = Objective(scene, keys, profile=profiles or None, front=front,
                           weights={"profile": args.weight_profile, "front": args.weight_front},
                           front_threshold=args.front_threshold, jacobian=getattr(args, "jacobian", "ad"))
@@ -186,6 +189,12 @@ def _fit(args) -> int:
     profile = [v for name, v in metres.items() if "profile" in name]
     out["residual_rms_m"] = (float(np.sqrt(np.mean(np.concatenate(profile) ** 2))) if profile else None)
     out["residual_rms_m_by_block"] = {name: float(np.sqrt(np.mean(v ** 2))) for name, v in metres.items()}
+    if "front" in metres and metres["front"].size >= 3:
+        from .uncertainty import front_correlation
+
+        out["front_residual_correlation"] = {
+            **front_correlation(objective.observations.front_times, metres["front"]),
+            "assumed_correlation_time_s": objective.front.correlation_time}
     if objective.bound_notes:
         out["bound_notes"] = list(objective.bound_notes)
     if found is None:
@@ -213,11 +222,17 @@ def _fit(args) -> int:
 def _beyond_gauss_newton(args, objective, result, out):
     """--profiles N and --posterior N on the fit's point: the JSON blocks "profile_likelihood"
     and "posterior"; skipped, with the reason, where the point has no interval to scan around."""
-    if not (args.profiles or args.posterior):
+    if not (args.profiles or args.posterior or args.nuts):
         return [], None
     if result.uncertainty is None or result.uncertainty.withheld:
         out["profile_likelihood_skipped"] = "the point is not a fit of the data: no interval to scan around"
         return [], None
+    if args.nuts:
+        from .mcmc import nuts_posterior
+
+        nuts = nuts_posterior(objective, result, chains=args.chains, warmup=max(20, args.nuts // 2),
+                              draws=args.nuts, noise=args.noise, progress=not args.json)
+        out["nuts"] = {k: v for k, v in nuts.to_json().items() if k != "draws"}
     from .likelihood import grid_posterior, profile_likelihood
 
     profiles = [profile_likelihood(objective, result, k, n=args.profiles, noise=args.noise) for k in result.keys
@@ -447,6 +462,10 @@ def _common(p, data: bool = True) -> None:
         p.add_argument("--data", action="append", default=[], metavar="FILE.csv",
                        help="a deposit profile (project CSV or WebPlotDigitizer export); repeat for several times")
         p.add_argument("--front", default=None, metavar="FILE.csv", help="a front history (t_s,xf_m)")
+        p.add_argument("--front-correlation-time", type=float, default=None, metavar="SECONDS",
+                       help="the front's errors are exponentially correlated over this time (FrontTarget."
+                            "correlation_time; default: independent). A fit with --front reports the estimate "
+                            "from its residuals (front_residual_correlation): refit with it")
         p.add_argument("--units", default=None, choices=("m", "cm", "mm"),
                        help="length units of files that do not state them (WebPlotDigitizer exports)")
         p.add_argument("--time-units", default=None, choices=("s", "ms"), help="time units of a front file")
@@ -514,6 +533,11 @@ def build_parser() -> argparse.ArgumentParser:
     fit.add_argument("--posterior", type=int, default=0, metavar="N",
                      help="the posterior of one or two keys (flat prior) by quadrature on an N-point grid per key "
                           "over +-4 standard errors (N^k runs; default 0: off)")
+    fit.add_argument("--nuts", type=int, default=0, metavar="N",
+                     help="the posterior of every fitted key by NUTS (calibration.mcmc, needs the [bayes] extra): N "
+                          "draws per chain after N/2 (at least 20) warm-up steps, with R-hat and ESS (default 0: off)")
+    fit.add_argument("--chains", type=int, default=4, metavar="C",
+                     help="NUTS chains, run one after the other (default 4)")
     fit.add_argument("--refine", type=int, default=2, metavar="N",
                      help="coarse minima refined at the requested resolution (default 2; all within the noise of "
                           "the best if more)")
@@ -589,7 +613,9 @@ def _check_options(args) -> None:
 
     if hasattr(args, "sampling"):  # the scene options of add_scene_arguments
         check_scene_args(args)
-    for name in ("lr", "fd_step", "front_threshold"):
+    if getattr(args, "front_correlation_time", None) is not None and not args.front:
+        raise ValueError("--front-correlation-time needs --front (the front history whose errors it describes)")
+    for name in ("lr", "fd_step", "front_threshold", "front_correlation_time"):
         value = getattr(args, name, None)
         if value is not None and not (math.isfinite(value) and value > 0):
             raise ValueError(f"--{name.replace('_', '-')} must be a finite number > 0, got {value}")
@@ -671,6 +697,15 @@ def main(argv=None) -> int:
             value = getattr(args, name, 0)
             if value and value < 3:
                 raise ValueError(f"--{name} must be 0 (off) or >= 3, got {value}")
+        if getattr(args, "nuts", 0) and args.nuts < 4:
+            raise ValueError(f"--nuts must be 0 (off) or >= 4 draws per chain, got {args.nuts}")
+        if getattr(args, "chains", 1) < 1:
+            raise ValueError(f"--chains must be >= 1, got {args.chains}")
+        if getattr(args, "nuts", 0):
+            import importlib.util
+
+            if importlib.util.find_spec("blackjax") is None:
+                raise ValueError("--nuts needs blackjax: pip install 'jaxmpm[bayes]'")
         for name in ("noise", "reference_noise", "threshold"):
             value = getattr(args, name, None)
             if value is not None and not (math.isfinite(value) and value >= 0):

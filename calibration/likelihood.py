@@ -362,6 +362,23 @@ def _valid_row(objective, theta) -> bool:
     return True
 
 
+def observed_blocks(objective) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """By block of ``objective`` (an ``Objective``): (where, measured), in metres and seconds:
+    a profile's x and heights, a front's times and positions (the order of ``in_metres``)."""
+    data = {"h": np.asarray(objective.data["h"], float), "front": np.asarray(objective.data["front"], float)}
+    offsets = {"h": 0, "front": 0}
+    where = iter(objective.observations.profile_x)
+    out = {}
+    for name, sl in objective.blocks.items():
+        kind = "front" if name == "front" else "h"
+        size = sl.stop - sl.start
+        measured = data[kind][offsets[kind]:offsets[kind] + size]
+        offsets[kind] += size
+        at = objective.observations.front_times if kind == "front" else next(where)
+        out[name] = (np.asarray(at, float), measured)
+    return out
+
+
 @dataclasses.dataclass(frozen=True)
 class HeldOut:
     """The fitted model's prediction of observations the fit did not use: by block of the
@@ -399,18 +416,12 @@ def predict_heldout(fit_result, objective) -> HeldOut:
     err = objective.in_metres(r)  # predicted − data, m
     cols = [objective.in_metres(J[:, i]) for i in range(len(keys))]  # d(predicted)/dθ_i, m
     blocks, rms, inside = {}, {}, {}
-    data = {"h": np.asarray(objective.data["h"], float), "front": np.asarray(objective.data["front"], float)}
-    offsets = {"h": 0, "front": 0}
-    obs = objective.observations
-    where = iter(obs.profile_x)
+    observed = observed_blocks(objective)
     for name, e in err.items():
         G = np.stack([c[name] for c in cols], axis=1)
         band = 1.959963984540054 * np.sqrt(np.maximum(np.einsum("mi,ij,mj->m", G, cov, G), 0.0))
-        kind = "front" if name == "front" else "h"
-        measured = data[kind][offsets[kind]:offsets[kind] + e.size]
-        offsets[kind] += e.size
-        at = obs.front_times if kind == "front" else next(where)
-        blocks[name] = {"at": np.asarray(at, float), "data": measured, "predicted": measured + e, "band": band}
+        at, measured = observed[name]
+        blocks[name] = {"at": at, "data": measured, "predicted": measured + e, "band": band}
         rms[name] = float(np.sqrt(np.mean(e ** 2)))
         inside[name] = float(np.mean(np.abs(e) <= band))
     return HeldOut(blocks, rms, inside, dict(zip(keys, theta.tolist())))

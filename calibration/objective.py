@@ -44,7 +44,7 @@ import numpy as np
 from jaxmpm import PARAM_KEYS, validate_params
 
 from .bounds import Bounds
-from .observe import Observations, jacobian_by_columns, model_functions
+from .observe import Observations, jacobian_by_columns, model_functions, unwhiten_front
 
 __all__ = ["jacobian_by_columns", "Objective", "CompositeObjective", "ProfileTarget", "FrontTarget"]
 
@@ -69,11 +69,21 @@ class ProfileTarget:
 
 @dataclasses.dataclass(frozen=True)
 class FrontTarget:
-    """Front positions ``x_front`` (m) at times ``t`` (s); ``source`` as for ``ProfileTarget``."""
+    """Front positions ``x_front`` (m) at times ``t`` (s); ``source`` as for ``ProfileTarget``.
+
+    ``correlation_time`` (s): the errors of a front history are not independent (the front one
+    frame later is mostly where it was, and a model error in its speed persists over frames).
+    None (default) treats them as independent; a time τ assumes an exponentially correlated
+    (Ornstein–Uhlenbeck, AR(1) at equal spacing) error, corr(e_i, e_j) = exp(−|t_i − t_j|/τ),
+    whose precision matrix factorises exactly into the whitened residuals
+    (e_i − φ_i e_{i−1}) / sqrt(1 − φ_i²), φ_i = exp(−(t_i − t_{i−1})/τ) (``observe.whiten_front``).
+    The fit, its interval and every χ² then use them; ``uncertainty.front_correlation`` estimates
+    τ from a fit's residuals (feasible generalised least squares: fit, estimate, refit)."""
 
     t: np.ndarray
     x_front: np.ndarray
     source: str | None = None
+    correlation_time: float | None = None
 
     @classmethod
     def of(cls, data) -> "FrontTarget":
@@ -318,6 +328,11 @@ class Objective:
                 _check_front_plausible(self.front.source or "front", tf, xf, scene, x_lo, x_hi, self.dtype)
             tf = np.minimum(tf, t_end)
             self._t_front, self._xf_data = tf, xf
+            tau = self.front.correlation_time
+            if tau is not None and not (isinstance(tau, (int, float, np.floating)) and math.isfinite(tau) and tau > 0):
+                raise ValueError(f"front.correlation_time must be None or a positive number of seconds, got {tau!r}")
+            self._front_phi = (np.zeros(tf.size) if tau is None
+                               else np.concatenate([[0.0], np.exp(-np.diff(tf) / float(tau))]))
             blocks["front"] = slice(m, m + tf.size)
             scales.append(np.full(tf.size, math.sqrt(weights["front"] / tf.size)))
             m += tf.size
@@ -340,6 +355,7 @@ class Objective:
                                    if h_data else np.zeros(0), self.dtype),
             "front": jnp.asarray(self._xf_data if self.front is not None else np.zeros(0), self.dtype),
             "front_scale": jnp.asarray(self.length, self.dtype),
+            "front_phi": jnp.asarray(self._front_phi if self.front is not None else np.zeros(0), self.dtype),
             "row_scale": jnp.asarray(self.row_scale, self.dtype),
         }
         self.times = self.observations.times  # the run's frame times
@@ -416,6 +432,9 @@ class Objective:
         """The weighted residuals ``r`` back in metres (model − data), by block: profile heights
         and front positions."""
         e = np.asarray(r, float) / self.row_scale
+        if self.front is not None:  # the front's rows are whitened (FrontTarget.correlation_time): undo it
+            e = e.copy()
+            e[self.blocks["front"]] = unwhiten_front(e[self.blocks["front"]], self._front_phi)
         scale = np.concatenate([np.full(p[0].size, p[2]) for p in self._profiles]
                                + ([np.full(self._t_front.size, self.length)] if self.front is not None else []))
         metres = e * scale
@@ -494,6 +513,8 @@ class Objective:
         data = [a for x, h, _, t in self._profiles for a in (x, h, [t])]
         if self.front is not None:
             data += [self._t_front, self._xf_data]
+            if self.front.correlation_time is not None:  # (absent when None: older histories still match)
+                data += [[float(self.front.correlation_time)]]
         info = self.scene.info
         config = json.dumps(self.config.to_dict(), sort_keys=True, default=str)
         return {

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import math
 from typing import Callable, NamedTuple
 
 import jax
@@ -113,6 +114,25 @@ class Observations:
         return observe
 
 
+def whiten_front(e, phi):
+    """The front residuals whitened for an exponentially correlated error (``FrontTarget``):
+    w_0 = e_0, w_i = (e_i − φ_i e_{i−1}) / sqrt(1 − φ_i²); φ = 0 leaves e as it is. For
+    corr(e_i, e_j) = Π φ between them (the Ornstein–Uhlenbeck covariance at any spacing),
+    Σ w² = eᵀ C⁻¹ e exactly: C's inverse is tridiagonal, this is its Cholesky factor."""
+    prev = jnp.concatenate([jnp.zeros_like(e[:1]), e[:-1]])
+    return (e - phi * prev) / jnp.sqrt(1 - phi * phi)
+
+
+def unwhiten_front(w, phi) -> np.ndarray:
+    """``whiten_front``'s inverse (numpy): e_i = w_i sqrt(1 − φ_i²) + φ_i e_{i−1}."""
+    w, phi = np.asarray(w, float), np.asarray(phi, float)
+    e = np.empty_like(w)
+    prev = 0.0
+    for i in range(w.size):
+        prev = e[i] = w[i] * math.sqrt(1.0 - phi[i] ** 2) + phi[i] * prev
+    return e
+
+
 def to_physical(z, lower, upper):
     """θ = lower + (upper − lower) sigmoid(z) (``calibration.bounds.Bounds.to_physical``)."""
     return lower + (upper - lower) * jax.nn.sigmoid(z)
@@ -193,7 +213,7 @@ def _model_functions(config: Config, observations: Observations, keys: tuple[str
         if slices:
             parts.append((pred["h"] - data["h"]) / data["h_scale"])
         if front_index is not None:
-            parts.append((pred["front"] - data["front"]) / data["front_scale"])
+            parts.append(whiten_front((pred["front"] - data["front"]) / data["front_scale"], data["front_phi"]))
         return jnp.concatenate(parts) * data["row_scale"], pred
 
     def residual_z(z, lower, upper, state, base, data):

@@ -11,7 +11,7 @@ import pathlib
 import numpy as np
 
 __all__ = ["plot_coverage", "plot_fit", "plot_heldout", "plot_history", "plot_landscape", "plot_loss_curve",
-           "plot_profile_likelihoods", "plot_runout_law"]
+           "plot_nuts", "plot_posterior_predictive", "plot_profile_likelihoods", "plot_runout_law"]
 
 
 def _plt():
@@ -295,6 +295,97 @@ def plot_heldout(heldout, path, *, title: str | None = None):
         ax.set_ylabel("front x (cm)" if front else f"{name}: h (cm)")
         ax.set_title(f"{name}: RMS {1000 * heldout.rms[name]:.2g} mm, {100 * heldout.inside[name]:.0f} % inside",
                      fontsize=9)
+        ax.legend(fontsize=7)
+    if title:
+        fig.suptitle(title, fontsize=10)
+    return _save(plt, fig, path, dpi=120)
+
+
+def plot_nuts(posterior, path, *, grid=None, truth=None):
+    """A ``calibration.mcmc.McmcPosterior``: the traces of every chain (top row) and each key's
+    marginal histogram with the Gauss–Newton normal and, from a ``GridPosterior`` of the same
+    target, the quadrature's marginal (bottom row); two keys add the draws over the grid
+    posterior's 95 % region."""
+    plt = _plt()
+    keys = posterior.keys
+    pair = len(keys) == 2
+    cols = len(keys) + (1 if pair else 0)
+    fig, axes = plt.subplots(2, cols, figsize=(4.2 * cols, 6.0), squeeze=False)
+    for j, key in enumerate(keys):
+        ax = axes[0][j]
+        for c in range(posterior.chains):
+            ax.plot(posterior.draws[c, :, j], lw=0.7, label=f"chain {c + 1}")
+        ax.set_xlabel("draw (after warm-up)")
+        ax.set_ylabel(key)
+        ax.set_title(f"R-hat {posterior.rhat[key]:.3f}, ESS bulk {posterior.ess_bulk[key]:.0f}, "
+                     f"tail {posterior.ess_tail[key]:.0f}", fontsize=9)
+        ax = axes[1][j]
+        x = posterior.flat()[:, j]
+        ax.hist(x, bins=min(30, max(8, x.size // 12)), density=True, color="C0", alpha=0.45, label="NUTS draws")
+        lo, hi = ax.get_xlim()
+        span = np.linspace(lo, hi, 200)
+        mu, se = posterior.theta_hat[key], posterior.gn_stderr[key]
+        ax.plot(span, np.exp(-0.5 * ((span - mu) / se) ** 2) / (se * np.sqrt(2 * np.pi)), color="C3",
+                label="Gauss-Newton")
+        if grid is not None and key in grid.keys:
+            ax.plot(*grid.marginal(key), color="C2", label="grid quadrature")
+        if truth is not None and key in truth:
+            ax.axvline(truth[key], color="k", lw=1, label="truth")
+        ax.set_xlabel(key)
+        ax.set_ylabel("posterior density")
+        ax.set_title(f"mean {posterior.mean[key]:.4g}, sd {posterior.sd[key]:.2g} "
+                     f"(GN se {se:.2g})", fontsize=9)
+        ax.legend(fontsize=7)
+    axes[0][0].legend(fontsize=7)
+    if pair:
+        ax = axes[1][-1]
+        if grid is not None and grid.keys == keys:
+            a, b = (grid.points[:, i].reshape(grid.shape) for i in (0, 1))
+            dchi2 = np.ma.masked_invalid((grid.chi2 - np.nanmin(grid.chi2)).reshape(grid.shape))
+            ax.contour(a, b, dchi2, levels=[2 * np.log(1 / 0.05)], colors="C2", linewidths=1.0)
+        flat = posterior.flat()
+        ax.plot(flat[:, 0], flat[:, 1], ".", ms=2, alpha=0.6, color="C0")
+        ax.plot(posterior.theta_hat[keys[0]], posterior.theta_hat[keys[1]], "r+", ms=10, label="fit")
+        if truth is not None:
+            ax.plot(truth.get(keys[0], np.nan), truth.get(keys[1], np.nan), "kx", label="truth")
+        ax.set_xlabel(keys[0])
+        ax.set_ylabel(keys[1])
+        ax.set_title("draws; grid posterior's 95 % region (green)", fontsize=9)
+        ax.legend(fontsize=7)
+        axes[0][-1].axis("off")
+        div = sum(posterior.divergences)
+        axes[0][-1].text(0.0, 0.5, f"{posterior.chains} chains x {posterior.draws.shape[1]} draws\n"
+                         f"(warm-up {posterior.warmup})\ndivergences {div}\nleapfrog steps/draw "
+                         f"{np.mean(posterior.steps):.1f}\n{posterior.gradient_evaluations} Jacobians, "
+                         f"{posterior.wall_s / 60:.0f} min", fontsize=9, va="center")
+    return _save(plt, fig, path, dpi=120)
+
+
+def plot_posterior_predictive(predictive, path, *, title: str | None = None, split: float | None = None):
+    """``calibration.mcmc.posterior_predictive``: by block, the measured values against the
+    draws' predictions (their 5–95 % band and median) and the measurement noise (±2σ about the
+    median, dashed); ``split``: an x (m) drawn as the line between fitted and held-out data."""
+    plt = _plt()
+    names = list(predictive["blocks"])
+    fig, axes = plt.subplots(1, len(names), figsize=(5.6 * len(names), 3.4), squeeze=False)
+    for ax, name in zip(axes[0], names):
+        b = predictive["blocks"][name]
+        front = name == "front"
+        x = b["at"] if front else 100 * b["at"]
+        pred = b["predicted"] if front else 100 * b["predicted"]
+        lo, med, hi = np.percentile(pred, [5, 50, 95], axis=0)
+        ax.fill_between(x, lo, hi, color="C0", alpha=0.3, label=f"{pred.shape[0]} draws, 5-95 %")
+        ax.plot(x, med, color="C0", label="median")
+        sigma = predictive["noise"].get(name)
+        if sigma is not None and not front:
+            scale = 100 * np.max(np.abs(b["data"]))  # the profile's noise is relative to its peak
+            ax.plot(x, med + 2 * sigma * scale, "C0--", lw=0.7, label="median ± 2 noise sd")
+            ax.plot(x, med - 2 * sigma * scale, "C0--", lw=0.7)
+        ax.plot(x, b["data"] if front else 100 * b["data"], "k.", ms=3, label="data")
+        if split is not None and not front:
+            ax.axvline(100 * split, color="0.4", lw=0.8, ls=":", label="fitted | held out")
+        ax.set_xlabel("t (s)" if front else "x (cm)")
+        ax.set_ylabel("front x (m)" if front else "h (cm)")
         ax.legend(fontsize=7)
     if title:
         fig.suptitle(title, fontsize=10)

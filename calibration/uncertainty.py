@@ -105,6 +105,24 @@ def structural_noise(e) -> tuple[float | None, int]:
     return float(1.482602218505602 * np.median(np.abs(d2)) / math.sqrt(6.0)), int(d2.size)
 
 
+def front_correlation(t, e) -> dict[str, float | None]:
+    """The serial correlation of front residuals ``e`` (m, model − data, at times ``t``): the
+    lag-1 autocorrelation ρ = Σ e_i e_{i−1} / Σ e_i² (about zero, not the mean: an offset that
+    persists over frames is correlated error too), the correlation time τ = −mean(Δt) / ln ρ of
+    the exponential model ``FrontTarget.correlation_time`` assumes (None where ρ ≤ 0.05: no
+    measurable correlation), and the effective number of independent points
+    n (1 − ρ) / (1 + ρ) (AR(1)). Feed τ back as the target's ``correlation_time`` and refit."""
+    t, e = np.asarray(t, float), np.asarray(e, float)
+    if t.shape != e.shape or e.ndim != 1 or e.size < 3:
+        raise ValueError(f"t and e must be 1-D of one length >= 3, got {t.shape} and {e.shape}")
+    denom = float(np.sum(e * e))
+    rho = float(np.sum(e[1:] * e[:-1]) / denom) if denom > 0 else 0.0
+    rho = min(rho, 0.999)
+    tau = float(-np.mean(np.diff(t)) / math.log(rho)) if rho > 0.05 else None
+    return {"lag1": rho, "correlation_time_s": tau, "n": int(e.size),
+            "n_effective": float(e.size * (1 - max(rho, 0.0)) / (1 + max(rho, 0.0)))}
+
+
 def block_noise(r, row_scale, blocks: Mapping[str, slice], noise: Mapping[str, float] | float | None = None
                 ) -> tuple[dict[str, float | None], dict[str, int], str]:
     """σ of each block (relative units): the given ``noise`` (a float applies to every block),

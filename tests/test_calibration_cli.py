@@ -63,6 +63,8 @@ def test_fit_reads_a_webplotdigitizer_export_with_units(capsys):
     (["--fit", "beta", "--resume"], "--resume needs --out"),
     (["--fit", "beta", "--steps", "0"], "--steps must be >= 1"),
     (["--fit", "beta", "--init", "beta"], "--init expects key=value"),
+    (["--fit", "beta", "--nuts", "2"], "--nuts must be 0 (off) or >= 4"),
+    (["--fit", "beta", "--nuts", "8", "--chains", "0"], "--chains must be >= 1"),
 ])
 def test_fit_input_errors_name_the_argument(capsys, argv, message):
     with pytest.raises(SystemExit) as exc:
@@ -114,10 +116,11 @@ def test_twin_quick_with_noise_intervals_contain_the_truth(capsys):
     assert all(out["in_ci95"].values()), out["ci95"]
 
 
-@pytest.mark.slow  # 40 s; the library's profile likelihood and posterior are tested by default (test_likelihood.py)
+@pytest.mark.slow  # 90 s; the library's checks beyond Gauss-Newton are tested by default (test_likelihood.py)
 def test_fit_with_profiles_and_posterior_draws_them(capsys, tmp_path):
-    """A tiny twin file (dx = L/6, 0.3 s, 1 % noise) fitted for mu1 with --profiles and --posterior:
-    the profile interval and the posterior's sd agree with Gauss–Newton on this near-linear fit."""
+    """A tiny twin file (dx = L/6, 0.3 s, 1 % noise) fitted for mu1 with --profiles, --posterior
+    and --nuts: the profile interval and the posteriors' sd agree with Gauss–Newton on this
+    near-linear fit."""
     from jaxmpm.__main__ import main as run_main
 
     profile = tmp_path / "p.csv"
@@ -132,8 +135,11 @@ def test_fit_with_profiles_and_posterior_draws_them(capsys, tmp_path):
     profile.write_text("\n".join(lines + ["x_m,h_m"] + [f"{a:.6e},{b:.6e}" for a, b in zip(data.x, noisy)]) + "\n")
     code, out = run(capsys, "fit", "--scene", "cohesive-collapse", "--data", str(profile), "--fit", "mu1",
                     "--set", "beta=0.25", "--init", "mu1=0.4", "--steps", "8", "--roundoff-samples", "0",
-                    "--profiles", "5", "--posterior", "7", "--plot", str(tmp_path / "figs"), *TINY)
+                    "--profiles", "5", "--posterior", "7", "--nuts", "40", "--chains", "2",
+                    "--plot", str(tmp_path / "figs"), *TINY)
     assert code == 0 and out["verdict"]["is_fit"]
+    assert out["nuts"]["chains"] == 2 and out["nuts"]["draws_per_chain"] == 40 and "draws" not in out["nuts"]
+    assert 0.6 < out["nuts"]["sd_over_gauss_newton"]["mu1"] < 1.5 and out["nuts"]["rhat"]["mu1"] < 1.1
     lo, hi = out["profile_likelihood"]["mu1"]["ci95_profile"]
     gn_lo, gn_hi = out["ci95"]["mu1"]
     assert 0.7 < (hi - lo) / (gn_hi - gn_lo) < 1.4

@@ -1,5 +1,5 @@
-"""Uncertainty beyond Gauss–Newton (issue 11): profile likelihoods, the grid posterior and a
-held-out prediction with its band, on a tiny S4 twin (dx = L/6, 0.1 s) with 2 % noise."""
+"""Uncertainty beyond Gauss–Newton (issue 11): profile likelihoods, the grid posterior, a
+held-out prediction with its band and the NUTS sampler's plumbing through a real run, on a tiny S4 twin (dx = L/6, 0.1 s) with 2 % noise."""
 
 import dataclasses
 
@@ -88,3 +88,41 @@ def test_held_out_prediction_with_its_band(twin):
     assert out.rms["front"] == pytest.approx(float(np.sqrt(np.mean((b["predicted"] - truth_front) ** 2))))
     with pytest.raises(ValueError, match="fits"):
         predict_heldout(result, Objective(scene, ("mu1",), front=FrontTarget(times, truth_front)))
+    # Correlated front errors (FrontTarget.correlation_time): the residuals are whitened, so the
+    # second one changes, but everything reported in metres, the band included, is the same.
+    tau = 0.05
+    corr = Objective(scene, KEYS, front=FrontTarget(times, truth_front, correlation_time=tau))
+    assert corr.functions is held.functions  # the correlation is data, not a new compilation
+    theta = np.array(list(result.theta.values()))
+    r_plain, r_corr = np.asarray(held.residuals(theta)[0]), np.asarray(corr.residuals(theta)[0])
+    phi = np.exp(-0.05 / tau)
+    np.testing.assert_allclose(r_corr, [r_plain[0], (r_plain[1] - phi * r_plain[0]) / np.sqrt(1 - phi ** 2)],
+                               rtol=1e-9)
+    np.testing.assert_allclose(corr.in_metres(r_corr)["front"], held.in_metres(r_plain)["front"], rtol=1e-9)
+    np.testing.assert_allclose(predict_heldout(result, corr).blocks["front"]["band"], b["band"], rtol=1e-8)
+    assert corr.fingerprint()["data"] != held.fingerprint()["data"]
+    with pytest.raises(ValueError, match="correlation_time must be None or a positive"):
+        Objective(scene, KEYS, front=FrontTarget(times, truth_front, correlation_time=-1.0))
+
+
+@pytest.mark.slow  # 60 s, most of it compiling NUTS around the run; tests/test_mcmc.py checks the sampler by default
+def test_nuts_through_the_twin(twin):
+    """The sampler through a real run: a few draws only (the statistics are tests/test_mcmc.py's
+    exact targets and the docs' study; a warm-up this short leaves the step size unsettled and
+    divergences are possible), finite, inside the bounds, near the fit, and the posterior
+    predictive of the fitted profile."""
+    from calibration.mcmc import nuts_posterior, posterior_predictive
+
+    _, objective, result = twin
+    post = nuts_posterior(objective, result, chains=2, warmup=3, draws=4, seed=0)
+    assert post.draws.shape == (2, 4, 2) and np.all(np.isfinite(post.draws))
+    lower, upper = np.asarray(objective.bounds.lower), np.asarray(objective.bounds.upper)
+    assert np.all((post.flat() > lower) & (post.flat() < upper))
+    assert np.all(np.isfinite(post.log_density)) and post.gradient_evaluations >= 2 * 6
+    assert all(0 <= d <= 4 for d in post.divergences) and all(np.isfinite(post.step_size))
+    se = result.uncertainty.stderr
+    assert np.all(np.abs(post.flat() - [result.theta[k] for k in KEYS]) < 6 * se)
+    pred = posterior_predictive(objective, post, n=3)
+    b = pred["blocks"]["profile"]
+    assert b["predicted"].shape == (3, XS.size) and pred["failed"] == 0
+    np.testing.assert_allclose(b["data"], np.asarray(objective.data["h"]), rtol=1e-12)
