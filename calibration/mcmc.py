@@ -216,13 +216,18 @@ def nuts_posterior(objective, fit_result, *, chains: int = 4, warmup: int = 100,
                                             as_dtype(L), as_dtype(lower_np), as_dtype(upper_np))
     k = len(keys)
     inverse_mass = jnp.ones(k, dtype)
-    da_init, da_update, da_final = blackjax.adaptation.step_size.dual_averaging_adaptation(target_accept)
+    da_init, da_update, _ = blackjax.adaptation.step_size.dual_averaging_adaptation(target_accept)
 
     @jax.jit
     def step(state, rng, step_size):
         kernel = blackjax.nuts(log_density, step_size, inverse_mass, max_num_doublings=max_doublings)
         state, info = kernel.step(rng, state)
         return state, (info.acceptance_rate, info.is_divergent, info.num_integration_steps)
+
+    @jax.jit
+    def warmup_step(state, da, rng):  # one step at the adapting step size, then its update
+        state, info = step(state, rng, jnp.exp(da.log_step_size).astype(dtype))
+        return state, da_update(da, info[0]), info
 
     init = jax.jit(lambda w: blackjax.nuts(log_density, 1.0, inverse_mass).init(w))
     rng = np.random.default_rng(seed)
@@ -242,20 +247,21 @@ def nuts_posterior(objective, fit_result, *, chains: int = 4, warmup: int = 100,
         chain_keys = jax.random.split(keys_all[c], warmup + draws)
         kept, logp, acc, div, nsteps = [], [], [], [], []
         for i in range(warmup + draws):
-            size = jnp.exp(da.log_step_size) if i < warmup else size_final
-            state, (a, d, n) = step(state, chain_keys[i], as_dtype(size))
-            evaluations += int(n)
             if i < warmup:
-                da = da_update(da, a)
+                state, da, (a, d, n) = warmup_step(state, da, chain_keys[i])
                 if i == warmup - 1:
-                    size_final = jnp.exp(da.log_step_size_avg)
+                    size_final = as_dtype(jnp.exp(da.log_step_size_avg))
             else:
+                state, (a, d, n) = step(state, chain_keys[i], size_final)
+            evaluations += int(n)
+            if i >= warmup:
                 kept.append(np.asarray(state.position, float))
                 logp.append(float(state.logdensity))
                 acc.append(float(a))
                 div.append(bool(d))
                 nsteps.append(int(n))
             if progress and (i + 1) % max(1, (warmup + draws) // 10) == 0:
+                size = jnp.exp(da.log_step_size) if i < warmup else size_final
                 print(f"nuts: chain {c + 1}/{chains}, {'warm-up' if i < warmup else 'sampling'} "
                       f"{i + 1}/{warmup + draws}, step {float(size):.3g}, {time.perf_counter() - clock:.0f} s",
                       file=sys.stderr, flush=True)
