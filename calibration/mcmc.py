@@ -148,7 +148,7 @@ def _log_density_fn(objective, weights, z_hat, L, lower, upper):
 
     def chi2_parts(w):
         r, pred = objective.residual_fn(theta_of(w))
-        return r, pred["status"]
+        return r.astype(dtype), pred["status"]  # the sampler's precision, whatever the run's
 
     def masked(value, status, w):
         ok = (status == 0) & jnp.isfinite(value) & _support(objective, theta_of(w))
@@ -201,7 +201,9 @@ def nuts_posterior(objective, fit_result, *, chains: int = 4, warmup: int = 100,
                          "uncertainty); the sampler needs one to precondition the chains")
     sigma = _sigma(objective, fit_result, noise)
     clock = time.perf_counter()
-    dtype = objective.dtype
+    # The chains' precision: JAX's default float (float64 where x64 is on, even for a float32 run,
+    # whose residuals are cast: blackjax's own arrays follow the default and must not mix).
+    dtype = jnp.result_type(float)
     lower_np, upper_np = np.asarray(objective.bounds.lower, float), np.asarray(objective.bounds.upper, float)
     theta_hat = np.array([fit_result.theta[k] for k in keys], float)
     s = (theta_hat - lower_np) / (upper_np - lower_np)
@@ -218,18 +220,28 @@ def nuts_posterior(objective, fit_result, *, chains: int = 4, warmup: int = 100,
     inverse_mass = jnp.ones(k, dtype)
     da_init, da_update, _ = blackjax.adaptation.step_size.dual_averaging_adaptation(target_accept)
 
+    # blackjax mixes the run's dtype with its own (momenta, energies): promote as numpy does, even
+    # where a caller traces under jax_numpy_dtype_promotion="strict".
+    promote = lambda: jax.numpy_dtype_promotion("standard")  # noqa: E731
+
     @jax.jit
     def step(state, rng, step_size):
-        kernel = blackjax.nuts(log_density, step_size, inverse_mass, max_num_doublings=max_doublings)
-        state, info = kernel.step(rng, state)
+        with promote():
+            kernel = blackjax.nuts(log_density, step_size, inverse_mass, max_num_doublings=max_doublings)
+            state, info = kernel.step(rng, state)
         return state, (info.acceptance_rate, info.is_divergent, info.num_integration_steps)
 
     @jax.jit
     def warmup_step(state, da, rng):  # one step at the adapting step size, then its update
         state, info = step(state, rng, jnp.exp(da.log_step_size).astype(dtype))
-        return state, da_update(da, info[0]), info
+        with promote():
+            return state, da_update(da, info[0]), info
 
-    init = jax.jit(lambda w: blackjax.nuts(log_density, 1.0, inverse_mass).init(w))
+    def init_fn(w):
+        with promote():
+            return blackjax.nuts(log_density, 1.0, inverse_mass).init(w)
+
+    init = jax.jit(init_fn)
     rng = np.random.default_rng(seed)
     keys_all = jax.random.split(jax.random.key(seed), chains)
     out_draws, out_logp, sizes, divs, accs, steps_mean = [], [], [], [], [], []

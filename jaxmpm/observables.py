@@ -41,7 +41,7 @@ def deposit_profile(x, volumes, xs, sigma, width=None, mirror=None):
     of it lies behind the wall on no material; with it each particle's image behind the wall
     fills that half (the reflection method), and h is 0 behind the wall."""
     area = volumes if width is None else volumes / width
-    xs = jnp.asarray(xs)
+    xs = jnp.asarray(xs, jnp.asarray(x).dtype)  # the particles' precision (float64 points on float32 runs)
 
     def smoothed(px):
         z = (xs[:, None] - px[None, :]) / sigma
