@@ -113,7 +113,9 @@ class McmcPosterior:
                 "prior": "flat inside the bounds", "chains": self.chains, "warmup": self.warmup,
                 "draws_per_chain": int(self.draws.shape[1]), "seed": self.seed,
                 "mean": self.mean, "sd": self.sd, "ci95": {k: list(v) for k, v in self.ci95.items()},
-                "rhat": self.rhat, "ess_bulk": self.ess_bulk, "ess_tail": self.ess_tail,
+                # R-hat needs two chains: null (not NaN) for one
+                "rhat": {k: v if math.isfinite(v) else None for k, v in self.rhat.items()},
+                "ess_bulk": self.ess_bulk, "ess_tail": self.ess_tail,
                 "converged": self.converged, "theta_hat": self.theta_hat, "gauss_newton_stderr": self.gn_stderr,
                 "sd_over_gauss_newton": {k: self.sd[k] / self.gn_stderr[k] for k in self.keys},
                 "step_size": list(self.step_size), "divergences": list(self.divergences),

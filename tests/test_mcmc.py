@@ -129,3 +129,12 @@ def test_log_density_gradient_matches_finite_differences():
     g_failed = np.asarray(grad(failed))
     s = 1 / (1 + np.exp(-np.asarray(z_hat + L @ failed)))
     np.testing.assert_allclose(g_failed, np.asarray(L).T @ (1 - 2 * s), rtol=1e-10)  # the log-Jacobian's alone
+
+
+def test_one_chain_prints_no_nan():
+    """R-hat needs two chains: with one it is null in the JSON, never NaN, and not converged."""
+    objective = LinearObjective(np.ones((2, 1)), np.full(2, 0.5), lower=(0.0,), upper=(1.0,))
+    post = nuts_posterior(objective, _fit_result(objective.keys, [0.5], [[0.01]], 0.1), chains=1, warmup=5, draws=8)
+    out = post.to_json()
+    assert out["rhat"] == {"k0": None} and not out["converged"]
+    json.dumps(out, allow_nan=False)

@@ -23,7 +23,9 @@ from calibration import Objective, ProfileTarget, fit, load_profile
 from calibration.likelihood import grid_posterior
 from calibration.mcmc import nuts_posterior, posterior_predictive
 from calibration.plots import plot_nuts, plot_posterior_predictive
-from jaxmpm.scenes import aluminium_bars, cohesive_collapse
+from jaxmpm.scenes import aluminium_bars
+
+from beyond_gauss_newton import S4_KEYS, S4_TRUTH, s4_twin  # the same twin (this folder)
 
 ROOT = pathlib.Path(__file__).resolve().parents[2]
 RESULTS, FIGURES = ROOT / "docs" / "results", ROOT / "docs" / "figures"
@@ -52,16 +54,8 @@ def _finish(name, label, objective, result, grid, nuts, predictive_objective, ex
 
 
 def s4():
-    truth = np.array([0.25, 0.38])
-    keys = ("beta", "mu1")
-    scene = cohesive_collapse(dx=0.089 / 6, t_end=0.5, beta=0.25)
-    xs = np.linspace(0.0, 0.3, 50)
-    gen = Objective(scene, keys, profile=ProfileTarget(xs, np.ones_like(xs)), check_data=False)
-    h = np.asarray(gen.predict(truth)["h"], float)
-    keep = xs <= 1.3 * xs[np.flatnonzero(h > 0.01 * h.max())[-1]]
-    xs, h = xs[keep], h[keep]
-    noisy = h + 0.02 * h.max() * np.random.default_rng(0).standard_normal(h.shape)
-    objective = Objective(scene, keys, profile=ProfileTarget(xs, noisy))
+    truth, keys = S4_TRUTH, S4_KEYS
+    scene, _, objective = s4_twin(6)
     t0 = time.perf_counter()
     result = fit(objective, dict(zip(keys, 0.9 * truth)), steps=25, noise=0.02)
     grid = grid_posterior(objective, result, n=15)
