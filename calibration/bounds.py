@@ -26,7 +26,8 @@ FIT_KEYS = ("beta", "mu1", "mu2", "I0", "xi")
 START_MARGIN = 0.05
 
 #: Physical limits (lo, hi). β: tensile/compressive strength ratio (dry 0 … strongly cohesive);
-#: μ1, μ2: friction coefficients (tan 3° … tan 63°); I0: inertial number scale; ξ: hardening rate.
+#: μ1, μ2: friction coefficients (tan 3° … tan 63°); I0: inertial number scale; ξ: hardening rate;
+#: μ_w: Coulomb friction of the walls and terrain declared with friction="mu_w" (0 … tan 63°).
 DEFAULT_BOUNDS: dict[str, tuple[float, float]] = {
     "beta": (0.0, 1.0),
     "mu1": (0.05, 2.0),
@@ -37,6 +38,7 @@ DEFAULT_BOUNDS: dict[str, tuple[float, float]] = {
     "E": (1e4, 1e9),
     "nu": (0.0, 0.49),
     "d": (1e-5, 0.1),
+    "mu_w": (0.0, 2.0),
 }
 
 

@@ -94,34 +94,7 @@ _FINAL = "final"
 # ---------------------------------------------------------------------------------------------
 
 
-def _is_number(cell: str) -> bool:
-    try:
-        float(cell)
-    except ValueError:
-        return False
-    return True
-
-
-def _numeric(parsed: tables.Table, rows, names: tuple[str, ...]) -> tuple[np.ndarray, np.ndarray]:
-    """Rows of cells as a float array (n, len(names)) and their line numbers; checks each cell."""
-    values = np.empty((len(rows), len(names)))
-    lines = np.empty(len(rows), dtype=int)
-    for i, (number, cells) in enumerate(rows):
-        if len(cells) != len(names):
-            raise ValueError(f"{parsed.file}: line {number}: expected {len(names)} columns "
-                             f"({','.join(names)}), got {len(cells)}")
-        for j, cell in enumerate(cells):
-            try:
-                value = float(cell)
-            except ValueError:
-                raise ValueError(f"{parsed.file}: line {number}: column {j + 1} ({names[j]}) is not a number: "
-                                 f"{cell!r}") from None
-            if not math.isfinite(value):
-                raise ValueError(f"{parsed.file}: line {number}: column {j + 1} ({names[j]}) is not finite: "
-                                 f"{cell!r}")
-            values[i, j] = value
-        lines[i] = number
-    return values, lines
+_is_number, _numeric, _trim = tables.is_number, tables.numeric_rows, tables.trim_cells
 
 
 def _columns(parsed: tables.Table, dataset: str | None):
@@ -170,14 +143,6 @@ def _columns(parsed: tables.Table, dataset: str | None):
                              f"{'X' if pair[0] == '' else 'Y'} cell")
         picked.append((n, pair))
     return ("x", "y"), picked, available[index]
-
-
-def _trim(cells: list[str]) -> list[str]:
-    """Drop trailing empty cells (a trailing delimiter)."""
-    cells = list(cells)
-    while cells and cells[-1] == "":
-        cells.pop()
-    return cells
 
 
 def _unit_scale(parsed: tables.Table, from_names: str | None, argument: str | None, table: Mapping[str, float],
@@ -532,16 +497,7 @@ def load_front_history(
 # ---------------------------------------------------------------------------------------------
 
 
-def read_table(path: str | os.PathLike) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
-    """A CSV with the project header convention and a row of column names: ``(header, columns)``,
-    the header JSON-decoded where possible and each column a float64 array (checked finite)."""
-    parsed = tables.read_table(path)
-    number, first = parsed.rows[0] if parsed.rows else (0, [])
-    names = tuple(_trim(first))
-    if not names or any(_is_number(c) for c in names) or len(set(names)) != len(names):
-        raise ValueError(f"{parsed.file}: line {number}: expected a row of distinct column names, got {list(names)}")
-    values, _ = _numeric(parsed, [(n, _trim(c)) for n, c in parsed.rows[1:]], names)
-    return dict(parsed.header), {name: values[:, j].copy() for j, name in enumerate(names)}
+read_table = tables.read_columns
 
 
 @dataclasses.dataclass(frozen=True, eq=False)

@@ -8,10 +8,10 @@ step and rollout factories, the public ``simulate`` call, HDF5 output (``io``) a
 from importlib import metadata as _metadata
 
 from . import io, scenes, tables
-from .boundary import Wall
+from .boundary import Terrain, Wall
 from .config import Config, Grid
 from .materials import CriticalState, Hencky, Material, hencky_stress, invariants
-from .params import DEFAULTS, PARAM_KEYS, Params, validate_params
+from .params import DEFAULTS, MATERIAL_KEYS, PARAM_KEYS, Params, validate_params
 from .rollout import frame_observer, make_rollout
 from .simulate import Result, SimulationError, compiled_rollout, simulate
 from .state import (
@@ -53,7 +53,7 @@ except _metadata.PackageNotFoundError:  # running from a source tree
 
 __all__ = [
     "BUDGET", "Config", "CriticalState", "EDGE", "DEFAULTS", "Grid", "Hencky", "J_NONPOSITIVE", "LEFT_GRID", "Material",
-    "NONFINITE", "PARAM_KEYS", "Params", "Result", "SAMPLINGS", "SimulationError", "State", "Wall",
+    "MATERIAL_KEYS", "NONFINITE", "PARAM_KEYS", "Params", "Result", "SAMPLINGS", "SimulationError", "State", "Terrain", "Wall",
     "compiled_rollout", "describe_status", "frame_observer", "hencky_stress", "init_state",
     "invariants", "io", "make_rollout", "make_step", "scenes", "seed_box", "simulate", "tables", "validate_params",
 ]

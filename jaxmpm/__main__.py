@@ -274,7 +274,7 @@ def build_parser() -> argparse.ArgumentParser:
     bench.add_argument("--repeat", type=int, default=3, help="timed runs; the median is reported")
     bench.add_argument("--particles", type=int, default=None, help="override the particle count")
     bench.add_argument("--grad", action="store_true", help="benchmark reverse-mode gradients instead")
-    bench.add_argument("--steps", type=int, default=None, help="steps for --grad (default 5000)")
+    bench.add_argument("--steps", type=int, default=None, help="steps: for --grad (default 5000); for the forward run, a cap (default: until t_end)")
     return parser
 
 

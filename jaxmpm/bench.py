@@ -8,6 +8,7 @@ without the checkpointed blocks. Timings are medians over ``--repeat`` runs.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import os
@@ -62,8 +63,14 @@ def _scene(scene: str, quick: bool, dim: int, dtype, n_particles=None):
     return falling_block(n_particles=n, dim=dim, t_end=0.05 if quick else 0.39, dtype=dtype)
 
 
-def bench_forward(quick=False, dim=2, dtype="float32", repeat=3, n_particles=None, scene="block") -> dict:
+def bench_forward(quick=False, dim=2, dtype="float32", repeat=3, n_particles=None, scene="block", steps=None) -> dict:
+    """Forward rollout throughput. ``steps`` caps the run at that many steps (a fixed-length
+    scan; the ``BUDGET`` status bit is then expected), so that large cases stay affordable."""
     config, state, params = _scene(scene, quick, dim, dtype, n_particles)
+    if steps is not None:
+        if not (isinstance(steps, int) and steps >= 1):
+            raise ValueError(f"steps must be a positive int, got {steps!r}")
+        config = dataclasses.replace(config, max_steps=min(steps, config.max_steps), block_size=None)
     rollout = jax.jit(make_rollout(config, observer=None))
     start = time.perf_counter()
     compiled = rollout.lower(state, params).compile()
@@ -77,7 +84,9 @@ def bench_forward(quick=False, dim=2, dtype="float32", repeat=3, n_particles=Non
         "dtype": str(jnp.dtype(state.x.dtype)),
         "n_particles": n,
         "n_steps": steps,
+        "grid_nodes": config.grid.n_nodes,
         "compile_s": round(compile_s, 3),
+        "xla_temp_mb": _temp_mb(compiled),
         "run_s": round(run_s, 4),
         "particle_steps_per_s": round(n * steps / run_s),
         "peak_rss_mb": round(_peak_rss_mb(), 1),
@@ -132,6 +141,7 @@ def main(args) -> dict:
     if args.grad:
         result = bench_gradient(args.quick, args.dim, dtype, args.repeat, args.particles, args.steps)
     else:
-        result = bench_forward(args.quick, args.dim, dtype, args.repeat, args.particles, args.scene)
+        result = bench_forward(args.quick, args.dim, dtype, args.repeat, args.particles, args.scene,
+                               steps=args.steps)
     print(json.dumps(result) if args.json else json.dumps(result, indent=2))
     return result

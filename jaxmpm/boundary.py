@@ -18,12 +18,24 @@ becomes, by the wall's ``kind`` (the reference code's three types):
   μ_w (0 by default: a frictionless gate); elsewhere the node is left alone, so material can
   separate from the wall.
 
-``friction`` is μ_w. The reference code's names ``"slip-stick"`` and ``"slip-free"`` are
+``friction`` is μ_w: a number (static configuration), or the string ``"mu_w"``, which takes it
+from the parameter ``Params.mu_w`` so that it can be differentiated and calibrated. The
+reference code's names ``"slip-stick"`` and ``"slip-free"`` are
 accepted and stored as ``"non-separable"`` and ``"separable"``.
 
 A gate lifted at speed U is ``Wall(point=(x_g, floor), normal=(-1, 0), kind="separable",
 velocity=(0, U), edge=(0, 1), thickness=...)``: it extends upwards from its lower edge, which
 starts on the floor and rises with it, so material escapes beneath it.
+
+A ``Terrain`` is a ground of any shape (SCENES.md S6): the graph z = h(x) of a polyline with
+strictly increasing x (distance along the path, elevation), extruded along y in 3D. It acts
+through the same contact rules, with its own kind and friction, on the signed distance
+φ(p) = (p_z − h(p_x)) n_z and the normal n ∝ (−s(p_x), 1), where s is the slope interpolated
+linearly between the vertices' slopes (each vertex takes the mean of its two segments'), so
+that the normal is continuous across vertices. The sign of φ is exact (it is the side of the
+polyline the point lies on); on a straight stretch φ is the exact distance and n the exact
+normal, wherever the vertices fall; near a bend φ is first-order accurate, which is all the
+contact test (φ ≤ 0) needs. Beyond the end vertices the end segments are extended.
 """
 
 from __future__ import annotations
@@ -34,7 +46,7 @@ import math
 import jax
 import jax.numpy as jnp
 
-__all__ = ["Wall", "KINDS", "KIND_ALIASES", "apply_walls"]
+__all__ = ["Wall", "Terrain", "KINDS", "KIND_ALIASES", "apply_walls"]
 
 KINDS = ("no-slip", "non-separable", "separable")
 #: The reference code's names for the same types.
@@ -62,6 +74,28 @@ def _unit(name, value, dim):
     return tuple(c / norm for c in vec)
 
 
+def _check_kind(owner, kind):
+    kind = KIND_ALIASES.get(kind, kind)
+    if kind not in KINDS:
+        raise ValueError(f"{owner}.kind must be one of {KINDS} (or the reference code's "
+                         f"{tuple(KIND_ALIASES)}), got {kind!r}")
+    return kind
+
+
+def _check_friction(owner, friction):
+    if isinstance(friction, str):
+        if friction != "mu_w":
+            raise ValueError(f"{owner}.friction must be a number >= 0 or the parameter name 'mu_w', got {friction!r}")
+        return friction
+    try:
+        value = float(friction)
+    except (TypeError, ValueError):
+        raise ValueError(f"{owner}.friction must be a number >= 0 or 'mu_w', got {friction!r}") from None
+    if not (math.isfinite(value) and value >= 0):
+        raise ValueError(f"{owner}.friction must be finite and >= 0, got {friction!r}")
+    return value
+
+
 @dataclasses.dataclass(frozen=True)
 class Wall:
     """A plane or a moving plate. See the module docstring for the contact rules."""
@@ -84,13 +118,8 @@ class Wall:
         setter("velocity", _as_vector("Wall.velocity", velocity, dim))
         if self.edge is not None:
             setter("edge", _unit("Wall.edge", self.edge, dim))
-        kind = KIND_ALIASES.get(self.kind, self.kind)
-        if kind not in KINDS:
-            raise ValueError(f"Wall.kind must be one of {KINDS} (or the reference code's "
-                             f"{tuple(KIND_ALIASES)}), got {self.kind!r}")
-        setter("kind", kind)
-        if not (math.isfinite(self.friction) and self.friction >= 0):
-            raise ValueError(f"Wall.friction must be finite and >= 0, got {self.friction!r}")
+        setter("kind", _check_kind("Wall", self.kind))
+        setter("friction", _check_friction("Wall", self.friction))
         if not self.thickness > 0:
             raise ValueError(f"Wall.thickness must be > 0, got {self.thickness!r}")
 
@@ -103,6 +132,87 @@ class Wall:
         return any(c != 0.0 for c in self.velocity)
 
 
+@dataclasses.dataclass(frozen=True)
+class Terrain:
+    """A frictional ground of any shape: the graph of the polyline (``x``, ``z``), x strictly
+    increasing, extruded along y when ``dim`` = 3. Contact, kinds and friction as for ``Wall``
+    (default ``"non-separable"``: the snow slides on the ground and never leaves it; use
+    ``"separable"`` to let it take off). See the module docstring for φ and the normal."""
+
+    x: tuple[float, ...]
+    z: tuple[float, ...]
+    kind: str = "non-separable"
+    friction: float | str = 0.0
+    dim: int = 2
+    thickness: float = math.inf
+
+    def __post_init__(self):
+        setter = lambda k, v: object.__setattr__(self, k, v)  # noqa: E731 (frozen dataclass)
+        x, z = _as_floats("Terrain.x", self.x), _as_floats("Terrain.z", self.z)
+        if len(x) != len(z):
+            raise ValueError(f"Terrain.x and Terrain.z must have the same length, got {len(x)} and {len(z)}")
+        if len(x) < 2:
+            raise ValueError(f"Terrain needs at least 2 vertices, got {len(x)}")
+        bad = [i for i in range(len(x) - 1) if not x[i + 1] > x[i]]
+        if bad:
+            i = bad[0]
+            raise ValueError(f"Terrain.x must increase strictly (the terrain is the graph z = h(x)), "
+                             f"got x[{i}] = {x[i]!r} and x[{i + 1}] = {x[i + 1]!r}")
+        setter("x", x)
+        setter("z", z)
+        setter("kind", _check_kind("Terrain", self.kind))
+        setter("friction", _check_friction("Terrain", self.friction))
+        if self.dim not in (2, 3):
+            raise ValueError(f"Terrain.dim must be 2 or 3, got {self.dim!r}")
+        if not self.thickness > 0:
+            raise ValueError(f"Terrain.thickness must be > 0, got {self.thickness!r}")
+
+    @classmethod
+    def from_csv(cls, path, **kwargs) -> "Terrain":
+        """A terrain from a CSV of ``x_m, z_m`` rows (the project's table format: ``#`` header
+        lines, then the column names)."""
+        from .tables import read_columns
+
+        _, columns = read_columns(path, required=("x_m", "z_m"))
+        return cls(tuple(columns["x_m"]), tuple(columns["z_m"]), **kwargs)
+
+    @property
+    def moving(self) -> bool:
+        return False
+
+    def height(self, x):
+        """h(x), the polyline's elevation (end segments extended), for numpy or JAX arrays."""
+        return self._evaluate(x)[0]
+
+    def _evaluate(self, px):
+        xp = jnp if isinstance(px, jax.Array) else __import__("numpy")
+        xv, zv = xp.asarray(self.x, px.dtype), xp.asarray(self.z, px.dtype)
+        seg = (zv[1:] - zv[:-1]) / (xv[1:] - xv[:-1])
+        vertex = xp.concatenate([seg[:1], 0.5 * (seg[1:] + seg[:-1]), seg[-1:]])
+        k = xp.clip(xp.searchsorted(xv, px, side="right") - 1, 0, len(self.x) - 2)
+        t = (px - xv[k]) / (xv[k + 1] - xv[k])
+        h = zv[k] + t * (zv[k + 1] - zv[k])
+        tc = xp.clip(t, 0.0, 1.0)
+        return h, vertex[k] + tc * (vertex[k + 1] - vertex[k])
+
+    def signed_distance(self, p):
+        """(φ, n) at points ``p`` (dim, n): φ > 0 above the ground, n the unit normal, (dim, n)."""
+        h, s = self._evaluate(p[0])
+        inv = jax.lax.rsqrt(1.0 + s * s)
+        comps = [-s * inv] + [jnp.zeros_like(s)] * (p.shape[0] - 2) + [inv]
+        return (p[-1] - h) * inv, jnp.stack(comps)
+
+
+def _as_floats(name, value):
+    try:
+        out = tuple(float(c) for c in value)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be a sequence of numbers, got {value!r}") from None
+    if not all(math.isfinite(c) for c in out):
+        raise ValueError(f"{name} must be finite")
+    return out
+
+
 def _coulomb(vt, vn, friction):
     """|v_t| <- max(0, |v_t| - μ_w |v_n|) along v_t's own direction.
 
@@ -110,7 +220,7 @@ def _coulomb(vt, vn, friction):
     a 0/1 mask, so a ratio whose derivative overflows where |v_t| -> 0 (stuck nodes) would turn
     0 · inf into a NaN tangent. Here a stuck node's tangent is exactly 0 and the ratio is only
     formed where |v_t| > (smallest normal)^(1/4), where its derivative is finite."""
-    if friction == 0.0:
+    if isinstance(friction, float) and friction == 0.0:
         return vt
     vt2 = jnp.sum(vt * vt, axis=0, keepdims=True)
     limit = friction * jnp.abs(vn)
@@ -120,22 +230,35 @@ def _coulomb(vt, vn, friction):
     return vt * jnp.where(safe, scale, jnp.where(slides, 1.0, 0.0))
 
 
-def _contact_velocity(wall: Wall, v_rel, normal):
+def _contact_velocity(wall, v_rel, normal, friction):
     """Relative velocity (dim, n_nodes) after the contact rule, for nodes in contact."""
     if wall.kind == "no-slip":
         return jnp.zeros_like(v_rel)
     vn = jnp.sum(v_rel * normal, axis=0, keepdims=True)
-    vt = _coulomb(v_rel - vn * normal, vn, wall.friction)
+    vt = _coulomb(v_rel - vn * normal, vn, friction)
     if wall.kind == "non-separable":
         return vt
     return jnp.where(vn < 0, vt, v_rel)  # separable
 
 
-def apply_walls(walls, v, node_x, t, dt):
-    """Apply every wall in order to grid velocities ``v`` (dim, n_nodes) at nodes ``node_x``
-    (dim, n_nodes), at time ``t`` for a step of ``dt``."""
+def apply_walls(walls, v, node_x, t, dt, params=None):
+    """Apply every wall and terrain in order to grid velocities ``v`` (dim, n_nodes) at nodes
+    ``node_x`` (dim, n_nodes), at time ``t`` for a step of ``dt``. ``params`` supplies μ_w to
+    the boundaries declared with ``friction="mu_w"``."""
     for wall in walls:
         dtype = v.dtype
+        friction = wall.friction
+        if isinstance(friction, str):
+            if params is None:
+                raise ValueError(f"{type(wall).__name__} friction 'mu_w' needs the parameters (params=None)")
+            friction = jnp.asarray(params.mu_w, dtype)
+        if isinstance(wall, Terrain):
+            signed, normal = wall.signed_distance(node_x + dt * v)
+            contact = signed <= 0
+            if math.isfinite(wall.thickness):
+                contact &= signed > -wall.thickness
+            v = jnp.where(contact, _contact_velocity(wall, v, normal, friction), v)
+            continue
         normal = jnp.asarray(wall.normal, dtype)[:, None]
         wall_v = jnp.asarray(wall.velocity, dtype)[:, None]
         point = jnp.asarray(wall.point, dtype)[:, None] + (t * wall_v if wall.moving else 0.0)
@@ -146,5 +269,5 @@ def apply_walls(walls, v, node_x, t, dt):
         if wall.edge is not None:
             edge = jnp.asarray(wall.edge, dtype)[:, None]
             contact &= jnp.sum((node_x - point) * edge, axis=0) >= 0
-        v = jnp.where(contact, _contact_velocity(wall, v - wall_v, normal) + wall_v, v)
+        v = jnp.where(contact, _contact_velocity(wall, v - wall_v, normal, friction) + wall_v, v)
     return v

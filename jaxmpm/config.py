@@ -11,7 +11,7 @@ import math
 
 import numpy as np
 
-from .boundary import Wall
+from .boundary import Terrain, Wall
 from .materials.base import Material
 from .materials.hencky import Hencky
 
@@ -122,7 +122,7 @@ class Config:
       max_steps: step budget of the fixed-length scan; the ``BUDGET`` status bit is set if the
         run ends before ``t_end``.
       material: the constitutive model.
-      walls: planes and moving plates, applied in order.
+      walls: planes, moving plates and terrains (``boundary.Terrain``), applied in order.
       gravity: gravity vector (m/s^2); a slope is a rotated gravity.
       transfer: ``"aflip"`` (AFLIP blend with ``alpha``; alpha = 0 is APIC), ``"apic"`` or
         ``"pic"`` (no affine matrix).
@@ -139,7 +139,7 @@ class Config:
     t_end: float
     max_steps: int
     material: Material = Hencky()
-    walls: tuple[Wall, ...] = ()
+    walls: tuple[Wall | Terrain, ...] = ()
     gravity: tuple[float, ...] | None = None
     transfer: str = "aflip"
     alpha: float = 0.95
@@ -158,8 +158,8 @@ class Config:
             raise ValueError(f"material must be a Material, got {self.material!r}")
         walls = tuple(self.walls)
         for i, wall in enumerate(walls):
-            if not isinstance(wall, Wall):
-                raise ValueError(f"walls[{i}] must be a Wall, got {wall!r}")
+            if not isinstance(wall, (Wall, Terrain)):
+                raise ValueError(f"walls[{i}] must be a Wall or a Terrain, got {wall!r}")
             if wall.dim != dim:
                 raise ValueError(f"walls[{i}] is {wall.dim}D but the grid is {dim}D")
         set_("walls", walls)

@@ -15,6 +15,8 @@ I0         reference inertial number [-]
 beta       cohesion: ratio of tensile to compressive strength [-]
 pc0        initial compressive strength p_c [Pa]
 xi         hardening rate [-]
+mu_w       Coulomb friction of the walls and terrains declared with ``friction="mu_w"`` [-]
+           (a parameter, so that it can be differentiated and calibrated; 0 by default)
 """
 
 from __future__ import annotations
@@ -27,7 +29,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-__all__ = ["Params", "PARAM_KEYS", "DEFAULTS", "validate_params"]
+__all__ = ["Params", "PARAM_KEYS", "MATERIAL_KEYS", "DEFAULTS", "validate_params"]
 
 #: Defaults of MODEL.md §4 (glass beads, the reference code's scene values).
 DEFAULTS: dict[str, float] = {
@@ -42,8 +44,11 @@ DEFAULTS: dict[str, float] = {
     "beta": 0.0,
     "pc0": 100.0,
     "xi": 0.0,
+    "mu_w": 0.0,
 }
 PARAM_KEYS: tuple[str, ...] = tuple(DEFAULTS)
+#: The keys of the material itself (μ_w belongs to a scene's walls and terrain).
+MATERIAL_KEYS: tuple[str, ...] = tuple(k for k in PARAM_KEYS if k != "mu_w")
 
 
 @jax.tree_util.register_dataclass
@@ -62,6 +67,7 @@ class Params:
     beta: Any
     pc0: Any
     xi: Any
+    mu_w: Any
 
     @classmethod
     def create(cls, dtype=None, **values: float) -> "Params":
@@ -118,6 +124,7 @@ _RULES: tuple[tuple[str, Any, str], ...] = (
     ("beta", lambda v: v >= 0, ">= 0"),
     ("pc0", lambda v: v >= 0, ">= 0"),
     ("xi", lambda v: v >= 0, ">= 0"),
+    ("mu_w", lambda v: v >= 0, ">= 0"),
 )
 
 

@@ -2,8 +2,9 @@
 
 Only what the observer returns is stored, at the configured frame times (which the step lands
 on exactly). Steps run in blocks of ``config.blocks[1]``, each wrapped in ``jax.checkpoint``,
-so reverse-mode memory holds one carry per block plus one block's residuals: with blocks of
-about sqrt(n) steps it grows like sqrt(n) instead of n.
+and so is each step inside a block, so reverse-mode memory holds one carry per block, one carry
+per step of the block being transposed and one step's residuals: with blocks of about sqrt(n)
+steps it grows like sqrt(n) instead of n.
 """
 
 from __future__ import annotations
@@ -30,8 +31,15 @@ def frame_observer(state, params):
 
 
 def _scan_steps(fn, carry, n: int, checkpoint: bool):
+    # With checkpointing each step is rematerialised too: the backward pass of a block re-runs
+    # the block storing one carry per step, then recomputes each step's residuals just before
+    # its transpose, instead of storing every step's residuals (stencils, return-map state) for
+    # the whole block. Same time within noise (5.4 against 5.7 forward runs for bench --grad),
+    # 11 times less memory (31 MB against 350 MB of temporaries).
+    step = jax.checkpoint(fn) if checkpoint else fn
+
     def block(c):
-        return jax.lax.scan(lambda c, _: (fn(c), None), c, None, length=n)[0]
+        return jax.lax.scan(lambda c, _: (step(c), None), c, None, length=n)[0]
 
     return jax.checkpoint(block)(carry) if checkpoint else block(carry)
 

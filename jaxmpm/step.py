@@ -63,7 +63,7 @@ def make_step(config: Config):
         mass = params.rho * state.vol0
         fields = p2g(stencil, mass, state.v, state.C, state.vol0, state.tau, grid.n_nodes)
         v_old, v_new = grid_velocities(fields, dt, jnp.asarray(config.gravity, dtype))
-        v_new = apply_walls(config.walls, v_new, jnp.asarray(node_x_np, dtype), state.t, dt)
+        v_new = apply_walls(config.walls, v_new, jnp.asarray(node_x_np, dtype), state.t, dt, params)
         v_flip = state.v
         if config.xpic and config.transfer == "aflip" and alpha != 0.0:
             v_flip = xpic_velocity(stencil, mass, fields.mass, state.v, config.xpic)

@@ -43,7 +43,8 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["FRONT_COLUMNS", "PROFILE_COLUMNS", "Table", "read_table", "write_profile_csv", "write_table"]
+__all__ = ["FRONT_COLUMNS", "PROFILE_COLUMNS", "Table", "read_columns", "read_table", "write_profile_csv",
+           "write_table"]
 
 #: Columns of a deposit profile h(x), both in metres.
 PROFILE_COLUMNS = ("x_m", "h_m")
@@ -195,3 +196,59 @@ def read_table(path: str | os.PathLike) -> Table:
         delimiter = next((d for d in (";", "\t", ",") if d in first), None)
     rows = [(number, _split(line, delimiter)) for number, line in content]
     return Table(file, header, header_line, rows)
+
+
+# ---- numeric columns -----------------------------------------------------------------------------
+def is_number(cell: str) -> bool:
+    try:
+        float(cell)
+    except ValueError:
+        return False
+    return True
+
+
+def trim_cells(cells: list[str]) -> list[str]:
+    """Drop trailing empty cells (a trailing delimiter)."""
+    cells = list(cells)
+    while cells and cells[-1] == "":
+        cells.pop()
+    return cells
+
+
+def numeric_rows(parsed: Table, rows, names: tuple[str, ...]) -> tuple[np.ndarray, np.ndarray]:
+    """Rows of cells as a float array (n, len(names)) and their line numbers; checks each cell
+    (count, number, finite) and names the file, line and column of the first bad one."""
+    values = np.empty((len(rows), len(names)))
+    lines = np.empty(len(rows), dtype=int)
+    for i, (number, cells) in enumerate(rows):
+        if len(cells) != len(names):
+            raise ValueError(f"{parsed.file}: line {number}: expected {len(names)} columns "
+                             f"({','.join(names)}), got {len(cells)}")
+        for j, cell in enumerate(cells):
+            try:
+                value = float(cell)
+            except ValueError:
+                raise ValueError(f"{parsed.file}: line {number}: column {j + 1} ({names[j]}) is not a number: "
+                                 f"{cell!r}") from None
+            if not np.isfinite(value):
+                raise ValueError(f"{parsed.file}: line {number}: column {j + 1} ({names[j]}) is not finite: "
+                                 f"{cell!r}")
+            values[i, j] = value
+        lines[i] = number
+    return values, lines
+
+
+def read_columns(path: str | os.PathLike, required: tuple[str, ...] = ()) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
+    """A file of this format with a row of column names: ``(header, columns)``, the header
+    decoded and each column a float64 array (every cell checked). ``required`` names columns
+    the file must have."""
+    parsed = read_table(path)
+    number, first = parsed.rows[0] if parsed.rows else (0, [])
+    names = tuple(trim_cells(first))
+    if not names or any(is_number(c) for c in names) or len(set(names)) != len(names):
+        raise ValueError(f"{parsed.file}: line {number}: expected a row of distinct column names, got {list(names)}")
+    missing = [c for c in required if c not in names]
+    if missing:
+        raise ValueError(f"{parsed.file}: line {number}: missing column(s) {missing}; the file has {list(names)}")
+    values, _ = numeric_rows(parsed, [(n, trim_cells(c)) for n, c in parsed.rows[1:]], names)
+    return dict(parsed.header), {name: values[:, j].copy() for j, name in enumerate(names)}

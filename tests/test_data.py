@@ -349,9 +349,10 @@ def _material(setup):
 
 
 def data_param_keys():
-    from jaxmpm.params import PARAM_KEYS
+    """The material's keys: a set-up lists the material; μ_w belongs to a scene's walls."""
+    from jaxmpm.params import MATERIAL_KEYS
 
-    return PARAM_KEYS
+    return MATERIAL_KEYS
 
 
 def _check_params(setup, scene):

@@ -52,7 +52,7 @@ def test_setup_json_agrees_with_the_builder():
     scene = aluminium_bars()
     got = scene.params.to_dict()
     material = setup["material"]
-    for key in jm.PARAM_KEYS:
+    for key in jm.MATERIAL_KEYS:
         assert math.isclose(got[key], material[key]["value"], rel_tol=1e-12), key
     assert math.isclose(math.degrees(math.atan(material["mu1"]["value"])), material["friction_angle_deg"]["value"])
     g, n = setup["geometry"], setup["numerics"]

@@ -43,8 +43,9 @@ def timed(fn, *args, repeat=30):
 def main():
     parser = argparse.ArgumentParser()
     parser.add_argument("--iterations", type=int, nargs="*", default=[])
+    parser.add_argument("--particles", type=int, default=None, help="override the column's 10,240 particles")
     args = parser.parse_args()
-    config, state, params = _scene("column", False, 2, "float32")
+    config, state, params = _scene("column", False, 2, "float32", args.particles)
     grid = config.grid
     warm = make_rollout(dataclasses.replace(config, t_end=0.02), observer=None)
     state = jax.jit(warm)(state, params)[0]
