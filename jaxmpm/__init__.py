@@ -17,6 +17,7 @@ from .simulate import Result, SimulationError, compiled_rollout, simulate
 from .state import (
     BUDGET,
     EDGE,
+    GRID_FULL,
     J_NONPOSITIVE,
     LEFT_GRID,
     NONFINITE,
@@ -52,7 +53,7 @@ except _metadata.PackageNotFoundError:  # running from a source tree
     __version__ = "0.1.0"
 
 __all__ = [
-    "BUDGET", "Config", "CriticalState", "EDGE", "DEFAULTS", "Grid", "Hencky", "J_NONPOSITIVE", "LEFT_GRID", "Material",
+    "BUDGET", "Config", "CriticalState", "EDGE", "DEFAULTS", "GRID_FULL", "Grid", "Hencky", "J_NONPOSITIVE", "LEFT_GRID", "Material",
     "MATERIAL_KEYS", "NONFINITE", "PARAM_KEYS", "Params", "Result", "SAMPLINGS", "SimulationError", "State", "Terrain", "Wall",
     "compiled_rollout", "describe_status", "frame_observer", "hencky_stress", "init_state",
     "invariants", "io", "make_rollout", "make_step", "scenes", "seed_box", "simulate", "tables", "validate_params",

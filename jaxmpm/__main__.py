@@ -274,6 +274,8 @@ def build_parser() -> argparse.ArgumentParser:
     bench.add_argument("--repeat", type=int, default=3, help="timed runs; the median is reported")
     bench.add_argument("--particles", type=int, default=None, help="override the particle count")
     bench.add_argument("--grad", action="store_true", help="benchmark reverse-mode gradients instead")
+    bench.add_argument("--active-nodes", type=int, default=None, metavar="K",
+                       help="the sparse grid with K node slots instead of the dense grid (forward run)")
     bench.add_argument("--steps", type=int, default=None, help="steps: for --grad (default 5000); for the forward run, a cap (default: until t_end)")
     return parser
 

@@ -63,10 +63,14 @@ def _scene(scene: str, quick: bool, dim: int, dtype, n_particles=None):
     return falling_block(n_particles=n, dim=dim, t_end=0.05 if quick else 0.39, dtype=dtype)
 
 
-def bench_forward(quick=False, dim=2, dtype="float32", repeat=3, n_particles=None, scene="block", steps=None) -> dict:
+def bench_forward(quick=False, dim=2, dtype="float32", repeat=3, n_particles=None, scene="block", steps=None,
+                  active_nodes=None) -> dict:
     """Forward rollout throughput. ``steps`` caps the run at that many steps (a fixed-length
-    scan; the ``BUDGET`` status bit is then expected), so that large cases stay affordable."""
+    scan; the ``BUDGET`` status bit is then expected), so that large cases stay affordable.
+    ``active_nodes`` runs the sparse grid with that many slots instead of the dense grid."""
     config, state, params = _scene(scene, quick, dim, dtype, n_particles)
+    if active_nodes is not None:
+        config = dataclasses.replace(config, active_nodes=active_nodes)
     if steps is not None:
         if not (isinstance(steps, int) and steps >= 1):
             raise ValueError(f"steps must be a positive int, got {steps!r}")
@@ -85,6 +89,7 @@ def bench_forward(quick=False, dim=2, dtype="float32", repeat=3, n_particles=Non
         "n_particles": n,
         "n_steps": steps,
         "grid_nodes": config.grid.n_nodes,
+        "active_nodes": config.active_nodes,
         "compile_s": round(compile_s, 3),
         "xla_temp_mb": _temp_mb(compiled),
         "run_s": round(run_s, 4),
@@ -142,6 +147,6 @@ def main(args) -> dict:
         result = bench_gradient(args.quick, args.dim, dtype, args.repeat, args.particles, args.steps)
     else:
         result = bench_forward(args.quick, args.dim, dtype, args.repeat, args.particles, args.scene,
-                               steps=args.steps)
+                               steps=args.steps, active_nodes=args.active_nodes)
     print(json.dumps(result) if args.json else json.dumps(result, indent=2))
     return result

@@ -133,6 +133,10 @@ class Config:
       cfl, cfl_elastic: time step dt = min(cfl·dx/max|v_p|, cfl_elastic·dx/sqrt(E/ρ)).
       frame_times: output times (s), increasing, in [0, t_end]; steps are clipped to land on them.
       block_size: steps per checkpointed block of the rollout (None: about sqrt(max_steps)).
+      active_nodes: None (default): the dense grid. An integer K: a grid only where the material
+        is, K slots for the nodes that the particles' stencils touch, found every step
+        (``jaxmpm.sparse``); the ``GRID_FULL`` status bit is set when more are touched. The cost
+        then follows the particles, not the bounding box.
     """
 
     grid: Grid
@@ -148,6 +152,7 @@ class Config:
     cfl_elastic: float = 0.5
     frame_times: tuple[float, ...] = ()
     block_size: int | None = None
+    active_nodes: int | None = None
 
     def __post_init__(self):
         set_ = lambda k, v: object.__setattr__(self, k, v)  # noqa: E731 (frozen dataclass)
@@ -193,6 +198,12 @@ class Config:
         set_("frame_times", frames)
         if self.block_size is not None and (int(self.block_size) != self.block_size or self.block_size < 1):
             raise ValueError(f"block_size must be a positive integer or None, got {self.block_size!r}")
+        if self.active_nodes is not None:
+            if isinstance(self.active_nodes, bool) or int(self.active_nodes) != self.active_nodes or self.active_nodes < 1:
+                raise ValueError(f"active_nodes must be a positive integer or None, got {self.active_nodes!r}")
+            set_("active_nodes", int(self.active_nodes))
+        if self.grid.n_nodes >= 2**31 - 1:
+            raise ValueError(f"the grid has {self.grid.n_nodes} nodes; node numbers must fit in int32 (< 2**31 - 1)")
 
     @property
     def dim(self) -> int:

@@ -25,6 +25,7 @@ __all__ = [
     "J_NONPOSITIVE",
     "BUDGET",
     "EDGE",
+    "GRID_FULL",
     "STATUS_BITS",
     "describe_status",
     "init_state",
@@ -37,12 +38,14 @@ NONFINITE = 2  # a non-finite position, velocity or stress appeared
 J_NONPOSITIVE = 4  # det(F_e trial) <= 0: a particle was inverted or crushed
 BUDGET = 8  # the step budget ran out before t_end
 EDGE = 16  # the flow came within 1.5 cells of the grid's edge: the domain is too small
+GRID_FULL = 32  # the particles touched more nodes than the sparse grid's active_nodes slots
 STATUS_BITS = {
     LEFT_GRID: "a particle left the grid (enlarge the grid or add walls)",
     NONFINITE: "non-finite state (reduce cfl/cfl_elastic or check parameters)",
     J_NONPOSITIVE: "det(F_e) <= 0 (the time step is too large for the deformation)",
     BUDGET: "the step budget max_steps ran out before t_end (raise max_steps)",
     EDGE: "the flow reached the edge of the grid (enlarge the domain)",
+    GRID_FULL: "the particles touched more grid nodes than active_nodes holds (raise active_nodes)",
 }
 
 

@@ -17,6 +17,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from . import sparse
 from . import state as st
 from .boundary import apply_walls
 from .config import Config
@@ -51,7 +52,8 @@ def make_step(config: Config):
     grid = config.grid
     dim, dx = grid.dim, grid.dx
     alpha = 0.0 if config.transfer == "apic" else config.alpha
-    node_x_np = grid.node_positions().T
+    sparse_grid = config.active_nodes is not None
+    node_x_np = None if sparse_grid else grid.node_positions().T
     stops_np = np.asarray(config.stop_times)
     lower_np, upper_np = grid.lower, grid.upper
     edge_lo_np, edge_hi_np = grid.edge_band
@@ -59,11 +61,19 @@ def make_step(config: Config):
 
     def advance(state, params, dt, t_new):
         dtype = state.x.dtype
-        stencil = jax.lax.optimization_barrier(make_stencil(state.x, grid))
+        stencil = make_stencil(state.x, grid)
+        if sparse_grid:
+            slots, keys, touched = sparse.activate(stencil.index, config.active_nodes, grid.n_nodes)
+            stencil = stencil._replace(index=slots)
+            node_x = sparse.slot_positions(keys, grid, dtype)
+            n_grid = config.active_nodes
+        else:
+            node_x, n_grid, touched = jnp.asarray(node_x_np, dtype), grid.n_nodes, 0
+        stencil = jax.lax.optimization_barrier(stencil)
         mass = params.rho * state.vol0
-        fields = p2g(stencil, mass, state.v, state.C, state.vol0, state.tau, grid.n_nodes)
+        fields = p2g(stencil, mass, state.v, state.C, state.vol0, state.tau, n_grid)
         v_old, v_new = grid_velocities(fields, dt, jnp.asarray(config.gravity, dtype))
-        v_new = apply_walls(config.walls, v_new, jnp.asarray(node_x_np, dtype), state.t, dt, params)
+        v_new = apply_walls(config.walls, v_new, node_x, state.t, dt, params)
         v_flip = state.v
         if config.xpic and config.transfer == "aflip" and alpha != 0.0:
             v_flip = xpic_velocity(stencil, mass, fields.mass, state.v, config.xpic)
@@ -84,6 +94,7 @@ def make_step(config: Config):
             | jnp.where(edge, st.EDGE, 0)
             | jnp.where(finite, 0, st.NONFINITE)
             | jnp.where(inverted, st.J_NONPOSITIVE, 0)
+            | jnp.where(touched > n_grid, st.GRID_FULL, 0)
         )
         return state.replace(
             x=x, v=moved.v, C=moved.C, F=F, tau=tau, internal=internal,
