@@ -10,7 +10,7 @@ import sys
 
 import numpy as np
 
-from .scenes import add_scene_arguments, parse_set, scene_from_args
+from .scenes import SCENE_NAMES, add_scene_arguments, parse_set, scene_from_args
 
 #: Scene options that take a number (``add_scene_arguments``): argparse's float() accepts
 #: "nan" and "inf", which would otherwise surface as some derived quantity's error.
@@ -102,6 +102,13 @@ def _run(args) -> int:
     import jax
 
     check_scene_args(args)
+    if args.scene == "avalanche":
+        return _run_avalanche(args)
+    for option, value in (("--terrain", args.terrain), ("--station", args.station)):
+        if value is not None:
+            raise ValueError(f"{option} applies to the avalanche scene, not {args.scene}")
+    if args.quick or args.snow != "dry":
+        raise ValueError(f"--quick and --snow apply to the avalanche scene, not {args.scene}")
     if args.frames is not None and args.frames < 0:
         raise ValueError(f"--frames must be >= 0, got {args.frames}")
     frames = args.frames if args.frames is not None else (40 if args.gif else 0)
@@ -182,6 +189,86 @@ def _run(args) -> int:
     return 0 if result.ok and not bad and not errors else 1
 
 
+def _run_avalanche(args) -> int:
+    """``run avalanche``: S6 on its terrain, the fields avalanche engineers use."""
+    import jax
+
+    for option, value in (("--dim", args.dim != 2), ("--width", args.width is not None),
+                          ("--slope", args.slope is not None), ("--aspect", args.aspect is not None),
+                          ("--sampling", args.sampling not in (None, "lattice"))):
+        if value:
+            raise ValueError(f"{option} does not apply to the avalanche scene (a 2D section, lattice-sampled)")
+    if args.ppc is not None and (int(args.ppc) != args.ppc or args.ppc < 1):
+        raise ValueError(f"--ppc must be a positive integer for the avalanche, got {args.ppc}")
+    if args.frames is not None and args.frames < 2:
+        raise ValueError(f"--frames must be >= 2 for the avalanche (its fields are sampled on the frames), got {args.frames}")
+    if args.terrain is not None:
+        from .boundary import Terrain
+
+        Terrain.from_csv(args.terrain)  # a bad file fails here, before anything compiles
+    _check_run_outputs(args, args.frames or 1)
+    if args.dtype == "float64":
+        jax.config.update("jax_enable_x64", True)
+    from . import io, tables
+    from .avalanche import path_fields
+    from .scenes.avalanche import avalanche
+    from .simulate import simulate
+    from .state import describe_status
+
+    t_end = args.t_end if args.t_end is not None else (20.0 if args.quick else 100.0)
+    frames = args.frames if args.frames is not None else max(2, int(round(t_end)))
+    kw = {"dx": args.dx if args.dx is not None else (2.0 if args.quick else 1.0), "t_end": t_end, "frames": frames,
+          "snow": args.snow, "dtype": args.dtype, **dict(parse_set(item) for item in args.set)}
+    if args.ppc is not None:
+        kw["ppc"] = int(args.ppc)
+    scene = avalanche(args.terrain, **kw)
+    config, state, params = scene
+    observer = lambda s, p: {"x": s.x, "v": s.v}  # noqa: E731
+    result = simulate(config, state, params, observer=observer, throw=False, progress=not args.no_progress,
+                      timed=True)
+    ground = config.walls[0]
+    times = np.asarray(config.frame_times)
+    fields = path_fields(ground, result.frames["x"], result.frames["v"], state.vol0, times, float(params.rho),
+                         config.grid.dx, station=args.station)
+    summary = {"scene": "avalanche", "snow": args.snow, "n_particles": int(state.n_particles),
+               "n_steps": int(result.state.steps), "dx": config.grid.dx, "t_end": config.t_end,
+               "grid_nodes_dense": config.grid.n_nodes, "active_nodes": config.active_nodes,
+               **fields.summary(), "mu_w": float(params.mu_w), "status": result.status,
+               "status_text": describe_status(result.status), "compile_s": round(result.compile_s, 3),
+               "run_s": round(result.run_s, 3)}
+    errors = {}
+
+    def output(option, write):
+        try:
+            return write()
+        except (OSError, ValueError, RuntimeError) as err:
+            errors[option] = f"{type(err).__name__}: {err}"
+            return None
+
+    if args.out:
+        meta = {"scene": "avalanche", **scene.info.to_dict()}
+        path = output("--out", lambda: io.write_h5(args.out, result, config, params, attrs=meta, initial=state))
+        if path is not None:
+            summary["out"] = str(path)
+    if args.profile_csv:
+        output("--profile-csv", lambda: tables.write_table(args.profile_csv, fields.columns(), {
+            "experiment": f"avalanche (synthetic, jaxmpm {_version()})", "units": "m, m/s, kPa", "synthetic": True,
+            "source": "python -m jaxmpm run " + " ".join(sys.argv[2:]), "t_end_s": config.t_end,
+            "peaks": "over the frames", "summary": fields.summary(), "status": result.status}))
+    if args.plot or args.gif:
+        from .plots import animate_avalanche, plot_avalanche
+
+        if args.plot:
+            output("--plot", lambda: plot_avalanche(fields, args.plot, title=f"S6 avalanche, {args.snow} snow, "
+                                                    f"dx = {config.grid.dx:g} m, mu_w = {float(params.mu_w):g}"))
+        if args.gif:
+            output("--gif", lambda: animate_avalanche(fields, args.gif))
+    if errors:
+        summary["output_errors"] = errors
+    bad = print_json(summary, args.json)
+    return 0 if result.ok and not bad and not errors else 1
+
+
 def _version() -> str:
     from . import __version__
 
@@ -230,7 +317,15 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True)
 
     run = sub.add_parser("run", help="run a reference scene (SCENES.md)")
-    add_scene_arguments(run)
+    run.add_argument("scene", choices=SCENE_NAMES + ("avalanche",))
+    add_scene_arguments(run, scene_choices=False)
+    avalanche = run.add_argument_group("avalanche (S6) only")
+    avalanche.add_argument("--terrain", default=None, metavar="FILE.csv",
+                           help="terrain polyline x_m,z_m (default: the shipped ISeeSnow CoulombOnly centre line)")
+    avalanche.add_argument("--snow", choices=("dry", "wet"), default="dry", help="the snow's parameter set")
+    avalanche.add_argument("--station", type=float, default=None, metavar="X",
+                           help="obstacle station x, m, for the force history (default: half way along the reach)")
+    avalanche.add_argument("--quick", action="store_true", help="a coarse, short run (dx = 2 m, 20 s)")
     run.add_argument("--frames", type=int, default=None, help="output frames (default 0, or 40 with --gif)")
     run.add_argument("--out", default=None, help="HDF5 output file")
     run.add_argument("--profile-csv", default=None, help="write the final deposit profile h(x) as CSV")

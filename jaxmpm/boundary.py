@@ -45,6 +45,7 @@ import math
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 __all__ = ["Wall", "Terrain", "KINDS", "KIND_ALIASES", "apply_walls"]
 
@@ -185,7 +186,8 @@ class Terrain:
         return self._evaluate(x)[0]
 
     def _evaluate(self, px):
-        xp = jnp if isinstance(px, jax.Array) else __import__("numpy")
+        xp = jnp if isinstance(px, jax.Array) else np
+        px = px if xp is jnp else np.asarray(px, float)
         xv, zv = xp.asarray(self.x, px.dtype), xp.asarray(self.z, px.dtype)
         seg = (zv[1:] - zv[:-1]) / (xv[1:] - xv[:-1])
         vertex = xp.concatenate([seg[:1], 0.5 * (seg[1:] + seg[:-1]), seg[-1:]])

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["plot_stress_path"]
+__all__ = ["animate_avalanche", "plot_avalanche", "plot_stress_path"]
 
 
 def _pyplot():
@@ -98,5 +98,70 @@ def animate_run(scene, result, path, fps=15):
         return art, title
 
     FuncAnimation(fig, draw, frames=len(xs), blit=False).save(path, writer=PillowWriter(fps=fps))
+    plt.close(fig)
+    return path
+
+
+def plot_avalanche(fields, path, title="S6 avalanche", n_times=6):
+    """The avalanche in three panels: the terrain with the front at several times and the
+    runout; the flow thickness along the path at those times; the peak thickness, speed and
+    pressure along the path (``fields`` from ``jaxmpm.avalanche.path_fields``)."""
+    plt = _pyplot()
+    fig, axes = plt.subplots(3, 1, figsize=(9, 9), sharex=True, constrained_layout=True)
+    picks = np.unique(np.linspace(0, len(fields.times) - 1, n_times).round().astype(int))
+    colours = plt.cm.viridis(np.linspace(0, 1, len(picks)))
+    ax = axes[0]
+    ax.plot(fields.x, fields.z, "k-", lw=1, label="terrain")
+    for k, c in zip(picks, colours):
+        if np.isfinite(fields.front[k]):
+            ax.plot(fields.front[k], np.interp(fields.front[k], fields.x, fields.z), "o", color=c,
+                    label=f"front, t = {fields.times[k]:.0f} s")
+    if np.isfinite(fields.runout_x):
+        ax.axvline(fields.runout_x, color="r", ls="--", lw=1, label=f"runout x = {fields.runout_x:.0f} m")
+    ax.set_ylabel("z (m)")
+    ax.legend(fontsize=7, ncol=2)
+    ax.set_title(title, fontsize=10)
+    ax = axes[1]
+    for k, c in zip(picks, colours):
+        ax.plot(fields.x, fields.thickness[k], color=c, lw=1, label=f"t = {fields.times[k]:.0f} s")
+    ax.plot(fields.x, fields.deposit, "k-", lw=1.5, label="deposit (last frame)")
+    ax.axhline(fields.threshold, color="grey", lw=0.8, ls=":")
+    ax.set_ylabel("flow thickness (m)")
+    ax.legend(fontsize=7, ncol=3)
+    ax = axes[2]
+    ax.plot(fields.x, fields.peak_thickness, "k-", lw=1, label="peak thickness (m)")
+    ax.plot(fields.x, fields.peak_speed, "b-", lw=1, label="peak speed (m/s)")
+    twin = ax.twinx()
+    twin.plot(fields.x, fields.peak_pressure_kpa, "r-", lw=1, label="peak pressure ρu² (kPa)")
+    twin.set_ylabel("pressure (kPa)", color="r")
+    ax.axvline(fields.station, color="grey", lw=0.8, ls="--")
+    ax.set_xlabel("x along the path (m)")
+    ax.set_ylabel("thickness (m), speed (m/s)")
+    lines = ax.get_lines()[:2] + twin.get_lines()
+    ax.legend(lines, [ln.get_label() for ln in lines], fontsize=7, loc="upper left")
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return path
+
+
+def animate_avalanche(fields, path, fps=10):
+    """A GIF of the flow thickness along the path over the frames, with the terrain's elevation."""
+    plt = _pyplot()
+    from matplotlib.animation import FuncAnimation, PillowWriter
+
+    fig, ax = plt.subplots(figsize=(9, 3), constrained_layout=True)
+    ax.set_xlim(fields.x[0], fields.x[-1])
+    ax.set_ylim(0, 1.1 * max(float(fields.thickness.max()), fields.threshold))
+    ax.set_xlabel("x along the path (m)")
+    ax.set_ylabel("flow thickness (m)")
+    (line,) = ax.plot(fields.x, fields.thickness[0], "b-", lw=1)
+    title = ax.set_title("")
+
+    def draw(k):
+        line.set_ydata(fields.thickness[k])
+        title.set_text(f"S6 avalanche, t = {fields.times[k]:.1f} s, front x = {fields.front[k]:.0f} m")
+        return line, title
+
+    FuncAnimation(fig, draw, frames=len(fields.times), blit=False).save(path, writer=PillowWriter(fps=fps))
     plt.close(fig)
     return path
