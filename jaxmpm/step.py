@@ -63,7 +63,8 @@ def make_step(config: Config):
         dtype = state.x.dtype
         stencil = make_stencil(state.x, grid)
         if sparse_grid:
-            slots, keys, touched = sparse.activate(stencil.index, config.active_nodes, grid.n_nodes)
+            slots, keys, touched = sparse.activate(stencil.index, config.active_nodes, grid.n_nodes,
+                                                   consecutive_rows=not grid.periodic[-1])
             stencil = stencil._replace(index=slots)
             node_x = sparse.slot_positions(keys, grid, dtype)
             n_grid = config.active_nodes

@@ -53,7 +53,7 @@ def main():
         rows.append(row)
         if dx == 1.0:
             plot_avalanche(fields, ROOT / "docs/figures/avalanche.png",
-                           title=f"S6 avalanche (ISeeSnow CoulombOnly terrain), dry snow, dx = 1 m, mu_w = 0.4")
+                           title="S6 avalanche (ISeeSnow CoulombOnly terrain), dry snow, dx = 1 m, mu_w = 0.4")
             animate_avalanche(fields, ROOT / "docs/figures/avalanche.gif", fps=8)
     base = 2.0 if args.quick else 1.0
     rows.append(run(base, snow="wet")[0])
