@@ -47,10 +47,7 @@ def _warn_known_bad_jaxlib():
 
 _warn_known_bad_jaxlib()
 
-try:
-    __version__ = _metadata.version("jaxmpm")
-except _metadata.PackageNotFoundError:  # running from a source tree
-    __version__ = "0.1.0"
+from ._version import __version__ as __version__  # the one source of the version (pyproject.toml reads it)
 
 __all__ = [
     "BUDGET", "Config", "CriticalState", "EDGE", "DEFAULTS", "GRID_FULL", "Grid", "Hencky", "J_NONPOSITIVE", "LEFT_GRID", "Material",

@@ -103,6 +103,7 @@ def test_run_avalanche_refuses_a_bad_terrain_file(tmp_path):
     assert out.returncode != 0 and "Terrain.x must increase strictly" in out.stderr, out.stderr
 
 
+@pytest.mark.slow  # 25 s; the terrain's mu_w gradient is checked against FD by default (test_terrain.py)
 def test_gradient_of_the_travel_with_respect_to_mu_w_and_beta_matches_finite_differences():
     """Calibration on terrain: d(mean x of the snow after 1.5 s)/d(μ_w, β) through the avalanche
     (terrain contact, sparse grid, critical-state snow at β = 0.05), reverse mode against central

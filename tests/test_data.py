@@ -9,6 +9,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+import jaxmpm as jm
 from calibration import data
 from calibration.data import (
     FrontHistory,
@@ -266,8 +267,9 @@ def test_manifest_lists_every_file():
                ("README.md", "manifest.json", "generate.py") and "__pycache__" not in p.parts}
     assert listed == shipped
     for info in datasets.values():
-        assert info.kind in ("setup", "scaling_law", "analytic", "synthetic", "example", "measured")
-        assert info.kind != "measured" or (info.source and info.licence)  # a third party's file: whose, what licence
+        assert info.kind in ("setup", "scaling_law", "analytic", "synthetic", "example", "measured", "terrain")
+        # a third party's file: whose, what licence
+        assert info.kind not in ("measured", "terrain") or (info.source and info.licence)
         assert info.description and "\n" not in info.description
         assert dataset_path(info.name) == info.path
         assert dataset_path(str(info.path.relative_to(data.data_dir()))) == info.path
@@ -294,6 +296,11 @@ def test_every_shipped_file_loads():
         elif info.kind == "measured":
             p = load_profile(info.path)
             assert not p.synthetic and not info.synthetic and p.n >= 5 and "licence" in p.meta
+        elif info.kind == "terrain":
+            header, columns = read_table(info.path)
+            assert set(columns) == {"x_m", "z_m"} and "licence" in header and not info.synthetic
+            terrain = jm.Terrain.from_csv(info.path)
+            assert len(terrain.x) == len(columns["x_m"]) >= 2
         else:
             p = load_profile(info.path, units="mm", experiment="S4 beta=0.25 (synthetic, format example)")
             assert p.synthetic and p.n >= 5

@@ -29,6 +29,7 @@ def test_activate_numbers_the_touched_nodes_in_order():
     np.testing.assert_array_equal(keys[slots], index)
 
 
+@pytest.mark.slow  # by default the equality runs on S2 (test_sparse_grid_equals_dense_grid_on_s2)
 def test_sparse_grid_equals_dense_grid(collapse):
     """With enough slots the sparse grid renumbers the dense grid's nodes and nothing else: the
     final state is the same to the last bit in float64 (measured: identical), and a smaller
@@ -63,6 +64,7 @@ def test_full_sparse_grid_is_flagged(collapse):
     assert any("active_nodes" in text for text in jm.describe_status(int(result.state.status)))
 
 
+@pytest.mark.slow  # 35 s; the forward equality runs by default
 def test_sparse_grid_gradient_and_batch_equal_the_dense_grid(collapse):
     """d(mean final height)/dβ through 100 steps, and a vmapped pair of β, on both grids."""
     cfg = dataclasses.replace(collapse.config, t_end=10.0, max_steps=100)
