@@ -21,7 +21,6 @@ number of particles, not with the bounding box.
 
 from __future__ import annotations
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 
