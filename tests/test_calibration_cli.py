@@ -93,6 +93,7 @@ def test_sweep_grid_json_and_landscape(capsys, tmp_path):
     assert pathlib.Path(out["figures"][0]).stat().st_size > 5_000
 
 
+@pytest.mark.slow  # 30 s on 2 cores; the CLI's fit runs are tested by default
 def test_twin_recovers_the_constrained_parameters(capsys):
     """A tiny twin (dx = L/6): the parameters the analysis calls constrained come back within
     2 % (the issue's criterion; in fact all of them, to ~1e-3)."""

@@ -199,6 +199,7 @@ def test_the_default_is_a_search_without_init_and_one_start_with_it():
     assert _starts(parse([*base, "--init", "beta=0.2", "--starts", "3"])) == 3
 
 
+@pytest.mark.slow  # 45 s on 2 cores; the search from no start runs by default
 def test_coarse_to_fine_refines_the_coarse_minima_and_finds_the_truth(objective):
     """The coarse stage (dx = L/3, the same data) places the starts of the fine one (L/4), which
     recovers the twin's truth; the report keeps the coarse stage. Mismatched stages are refused."""
