@@ -98,6 +98,20 @@ def _check_run_outputs(args, frames: int) -> None:
         seen[key] = option
 
 
+def _output_writer(errors: dict):
+    """``output(option, write)``: call ``write()``; on an I/O failure record it in ``errors``
+    under ``option`` and return None, so that the other outputs and the summary still appear."""
+
+    def output(option, write):
+        try:
+            return write()
+        except (OSError, ValueError, RuntimeError) as err:
+            errors[option] = f"{type(err).__name__}: {err}"
+            return None
+
+    return output
+
+
 def _run(args) -> int:
     import jax
 
@@ -143,13 +157,7 @@ def _run(args) -> int:
     # The outputs were checked before the run; should one still fail (a full disk, a folder
     # removed meanwhile), the others are written and the summary is printed all the same.
     errors = {}
-
-    def output(option, write):
-        try:
-            return write()
-        except (OSError, ValueError, RuntimeError) as err:
-            errors[option] = f"{type(err).__name__}: {err}"
-            return None
+    output = _output_writer(errors)
 
     if args.out:
         path = output("--out", lambda: io.write_h5(args.out, result, config, params, attrs=meta, initial=state))
@@ -237,13 +245,7 @@ def _run_avalanche(args) -> int:
                "status_text": describe_status(result.status), "compile_s": round(result.compile_s, 3),
                "run_s": round(result.run_s, 3)}
     errors = {}
-
-    def output(option, write):
-        try:
-            return write()
-        except (OSError, ValueError, RuntimeError) as err:
-            errors[option] = f"{type(err).__name__}: {err}"
-            return None
+    output = _output_writer(errors)
 
     if args.out:
         meta = {"scene": "avalanche", **scene.info.to_dict()}

@@ -23,7 +23,7 @@ import jax.numpy as jnp
 from .rollout import make_rollout
 from .scenes import falling_block, gates_collapse
 
-__all__ = ["bench_forward", "bench_gradient", "main"]
+__all__ = ["bench_forward", "bench_gradient", "main", "median_time"]
 
 
 def _device() -> str:
@@ -43,6 +43,13 @@ def _timed(fn, *args, repeat=3):
         out = jax.block_until_ready(fn(*args))
         times.append(time.perf_counter() - start)
     return statistics.median(times), out
+
+
+def median_time(fn, *args, repeat=20):
+    """Median seconds of ``fn(*args)`` over ``repeat`` calls after one warm-up call (for the
+    profiling scripts in docs/scripts, which time already-compiled pieces)."""
+    jax.block_until_ready(fn(*args))
+    return _timed(fn, *args, repeat=repeat)[0]
 
 
 SCENES = ("block", "column")

@@ -13,27 +13,21 @@ function in each case; only the memory order of the particles differs.
 
 import dataclasses
 import json
-import statistics
-import time
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxmpm.bench import _device, _scene
+from jaxmpm.bench import _device, median_time, _scene
 from jaxmpm.kernels import node_strides
 from jaxmpm.rollout import make_rollout
 from jaxmpm.step import make_step
 
 
+
+
 def timed(fn, *args, repeat=5):
-    jax.block_until_ready(fn(*args))
-    times = []
-    for _ in range(repeat):
-        t = time.perf_counter()
-        jax.block_until_ready(fn(*args))
-        times.append(time.perf_counter() - t)
-    return statistics.median(times)
+    return median_time(fn, *args, repeat=repeat)
 
 
 def permute(state, order):

@@ -14,13 +14,11 @@ float32 with each.
 import argparse
 import dataclasses
 import json
-import statistics
-import time
 
 import jax
 import jax.numpy as jnp
 
-from jaxmpm.bench import _device, _scene
+from jaxmpm.bench import _device, median_time, _scene
 from jaxmpm.boundary import apply_walls
 from jaxmpm.kernels import make_stencil
 from jaxmpm.linalg import mm
@@ -30,14 +28,10 @@ from jaxmpm.step import make_step, time_step
 from jaxmpm.transfer import g2p, grid_velocities, p2g
 
 
+
+
 def timed(fn, *args, repeat=30):
-    jax.block_until_ready(fn(*args))
-    times = []
-    for _ in range(repeat):
-        t = time.perf_counter()
-        jax.block_until_ready(fn(*args))
-        times.append(time.perf_counter() - t)
-    return statistics.median(times)
+    return median_time(fn, *args, repeat=repeat)
 
 
 def main():

@@ -18,13 +18,11 @@ own (each jitted alone: the shares say where to look, they need not add up).
 
 import dataclasses
 import json
-import statistics
-import time
 
 import jax
 import jax.numpy as jnp
 
-from jaxmpm.bench import _device
+from jaxmpm.bench import _device, median_time
 from jaxmpm.boundary import apply_walls
 from jaxmpm.kernels import make_stencil
 from jaxmpm.linalg import mm
@@ -34,14 +32,10 @@ from jaxmpm.step import make_step
 from jaxmpm.transfer import g2p, grid_velocities, p2g
 
 
+
+
 def timed(fn, *args, repeat=20):
-    jax.block_until_ready(fn(*args))
-    times = []
-    for _ in range(repeat):
-        t = time.perf_counter()
-        jax.block_until_ready(fn(*args))
-        times.append(time.perf_counter() - t)
-    return statistics.median(times)
+    return median_time(fn, *args, repeat=repeat)
 
 
 def forward_and_vjp(fn, *args):
