@@ -584,7 +584,7 @@ def build_parser() -> argparse.ArgumentParser:
     law.add_argument("--no-progress", action="store_true")
     law.add_argument("--json", action="store_true")
 
-    cov = sub.add_parser("coverage", help="twins over many noise seeds: how often the 95 % intervals hold the truth")
+    cov = sub.add_parser("coverage", help="twins over many noise seeds: how often the 95 %% intervals hold the truth")
     cov.add_argument("--fit", default="beta,mu1", metavar="KEYS", help="parameters to fit (default beta,mu1)")
     cov.add_argument("--seeds", type=int, default=20, help="noise seeds 0..N-1 (default 20)")
     cov.add_argument("--noise", type=float, default=0.02, help="Gaussian noise, fraction of the peak height")

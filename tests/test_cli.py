@@ -66,3 +66,17 @@ def test_bench_prints_the_documented_fields():
                 "particle_steps_per_s", "peak_rss_mb", "device"):
         assert key in result
     assert result["dtype"] == "float32" and result["n_steps"] > 0 and result["status"] == 0
+
+
+@pytest.mark.parametrize("module", ["jaxmpm", "calibration"])
+def test_every_help_page_formats(module, capsys):
+    """argparse formats help strings with %: a stray '95 % i...' broke ``python -m calibration --help``."""
+    import argparse
+    import importlib
+
+    parser = importlib.import_module(f"{module}.__main__").build_parser()
+    parser.format_help()
+    subparsers = [a for a in parser._actions if isinstance(a, argparse._SubParsersAction)]
+    assert subparsers, "no subcommands found"
+    for name, sub in subparsers[0].choices.items():
+        assert sub.format_help(), name
