@@ -18,7 +18,7 @@ import numpy as np
 
 __all__ = ["DEFAULT_BOUNDS", "FIT_KEYS", "START_MARGIN", "Bounds"]
 
-#: The calibration targets of MODEL.md §4.
+#: The calibration targets of docs/model.md §4.
 FIT_KEYS = ("beta", "mu1", "mu2", "I0", "xi")
 
 #: Where a start the user did not choose moves when it lies on a bound: this fraction of the

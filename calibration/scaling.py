@@ -1,4 +1,4 @@
-"""Fitting the runout against aspect ratio (SCENES.md S5) to a scaling law.
+"""Fitting the runout against aspect ratio (docs/scenes.md S5) to a scaling law.
 
 One S5 collapse per aspect ratio a (a column L0 × a L0 released against a back wall); the datum
 of each is its final front, x_f = L0 (1 + ΔL/L0 (a)) from the law, and the residual is the

@@ -1,7 +1,7 @@
 """The twin experiment: fit data that the model itself made, with known parameters.
 
 A synthetic S4 cohesive collapse is run with the true parameters (β = 0.25, μ1 = tan 20.9°,
-ξ = 50, the rest of SCENES.md S4). Its deposit profiles at 0.1, 0.2 and 0.5 s (50 points from
+ξ = 50, the rest of docs/scenes.md S4). Its deposit profiles at 0.1, 0.2 and 0.5 s (50 points from
 the back wall to 1.3× the final front) and its front position at 10 times become the data,
 optionally with Gaussian noise: σ = ``noise`` × the profile's peak height on every profile
 point, and σ = ``noise`` × the column length on every front position. The fit starts from a

@@ -22,7 +22,7 @@ ROOT = HERE.parent
 A_VALUES = (0.5, 0.7, 1.0, 1.5, 2.0, 2.3, 3.0, 4.0, 6.0, 8.0)
 SLOPES = (22.0, 24.0, 26.0, 28.0)
 DEPTH = 0.038
-KUMAR = "K. Kumar's PhD thesis (CC-BY-4.0), cited in SCENES.md S5; secondary: not read in the primary paper"
+KUMAR = "K. Kumar's PhD thesis (CC-BY-4.0), cited in docs/scenes.md S5; secondary: not read in the primary paper"
 PROFILE_COMMANDS = (
     ("python -m jaxmpm run cohesive-collapse --set beta=0.25 --profile-csv experiments_data/synthetic/S4_beta0.25.csv"
     " --no-progress --json"),
@@ -64,7 +64,7 @@ def scaling_laws() -> None:
         "secondary": True,
         "source": f"Lube et al. 2005, as quoted in {KUMAR}",
         "formula_runout": "dL/L0 = (L_f - L0)/L0 = 1.6 a for a <= 2.3; 2.2 a^(2/3) for a > 2.3",
-        "note": "approximate law; the crossover a = 2.3 is the glass-bead one (SCENES.md quotes no other); no "
+        "note": "approximate law; the crossover a = 2.3 is the glass-bead one (docs/scenes.md quotes no other); no "
                 "final-height law is quoted for sand",
         "columns": {"a": "aspect ratio H0/L0", "dL_over_L0": "normalised runout"},
         "units": "dimensionless",
@@ -88,11 +88,11 @@ def bagnold() -> None:
         "experiment": "S1 steady uniform flow down an inclined plane: Bagnold velocity profile (analytic)",
         "analytic": True,
         "synthetic": False,
-        "source": "MODEL.md section 6, evaluated with jaxmpm.scenes.incline.bagnold_velocity",
+        "source": "docs/model.md section 6, evaluated with jaxmpm.scenes.incline.bagnold_velocity",
         "formula": "v(z) = (2/3) I_theta sqrt(rho g cos(theta) / rho_s) / d * (h^(3/2) - (h - z)^(3/2)), "
                    "I_theta = I0 (tan(theta) - mu1) / (mu2 - tan(theta))",
         "parameters": {**used, "g": 9.81, "h_m": DEPTH},
-        "parameter_sources": "SCENES.md S1 (rho, rho_s, d, mu1 = tan 20.9 deg, mu2 = tan 32.76 deg, I0, h)",
+        "parameter_sources": "docs/scenes.md S1 (rho, rho_s, d, mu1 = tan 20.9 deg, mu2 = tan 32.76 deg, I0, h)",
         "surface_velocity_m_per_s": surface,
         "columns": {"slope_deg": "bed angle theta, degrees", "z_m": "height above the bed, m",
                     "v_m_per_s": "downslope velocity, m/s"},

@@ -318,7 +318,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="python -m jaxmpm", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True)
 
-    run = sub.add_parser("run", help="run a reference scene (SCENES.md)")
+    run = sub.add_parser("run", help="run a reference scene (docs/scenes.md)")
     run.add_argument("scene", choices=SCENE_NAMES + ("avalanche",))
     add_scene_arguments(run, scene_choices=False)
     avalanche = run.add_argument_group("avalanche (S6) only")

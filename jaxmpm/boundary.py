@@ -1,4 +1,4 @@
-"""Walls: planes of any orientation and moving plates, applied to grid velocities (MODEL.md §5).
+"""Walls: planes of any orientation and moving plates, applied to grid velocities (docs/model.md §5).
 
 A ``Wall`` is static configuration (hashable). Its surface passes through ``point + velocity·t``
 with unit ``normal`` pointing from the wall into the material. A grid node is in contact when
@@ -27,7 +27,7 @@ A gate lifted at speed U is ``Wall(point=(x_g, floor), normal=(-1, 0), kind="sep
 velocity=(0, U), edge=(0, 1), thickness=...)``: it extends upwards from its lower edge, which
 starts on the floor and rises with it, so material escapes beneath it.
 
-A ``Terrain`` is a ground of any shape (SCENES.md S6): the graph z = h(x) of a polyline with
+A ``Terrain`` is a ground of any shape (docs/scenes.md S6): the graph z = h(x) of a polyline with
 strictly increasing x (distance along the path, elevation), extruded along y in 3D. It acts
 through the same contact rules, with its own kind and friction, on the signed distance
 φ(p) = (p_z − h(p_x)) n_z and the normal n ∝ (−s(p_x), 1), where s is the slope interpolated

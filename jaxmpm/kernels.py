@@ -1,4 +1,4 @@
-"""Quadratic B-spline shape functions on a dense grid (MODEL.md §5).
+"""Quadratic B-spline shape functions on a dense grid (docs/model.md §5).
 
 A particle at x (grid units xi = (x - origin) / dx) touches the 3 nodes per axis starting at
 ``base = floor(xi - 0.5)``. With ``fx = xi - base`` in [0.5, 1.5) the weights are

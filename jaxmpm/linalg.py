@@ -180,7 +180,7 @@ def _exp_divided_difference(li, lj):
 def _make_sym_fn(f, divided_difference, name, positive=False):
     def decompose(a):
         lam, q = eigh_sym(a)
-        if positive:  # clamp eigenvalues away from 0 (MODEL.md §1); J <= 0 is flagged elsewhere
+        if positive:  # clamp eigenvalues away from 0 (docs/model.md §1); J <= 0 is flagged elsewhere
             lam = jnp.maximum(lam, jnp.finfo(lam.dtype).tiny)
         return lam, q
 

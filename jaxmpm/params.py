@@ -1,6 +1,6 @@
 """Material parameters: one pytree of float arrays.
 
-Every parameter of MODEL.md §4 is a leaf, so that ``jax.grad``, ``jax.vmap`` and optax act on
+Every parameter of docs/model.md §4 is a leaf, so that ``jax.grad``, ``jax.vmap`` and optax act on
 them without rebuilding anything. A material uses the leaves it needs and ignores the rest.
 Units are SI throughout.
 
@@ -31,7 +31,7 @@ import numpy as np
 
 __all__ = ["Params", "PARAM_KEYS", "MATERIAL_KEYS", "DEFAULTS", "validate_params"]
 
-#: Defaults of MODEL.md §4 (glass beads, the reference code's scene values).
+#: Defaults of docs/model.md §4 (glass beads, the reference code's scene values).
 DEFAULTS: dict[str, float] = {
     "E": 1.0e6,
     "nu": 0.3,
@@ -71,7 +71,7 @@ class Params:
 
     @classmethod
     def create(cls, dtype=None, **values: float) -> "Params":
-        """Defaults of MODEL.md §4 overridden by ``values``, validated, as arrays of ``dtype``.
+        """Defaults of docs/model.md §4 overridden by ``values``, validated, as arrays of ``dtype``.
 
         ``dtype`` defaults to JAX's default float type (float32 unless x64 is enabled).
         """
@@ -145,7 +145,7 @@ def validate_params(params: Params | Mapping[str, Any]) -> None:
         if np.any(bad):
             raise ValueError(f"{key} must be {requirement}, got {_show(value[bad] if value.ndim else value)}")
     # μ2 is the limiting friction of μ(I) = μ1 + (μ2 - μ1) I/(I0 + I): below μ1 the law would be
-    # rate-weakening, which MODEL.md's rheology is not.
+    # rate-weakening, which docs/model.md's rheology is not.
     mu1, mu2 = _concrete(get("mu1")), _concrete(get("mu2"))
     if mu1 is not None and mu2 is not None:
         mu1, mu2 = np.broadcast_arrays(mu1, mu2)

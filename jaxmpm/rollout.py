@@ -1,4 +1,4 @@
-"""A rollout is a fixed-length ``lax.scan`` of the step plus an observer (MODEL.md §5).
+"""A rollout is a fixed-length ``lax.scan`` of the step plus an observer (docs/model.md §5).
 
 Only what the observer returns is stored, at the configured frame times (which the step lands
 on exactly). Steps run in blocks of ``config.blocks[1]``, each wrapped in ``jax.checkpoint``,

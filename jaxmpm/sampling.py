@@ -1,4 +1,4 @@
-"""Particle sampling of a box-shaped body (MODEL.md §5): regular lattice, jittered lattice and
+"""Particle sampling of a box-shaped body (docs/model.md §5): regular lattice, jittered lattice and
 Poisson-disk sampling, each reproducible from a seed.
 
 Every sampler fills the box [lower, upper] and gives each particle the volume

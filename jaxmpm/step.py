@@ -1,4 +1,4 @@
-"""One pure explicit MPM step, built once from static configuration (MODEL.md §5).
+"""One pure explicit MPM step, built once from static configuration (docs/model.md §5).
 
 ``make_step(config)`` returns ``step(state, params) -> state``:
 
@@ -29,7 +29,7 @@ __all__ = ["make_step", "time_step", "step_budget"]
 
 
 def time_step(config: Config, state, params):
-    """The adaptive step size before clipping to output times (MODEL.md §5)."""
+    """The adaptive step size before clipping to output times (docs/model.md §5)."""
     dx = config.grid.dx
     speed2 = jnp.max(jnp.sum(state.v * state.v, axis=-1))
     dt_e = config.cfl_elastic * dx / config.material.wave_speed(params)

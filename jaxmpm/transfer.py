@@ -1,4 +1,4 @@
-"""Particle-to-grid and grid-to-particle transfers (MODEL.md §5).
+"""Particle-to-grid and grid-to-particle transfers (docs/model.md §5).
 
 P2G is APIC: node momentum sum_p w_ip m_p (v_p + C_p (x_i - x_p)), with internal force
 -sum_p V0_p τ_p ∇w_ip accumulated in the same scatter. G2P blends FLIP into PIC (AFLIP, Fei et

@@ -1,6 +1,6 @@
 """Validation studies: ``python -m jaxmpm validate NAME [--quick] [--json] [--plot DIR]``.
 
-- ``bagnold``: S1 at 22°, 24°, 26°, 28° against the steady Bagnold profile (MODEL.md §6);
+- ``bagnold``: S1 at 22°, 24°, 26°, 28° against the steady Bagnold profile (docs/model.md §6);
 - ``bagnold-from-rest``: S1 at 24° from rest, the velocity profile converging towards it;
 - ``resolution``, ``cross-code``: convergence over dx × ppc × sampling on S2 and S4, and S2
   against the reference code (``fidelity.py``);

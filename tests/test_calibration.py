@@ -112,7 +112,7 @@ def test_jacobian_matches_central_differences(problem):
     differences, at a point away from the data (so the residuals are not zero).
 
     The run is piecewise smooth in θ: a particle that switches between elastic and plastic
-    steps makes a kink (the return map itself is continuous, with no tip rule since MODEL.md §2
+    steps makes a kink (the return map itself is continuous, with no tip rule since docs/model.md §2
     was corrected), so the differences use steps of 1e-7 and 3e-8, which must agree with each
     other and with autodiff."""
     _, truth, objective = problem
@@ -204,7 +204,7 @@ def test_lm_recovers_the_truth(problem):
     result = fit(objective, {"beta": 0.18, "mu1": 0.45}, method="lm", steps=30)
     got = np.array([result.theta[k] for k in KEYS])
     # The issue asks for 2 %. On this very coarse grid (144 particles) the tension-tip branch
-    # switches of MODEL.md §2 leave jumps of ~1e-9 in the loss near the truth, which the
+    # switches of docs/model.md §2 leave jumps of ~1e-9 in the loss near the truth, which the
     # Jacobian cannot see: LM stops 3e-3 from the truth (1e-4 on the S4 twin at 256 particles).
     np.testing.assert_allclose(got, truth, rtol=1e-2)
     assert result.loss < 1e-4 * result.history["loss"][0]

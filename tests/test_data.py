@@ -314,7 +314,7 @@ def test_synthetic_headers_record_their_command():
         assert p.meta["parameters"]["beta"] == beta
         assert p.time_s == (1.0 if "S3" in name else 0.5)
         assert np.all(p.h >= 0) and p.h.max() > 0.01
-    # cohesion shortens the runout (SCENES.md S4): a sanity check of the labels, not a result
+    # cohesion shortens the runout (docs/scenes.md S4): a sanity check of the labels, not a result
     dry, wet = load_profile(dataset_path("synthetic/S4_beta0")), load_profile(dataset_path("synthetic/S4_beta0.25"))
     assert wet.x[wet.h > 1e-3].max() < dry.x[dry.h > 1e-3].max()
 
@@ -347,7 +347,7 @@ def test_bagnold_table_matches_model():
         np.testing.assert_allclose(cols["v_m_per_s"][rows], bagnold_velocity(cols["z_m"][rows], 0.038, slope, params),
                                    rtol=1e-9, atol=1e-12)
     surface = header["surface_velocity_m_per_s"]
-    # MODEL.md section 6's worked example
+    # docs/model.md section 6's worked example
     assert (round(surface["22"], 3), round(surface["24"], 3), round(surface["28"], 3)) == (0.433, 1.483, 6.116)
 
 

@@ -1,4 +1,4 @@
-"""The material-point driver against the closed forms of MODEL.md §2-3: isotropic hardening,
+"""The material-point driver against the closed forms of docs/model.md §2-3: isotropic hardening,
 steady simple shear on μ(I), rate independence at μ1 = μ2, and the element command line."""
 
 import json

@@ -163,7 +163,7 @@ def test_simulate_validates_before_tracing():
 
 
 def test_wall_rules_of_the_three_types():
-    """MODEL.md §5 on single nodes of a floor (normal +y, μ_w = 0.5, dt = 0), with relative
+    """docs/model.md §5 on single nodes of a floor (normal +y, μ_w = 0.5, dt = 0), with relative
     velocity v = (v_t, v_n): no-slip gives 0 everywhere; non-separable removes v_n on every
     contact node and charges |v_t| <- max(0, |v_t| − μ_w |v_n|) whatever the sign of v_n;
     separable does the same only where v_n < 0 (pressed) and leaves a separating node alone.

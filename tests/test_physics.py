@@ -1,4 +1,4 @@
-"""Whole-simulation physics checks against closed-form solutions (MODEL.md §1 and §5).
+"""Whole-simulation physics checks against closed-form solutions (docs/model.md §1 and §5).
 
 Each test states its formula, the tolerance, and the value measured when the test was written
 (float64, this code at the time of writing), so a reader can judge how much margin there is.
@@ -232,7 +232,7 @@ def test_block_slides_with_aflip_transfer(mu, dx):
     dx = 0.0125, +0.04 % and +40 %, the strict xfail). With the block flush on the floor (gap 0)
     the same rule slid at 0.73 m/s² instead of 2.36 (μ_w = 0.3): the bottom particles' stencils
     reach the nodes behind the floor, whose extrapolated outward velocity the rule charges with
-    friction. The half-cell start removes that (MODEL.md §5)."""
+    friction. The half-cell start removes that (docs/model.md §5)."""
     t, com, vel = _slide(mu, transfer="aflip", dx=dx)
     theta = math.radians(SLOPE_DEG)
     expected = G * (math.sin(theta) - mu * math.cos(theta))

@@ -1,4 +1,4 @@
-"""The critical-state return map on single material points (MODEL.md §1-3), float64.
+"""The critical-state return map on single material points (docs/model.md §1-3), float64.
 
 What is checked, with the tolerances used (all relative to the compressive strength p_c or to
 the natural scale named in each docstring):
@@ -6,7 +6,7 @@ the natural scale named in each docstring):
 1. Static returns (μ2 = μ1) land on the yield surface and satisfy the discrete consistency
    equations (flow rule in p, radial return in q, implicit hardening law).
 2. Cohesion: tension is carried down to -β p_c; beyond it the one associative return applies
-   (no tip rule, MODEL.md §2): continuous in the trial state, the tip only as q_tr -> 0.
+   (no tip rule, docs/model.md §2): continuous in the trial state, the tip only as q_tr -> 0.
 3. Elastic unloading from a plastic state is exactly Hencky elastic.
 4. Rate dependence: q = μ(I) S and q = q_tr - G dt γ̇ at the returned state.
 5. Hypothesis properties: finite outputs and gradients, admissibility, idempotence.
@@ -222,7 +222,7 @@ def test_compression_tip_return(dim):
 @pytest.mark.parametrize("xi", [0.0, 50.0])
 def test_tension_and_tip(dim, xi):
     """β = 0.3: a state with −β p_c < p_tr < 0 and small q is elastic (returned unchanged,
-    1e-14 relative). Beyond the tip (p_tr < −β p_c) there is no tip rule (MODEL.md §2): with
+    1e-14 relative). Beyond the tip (p_tr < −β p_c) there is no tip rule (docs/model.md §2): with
     q_tr = 0 the return ends on the tip of the updated ellipse, p = −β p_c(ε) and q = 0 (1e-12 p_c),
     τ = β p_c I; with q_tr > 0 it ends on the surface (|y| ≤ 1e-10 p_c²) with q > 0 and
     −β p_c < p (dilation moves p to the right: Δε_v^p = (p − p_tr)/K > 0), p_c = p_c,n exp(−ξ Δε_v^p)
@@ -324,7 +324,7 @@ def test_elastic_unloading_after_plastic_return(dim, xi):
 @pytest.mark.parametrize("dim", [2, 3])
 @pytest.mark.parametrize("beta", [0.0, 0.3])
 def test_mu_of_I_at_a_single_return(dim, beta):
-    """μ2 > μ1 (MODEL.md §4 defaults), ξ = 20, dt ∈ {1e-3, 1e-5, 1e-6} s, trial states on the cap,
+    """μ2 > μ1 (docs/model.md §4 defaults), ξ = 20, dt ∈ {1e-3, 1e-5, 1e-6} s, trial states on the cap,
     the dilatant side and near the apex with overstress from 1 % to 20 p_c. At the returned state,
     with S = sqrt((p_c − p) p̄), p̄ = p + β p_c, I = γ̇ d / sqrt(p̄/ρ_s),
     μ(I) = μ1 + (μ2 − μ1)/(1 + I0/I):
@@ -874,7 +874,7 @@ def test_tension_tip_return_with_strong_softening():
 @pytest.mark.parametrize("dim", [2, 3])
 def test_inertial_number_gradient_at_vanishing_pressure(dim):
     """β = 0, p_tr = 0, q_tr = 1e-112 Pa (plastic: the return moves p to ~7e-224 Pa, γ̇ = 0):
-    dI/dq_tr and dI/dp_tr must be finite (no NaN anywhere, MODEL.md §3). Measured now: NaN for
+    dI/dq_tr and dI/dp_tr must be finite (no NaN anywhere, docs/model.md §3). Measured now: NaN for
     q_tr ≤ ~1e-112 Pa (and p_tr = −4e-197 Pa in tension), finite for q_tr ≥ 1e-100 Pa. Physically
     irrelevant magnitudes, but the same p̄^(-3/2) makes I and its gradient round-off noise at any
     tension-tip return (p̄ = round-off there)."""
@@ -886,7 +886,7 @@ def test_inertial_number_gradient_at_vanishing_pressure(dim):
 
 @pytest.mark.parametrize("beta", [0.0, 0.25])
 def test_return_is_continuous_across_the_tension_tip(beta):
-    """No tip rule (MODEL.md §2): the return is continuous in the trial state across
+    """No tip rule (docs/model.md §2): the return is continuous in the trial state across
     p_tr = −β p_c (p and q change by ≤ 1e-6 p_c for a trial change of 2e-6 Pa, at q_tr from 0.1 to
     2 p_c), its one-sided derivatives are finite and agree with one-sided differences, and the
     tension tip (p = −β p_c, q = 0) is the limit q_tr -> 0 of the returns beyond it

@@ -1,4 +1,4 @@
-"""Scene builders (SCENES.md) on tiny settings, and the differentiable observables."""
+"""Scene builders (docs/scenes.md) on tiny settings, and the differentiable observables."""
 
 import math
 
@@ -27,7 +27,7 @@ def test_scene_builds_and_runs(build):
     """Every builder runs without status bits. The column is the body [0, L] × [g, H + g] above
     the floor at y = 0, raised so that its lowest particle lies half a cell (0.501 dx) above
     the floor (g = wall_gap = (dx − dx/ppc)/2 for a lattice), and no particle's stencil reaches
-    a node behind any wall at t = 0 (MODEL.md §5; the scenes' placement convention)."""
+    a node behind any wall at t = 0 (docs/model.md §5; the scenes' placement convention)."""
     scene = build()
     config, state, params = scene
     x = np.asarray(state.x)
@@ -119,7 +119,7 @@ def test_incline_starts_on_the_bagnold_profile():
     scene = scenes.incline(24.0, dx=0.038 / 8)
     z, v = np.asarray(scene.state.x[:, 1]) - scene.info.wall_gap, np.asarray(scene.state.v[:, 0])
     np.testing.assert_allclose(v, scenes.bagnold_velocity(z, 0.038, 24.0, scene.params), rtol=1e-6)
-    # MODEL.md §6 worked example: v_max = 1.483 m/s at 24° for h = 0.038 m.
+    # docs/model.md §6 worked example: v_max = 1.483 m/s at 24° for h = 0.038 m.
     assert abs(scenes.bagnold_velocity(0.038, 0.038, 24.0, scene.params) - 1.483) < 2e-3
     assert abs(scenes.bagnold_velocity(0.038, 0.038, 22.0, scene.params) - 0.433) < 2e-3
     with pytest.raises(ValueError, match="between atan"):

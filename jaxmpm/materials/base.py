@@ -21,7 +21,7 @@ P_WAVE_RATIO_MAX = 1.2
 
 
 def lame(params):
-    """Shear modulus G and Lamé's first parameter λ from E and ν (MODEL.md §1)."""
+    """Shear modulus G and Lamé's first parameter λ from E and ν (docs/model.md §1)."""
     G = params.E / (2.0 * (1.0 + params.nu))
     lam = params.E * params.nu / ((1.0 + params.nu) * (1.0 - 2.0 * params.nu))
     return G, lam
@@ -50,7 +50,7 @@ class Material(abc.ABC):
     def wave_speed(self, params):
         """Elastic wave speed c of the time-step bound cfl_e·dx/c.
 
-        MODEL.md §5 and the reference code use c = sqrt(E/ρ). That is below the P-wave speed
+        docs/model.md §5 and the reference code use c = sqrt(E/ρ). That is below the P-wave speed
         c_p = sqrt((λ + 2G)/ρ) (by 1.16 at ν = 0.3, by 13 at ν = 0.499), so as ν -> 0.5 the
         P-wave Courant number cfl_e·c_p/c grows without bound and the run goes unstable while no
         status bit fires. Here c = max(sqrt(E/ρ), c_p / P_WAVE_RATIO_MAX): the reference rule

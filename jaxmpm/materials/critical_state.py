@@ -1,4 +1,4 @@
-"""The critical-state μ(I) rheology (MODEL.md §1-3): Hencky elasticity, a cohesive Modified
+"""The critical-state μ(I) rheology (docs/model.md §1-3): Hencky elasticity, a cohesive Modified
 Cam-Clay yield surface with associative flow and implicit exponential hardening, and μ(I)
 rate dependence through a cohesive inertial number.
 
@@ -17,7 +17,7 @@ the flow rule p = p_tr - K Δγ μ1² h, h = 2p + (β-1) p_c, gives Δγ = -ε/(
 return q = q_tr/(1 + 2GΔγ) = q_tr μ1² h / (μ1² h - 2Gε). The root of g(ε) = y(p, q, p_c) lies
 between the trial state (ε = 0, g > 0) and the apex of the updated ellipse (h = 0, g < 0); it is
 found by a fixed number of safeguarded Newton steps (bisection when a step leaves the bracket).
-There is no tip rule (MODEL.md §2, as corrected): a trial state in tension beyond the tip
+There is no tip rule (docs/model.md §2, as corrected): a trial state in tension beyond the tip
 (p_tr < -β p_c,n) takes the same return, which is continuous in the trial state and reaches the
 tension tip p = -β p_c, q = 0 only as q_tr -> 0 (as the reference code's one Newton solve does).
 The iterations run on stop-gradient values; one final Newton step on live
@@ -137,7 +137,7 @@ def return_invariants(p_tr, q_tr, eps_v_p, params, dt, dim, iterations=12):
     """Return map in invariants. Returns a dict with p, q, pc, eps_v_p (accumulated), deps_v_p
     (this step), gamma_dot, I, mu_I and plastic (1.0 where the trial state was inadmissible).
     Every inadmissible trial state, in tension beyond -β p_c included, takes the one associative
-    return (MODEL.md §2)."""
+    return (docs/model.md §2)."""
     G, K = bulk_modulus(params, dim)
     sg = jax.lax.stop_gradient
     pc_n = params.pc0 * jnp.exp(-params.xi * eps_v_p)
@@ -172,7 +172,7 @@ def return_invariants(p_tr, q_tr, eps_v_p, params, dt, dim, iterations=12):
     S = safe_sqrt(jnp.maximum(pc - p, 0.0) * jnp.maximum(p_bar, 0.0))
     q_static = jnp.minimum(params.mu1 * S, q_tr)  # a return never raises q (round-off near a tip)
 
-    # --- μ(I) overstress on the static state (MODEL.md §3).
+    # --- μ(I) overstress on the static state (docs/model.md §3).
     # sqrt(p̄/ρ_s), zero below 1e-20 m²/s² (p̄ ~ 1e-17 Pa): the derivative of I ∝ p̄^(-3/2) stays finite.
     sqrt_p = safe_sqrt(jnp.maximum(p_bar, 0.0) / params.rho_s, eps=1e-20)
     Q = params.I0 * sqrt_p / params.d

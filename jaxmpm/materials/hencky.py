@@ -1,4 +1,4 @@
-"""Hencky (logarithmic) hyperelasticity (MODEL.md §1).
+"""Hencky (logarithmic) hyperelasticity (docs/model.md §1).
 
 With the left stretch b = F_e F_eᵀ, the spatial Hencky strain is ε = ½ log b (= U log Σ Uᵀ for
 F_e = U Σ Vᵀ) and the Kirchhoff stress is τ = λ tr(ε) I + 2G ε. ``sym_log`` has a custom

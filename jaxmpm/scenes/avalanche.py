@@ -1,4 +1,4 @@
-"""S6: a snow avalanche on a terrain profile (SCENES.md S6, issue 13).
+"""S6: a snow avalanche on a terrain profile (docs/scenes.md S6, issue 13).
 
 A 2D section along the path: the terrain is a polyline (x, z) read from a CSV (default: the
 ISeeSnow *CoulombOnly* centre line shipped in ``experiments_data/terrain/``), acting as a
@@ -12,7 +12,7 @@ depth-averaged codes have only the basal friction), so both sets below are illus
 choices, stated as such; the study in ``validate avalanche`` reports how the runout depends on μ1
 and β.
 
-- ``"dry"``: ρ = 300 kg/m³ (SCENES.md), E = 1 MPa, ν = 0.3, μ1 = tan 20° = 0.364 (a low internal
+- ``"dry"``: ρ = 300 kg/m³ (docs/scenes.md), E = 1 MPa, ν = 0.3, μ1 = tan 20° = 0.364 (a low internal
   friction, since the test case prescribes only basal friction), μ2 = tan 30° = 0.577, I0 = 0.279
   and d = 1 mm (the model's defaults scale), grain density 917 kg/m³ (ice), β = 0 (no cohesion),
   p_c0 = 20 kPa (above the 1.5 m slab's ~3.7 kPa basal pressure, so the snow flows at its critical

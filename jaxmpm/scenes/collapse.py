@@ -1,4 +1,4 @@
-"""Granular collapses of SCENES.md: S2 (two lifted gates), S3 (sloping bed), S4 (cohesive),
+"""Granular collapses of docs/scenes.md: S2 (two lifted gates), S3 (sloping bed), S4 (cohesive),
 S5 (aspect ratio), S7 (Bui et al. 2008's aluminium bars). All share one builder.
 
 Coordinates: the column initially occupies [0, L] × [0, H] with the floor (bed) at y = 0 and the
@@ -38,10 +38,10 @@ G = 9.81
 #: run time).
 DEFAULT_SAMPLING = "jitter"
 DEFAULT_PPC = 3
-#: SCENES.md S2 material; unlisted keys take MODEL.md §4 defaults (E = 1e6, ν = 0.3,
+#: docs/scenes.md S2 material; unlisted keys take docs/model.md §4 defaults (E = 1e6, ν = 0.3,
 #: ρ = 1550, ρ_s = 2500, μ1 = tan 20.9°, μ2 = tan 32.76°, I0 = 0.279).
 S2_PARAMS = {"d": 2e-3, "beta": 0.0, "pc0": 100.0, "xi": 50.0}
-#: S3 glass beads (d = 0.7 mm, ρ_s = 2500, ρ = 1550). SCENES.md gives no p_c0, ξ: S2's are used.
+#: S3 glass beads (d = 0.7 mm, ρ_s = 2500, ρ = 1550). docs/scenes.md gives no p_c0, ξ: S2's are used.
 S3_PARAMS = {"d": 0.7e-3, "rho_s": 2500.0, "rho": 1550.0, "beta": 0.0, "pc0": 100.0, "xi": 50.0}
 #: S4 coated beads: d = 0.8 mm, ρ_s = 2600, packing 0.58 (ρ = 1508), p_c0 = 500, ξ = 50.
 S4_PARAMS = {"d": 0.8e-3, "rho_s": 2600.0, "rho": 1508.0, "beta": 0.0, "pc0": 500.0, "xi": 50.0}
@@ -319,7 +319,7 @@ def aspect_ratio_collapse(a: float = 1.0, L0: float = 0.05, dx: float | None = N
 
 #: S7 aluminium bars (Bui, Fukagawa, Sako & Ohno 2008), every value with its source
 #: (experiments_data/setups/S7_aluminium_bars.json holds the same with longer notes):
-#: - mu1 = tan 19.8°: the bars' friction angle reported with the data (SCENES.md S7). A modelling
+#: - mu1 = tan 19.8°: the bars' friction angle reported with the data (docs/scenes.md S7). A modelling
 #:   choice of convention: tan φ is the μ(I) law's friction coefficient (q/p̄ in simple shear);
 #:   a plane-strain Mohr–Coulomb match of the same φ would give sin φ = 0.339 instead of 0.360.
 #: - beta = 0: cohesionless (reported).
@@ -334,7 +334,7 @@ def aspect_ratio_collapse(a: float = 1.0, L0: float = 0.05, dx: float | None = N
 #: - d = 1.2 mm: a modelling choice, a representative bar diameter (bars of about 1–1.5 mm,
 #:   secondary, not checked in the primary paper); it enters only the inertial number I.
 #: - mu2 = tan 32.76°, I0 = 0.279: no μ(I) measurement exists for the bars; the glass-bead
-#:   values of MODEL.md §4 (Jop, Forterre & Pouliquen) as a modelling choice. The rate part is
+#:   values of docs/model.md §4 (Jop, Forterre & Pouliquen) as a modelling choice. The rate part is
 #:   not negligible here: with mu2 = mu1 (no rate dependence) the deposit runs about 0.02 m
 #:   further, and halving d about 0.005 m, so a final surface constrains mu1 only together
 #:   with these choices.
@@ -346,7 +346,7 @@ def aspect_ratio_collapse(a: float = 1.0, L0: float = 0.05, dx: float | None = N
 S7_PARAMS = {"mu1": math.tan(math.radians(19.8)), "mu2": math.tan(math.radians(32.76)), "I0": 0.279,
              "beta": 0.0, "rho": 2650.0, "rho_s": 2700.0, "E": 0.84e6, "nu": 0.3, "d": 1.2e-3,
              "pc0": round(2650.0 * G * 0.10), "xi": 50.0}
-#: S7's column (SCENES.md S7), m.
+#: S7's column (docs/scenes.md S7), m.
 S7_LENGTH, S7_HEIGHT = 0.20, 0.10
 
 
@@ -355,7 +355,7 @@ def aluminium_bars(dx: float = S7_HEIGHT / 16, ppc: float | None = None, dim: in
     """S7 (Bui et al. 2008): a plane-strain column of aluminium bars, 0.20 m long × 0.10 m high,
     against a slip-free back wall (as S4's) on a rough floor, released at t = 0 with no gate.
 
-    Floor: MODEL.md §5's no-slip wall, the type that stands for a rough base (the basal layer of
+    Floor: docs/model.md §5's no-slip wall, the type that stands for a rough base (the basal layer of
     grains does not slide on it); slip-stick would need a basal friction coefficient that is not
     reported. Release: the front side was "removed quickly" at a speed not reported, so the
     instantaneous release is taken, as the numerical studies of these data do; a 50 m/s gate

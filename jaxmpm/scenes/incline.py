@@ -1,4 +1,4 @@
-"""S1 of SCENES.md: steady flow down an inclined plane (the Bagnold profile of MODEL.md §6).
+"""S1 of docs/scenes.md: steady flow down an inclined plane (the Bagnold profile of docs/model.md §6).
 
 A layer of depth h on a rough (no-slip) bed at y = 0, periodic along the slope (x), with gravity
 rotated to g = 9.81 (sin θ, -cos θ). The periodic length is a few cells: the steady state is
@@ -24,13 +24,13 @@ from .info import SceneInfo
 
 __all__ = ["incline", "S1_PARAMS", "bagnold_velocity"]
 
-#: S1 material: glass beads, β = 0. SCENES.md gives no p_c0, ξ: ξ = 50 lets p_c grow by
+#: S1 material: glass beads, β = 0. docs/scenes.md gives no p_c0, ξ: ξ = 50 lets p_c grow by
 #: compaction to the critical state under the layer's weight (p_c0 = 100 Pa as S2).
 S1_PARAMS = {"rho": 1550.0, "rho_s": 2500.0, "d": 0.7e-3, "beta": 0.0, "pc0": 100.0, "xi": 50.0}
 
 
 def bagnold_velocity(z, depth, slope_deg, params):
-    """MODEL.md §6: v(z) = (2/3) I_θ sqrt(ρ g cos θ / ρ_s) / d (h^{3/2} - (h - z)^{3/2}), with
+    """docs/model.md §6: v(z) = (2/3) I_θ sqrt(ρ g cos θ / ρ_s) / d (h^{3/2} - (h - z)^{3/2}), with
     I_θ = I0 (tan θ - μ1) / (μ2 - tan θ). ``params`` may be a Params or a dict of floats."""
     get = (lambda k: float(params[k])) if isinstance(params, dict) else (lambda k: float(getattr(params, k)))
     theta = math.radians(slope_deg)
@@ -56,11 +56,11 @@ def incline(slope_deg: float = 24.0, dx: float | None = None, ppc: int = 2, dept
 
     The approach to the steady state from rest is slow: near it the relaxation time is
     v/(g cos θ μ'(I) I), 2 s at 22° and 11 s at 28°. With ``start_from_analytic`` (default) the
-    layer starts with the Bagnold velocity profile of MODEL.md §6 and the run shows whether the
+    layer starts with the Bagnold velocity profile of docs/model.md §6 and the run shows whether the
     scheme holds it, which is the question the validation asks.
 
     ``critical_start``: start every particle at the critical state of the steady flow (p_c = 2p
-    at the lithostatic pressure, the state MODEL.md §6's solution assumes). Without it p_c = p_c0
+    at the lithostatic pressure, the state docs/model.md §6's solution assumes). Without it p_c = p_c0
     everywhere, and near the free surface, where p ≪ p_c0, the material is overconsolidated:
     it is stronger than μ(I) p there and shears only as dilation softens it. The offset lives in
     ε_v^p, so ``particle_volumes`` counts it as a plastic volume change: divide by
@@ -107,7 +107,7 @@ def incline(slope_deg: float = 24.0, dx: float | None = None, ppc: int = 2, dept
 def _at_critical_state(state, y, depth, theta, params):
     """Set each particle's p_c to the critical state of the steady flow: the apex of the ellipse
     at the lithostatic pressure p(y) = ρ g cos θ (h − y), p_c = 2 p / (1 − β), through the
-    plastic volumetric strain ε_v^p = −ln(p_c / p_c0) / ξ (MODEL.md §2's hardening law)."""
+    plastic volumetric strain ε_v^p = −ln(p_c / p_c0) / ξ (docs/model.md §2's hardening law)."""
     import numpy as np
 
     get = lambda k: float(getattr(params, k))  # noqa: E731
