@@ -50,9 +50,10 @@ lists their lines in ``meta["clipped_noise_lines"]``.
 Shipped data
 ------------
 ``list_datasets()`` reads ``experiments_data/manifest.json``; ``dataset_path(name)`` finds a
-file from its manifest name or its path inside ``experiments_data/``. The folder is found next
-to the ``calibration`` package (a source checkout or an editable install) or where the
-environment variable ``JAXMPM_EXPERIMENTS_DATA`` points; ``pip install .`` does not install it.
+file from its manifest name or its path inside ``experiments_data/``. The folder is where the
+environment variable ``JAXMPM_EXPERIMENTS_DATA`` points if it is set, else the one next to the
+``calibration`` package (a source checkout or an editable install), else the installed package
+``jaxmpm.experiments_data`` (``pip install .`` installs the folder under that name).
 """
 
 from __future__ import annotations
@@ -577,20 +578,37 @@ class DatasetInfo:
 
 def data_dir() -> pathlib.Path:
     """The ``experiments_data`` folder: ``$JAXMPM_EXPERIMENTS_DATA`` if set, else the one next to the
-    ``calibration`` package. Raises ``FileNotFoundError`` if neither holds a ``manifest.json``."""
+    ``calibration`` package (a source checkout), else the installed ``jaxmpm.experiments_data``.
+    Raises ``FileNotFoundError`` if none holds a ``manifest.json``."""
     env = os.environ.get(_ENV)
     if env:
         folder = pathlib.Path(env)
         if not (folder / "manifest.json").is_file():
             raise FileNotFoundError(f"${_ENV} = {env!r} has no manifest.json")
         return folder
-    folder = pathlib.Path(__file__).resolve().parent.parent / "experiments_data"
-    if not (folder / "manifest.json").is_file():
-        raise FileNotFoundError(
-            f"experiments_data/ not found at {str(folder)!r}: it ships in the source repository, not in the "
-            "installed package. Use a source checkout (pip install -e .) or set "
-            f"{_ENV} to the folder's path")
-    return folder
+    checkout = pathlib.Path(__file__).resolve().parent.parent / "experiments_data"
+    if (checkout / "manifest.json").is_file():
+        return checkout
+    installed = _installed_data_dir()
+    if installed is not None and (installed / "manifest.json").is_file():
+        return installed
+    raise FileNotFoundError(
+        f"experiments_data/ not found: neither at {str(checkout)!r} (a source checkout) nor as the installed "
+        f"package jaxmpm.experiments_data ({'not installed' if installed is None else str(installed)!r}). "
+        f"Reinstall jaxmpm (pip install .) or set {_ENV} to the folder's path")
+
+
+def _installed_data_dir() -> pathlib.Path | None:
+    """Where ``pip install .`` put the shipped data, or None if it is not installed."""
+    import importlib.util
+
+    try:
+        spec = importlib.util.find_spec("jaxmpm.experiments_data")
+    except ImportError:
+        return None
+    if spec is None or not spec.submodule_search_locations:
+        return None
+    return pathlib.Path(next(iter(spec.submodule_search_locations)))
 
 
 def list_datasets() -> dict[str, DatasetInfo]:
