@@ -28,7 +28,9 @@ from .uncertainty import Uncertainty, Verdict, assess_fit, gauss_newton_uncertai
 __all__ = [
     "DEFAULT_BOUNDS", "FIT_KEYS", "Bounds", "GridPosterior", "HeldOut", "ProfileLikelihood", "grid_posterior",
     "predict_heldout", "profile_likelihood", "CompositeObjective", "FitResult", "FrontHistory", "FrontTarget",
-    "Minimum", "ModelFunctions", "Objective", "Observations", "Profile", "ProfileTarget", "RunoutLaw", "SearchResult", "Uncertainty", "Verdict",
+    "Minimum", "ModelFunctions", "Objective", "Observations", "Profile", "ProfileTarget", "RunoutLaw", "SearchResult",
+    "Uncertainty", "Verdict",
     "assess_fit", "design_starts", "fit", "gauss_newton_uncertainty", "list_datasets", "load_front_history",
-    "coarse_to_fine", "load_profile", "model_functions", "load_scaling_law", "read_history", "search", "structural_noise",
+    "coarse_to_fine", "load_profile", "model_functions", "load_scaling_law", "read_history", "search",
+    "structural_noise",
 ]

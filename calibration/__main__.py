@@ -100,6 +100,12 @@ def _scene_and_objective(args, keys):
     return scene, objective
 
 
+def _objective_from_args(values: dict, keys):
+    """The objective that ``python -m calibration`` builds from these parsed options: the
+    recipe a cluster worker runs (picklable as a ``functools.partial``)."""
+    return _scene_and_objective(argparse.Namespace(**values), keys)[1]
+
+
 def _emit(obj, compact: bool) -> list[str]:
     """Print ``obj`` as valid JSON (NaN and infinities as null, their paths under "nonfinite");
     return those paths."""
@@ -304,14 +310,37 @@ def _sweep(args) -> int:
         keys, thetas = latin_hypercube(ranges, args.lhs, seed=args.lhs_seed)
     else:
         keys, thetas = grid_points(ranges, {k: n for k, (_, _, n) in over.items()})
+    if args.cluster is not None:
+        from .cluster import parse_cluster
+
+        parse_cluster(args.cluster)  # a clear error before any worker starts
+        if args.mode != "auto":
+            raise ValueError(f"--mode {args.mode}: with --cluster every task is one vmapped chunk; drop --mode")
+        if args.retries < 0:
+            raise ValueError(f"--retries must be >= 0, got {args.retries}")
+    recipe = dict(vars(args))  # before _scene_and_objective fills in t_end from the data
     scene, objective = _scene_and_objective(args, keys)
     objective.check_thetas(thetas, "--over")  # every member, before anything compiles
-    result = sweep(objective, thetas, chunk=args.chunk, mode=args.mode, progress=not args.no_progress)
-    out = result.to_json()
+    if args.cluster is not None:
+        import functools
+
+        from .cluster import cluster_sweep, write_cluster_sweep
+
+        clustered = cluster_sweep(functools.partial(_objective_from_args, recipe, keys), thetas,
+                                  cluster=args.cluster, chunk=args.chunk, retries=args.retries,
+                                  progress=not args.no_progress, objective=objective)
+        result = clustered.sweep
+        out = clustered.to_json()
+        write = lambda: write_cluster_sweep(args.out, clustered, objective) or True  # noqa: E731
+    else:
+        result = sweep(objective, thetas, chunk=args.chunk, mode=args.mode, progress=not args.no_progress)
+        out = result.to_json()
+        out["n_members"] = result.n
+        write = lambda: write_sweep(args.out, result, objective) or True  # noqa: E731
     out.pop("residuals", None)  # per-member residual vectors go to --out, not to the terminal
     out["scene"] = scene.name
     errors: dict[str, str] = {}
-    if args.out and _guard(errors, "--out", lambda: write_sweep(args.out, result, objective) or True):
+    if args.out and _guard(errors, "--out", write):
         out["out"] = str(args.out)
     if args.plot:
         out["figures"] = _guard(errors, "--plot", lambda: _sweep_plot(args.plot, result, keys))
@@ -550,6 +579,11 @@ def build_parser() -> argparse.ArgumentParser:
                        "the particle sampling)")
     sweep.add_argument("--chunk", type=int, default=None, help="members per vmapped chunk (default: by memory)")
     sweep.add_argument("--mode", choices=("auto", "vmap", "shard", "loop"), default="auto")
+    sweep.add_argument("--cluster", default=None, metavar="local:N|tcp://HOST:PORT",
+                       help="run the chunks as Dask tasks: on N local worker processes, or on the workers of a "
+                            "running scheduler (the 'cluster' extra); --chunk is then the members per task")
+    sweep.add_argument("--retries", type=int, default=2,
+                       help="with --cluster: extra attempts of a task whose worker died or that raised (default 2)")
     sweep.add_argument("--out", default=None, metavar="FILE.h5", help="every member's loss, status and residuals")
     sweep.add_argument("--overwrite", action="store_true", help="replace an existing --out")
     sweep.add_argument("--plot", default=None, metavar="DIR",
@@ -571,7 +605,8 @@ def build_parser() -> argparse.ArgumentParser:
     law.add_argument("--test", default="2,8", help="aspect ratios only predicted")
     law.add_argument("--sand", action="store_true", help="the sand law of Lube et al. 2005 instead of glass beads")
     law.add_argument("--law", default=None, metavar="FILE.csv",
-                     help="a scaling-law table (a,dL_over_L0), e.g. experiments_data/scaling_laws/runout_glass_beads.csv")
+                     help="a scaling-law table (a,dL_over_L0), "
+                          "e.g. experiments_data/scaling_laws/runout_glass_beads.csv")
     law.add_argument("--dx", type=float, default=None, help="grid spacing, m (default L0/10)")
     law.add_argument("--ppc", type=float, default=None, help="particles per cell and axis (default: the scenes')")
     law.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="material parameter")

@@ -108,7 +108,8 @@ def bench(keys=("beta", "mu1", "mu2", "I0", "xi"), dx: float = 0.089 / 16, t_end
           dtype=None, values=None) -> BenchResult:
     """Measure the S4 cohesive collapse at ``dx`` for ``t_end`` s, fitting ``keys``; ``repeat``
     timed calls after the first. ``values``: scene parameters by key over the bench's own (β = 0.25)."""
-    scene = build_scene("cohesive-collapse", dx=dx, t_end=t_end, dtype=dtype, values={"beta": 0.25, **dict(values or {})})
+    scene = build_scene("cohesive-collapse", dx=dx, t_end=t_end, dtype=dtype,
+                        values={"beta": 0.25, **dict(values or {})})
     xs = np.linspace(0.0, 0.2, 50)
     times = np.linspace(0.05, t_end, 10)
     obj = Objective(scene, keys, profile=ProfileTarget(xs, np.ones_like(xs)),
@@ -120,7 +121,7 @@ def bench(keys=("beta", "mu1", "mu2", "I0", "xi"), dx: float = 0.089 / 16, t_end
     timings = {}
     for name, jitted in (("forward", fns.residuals), ("jacobian", fns.jacobian), ("jacfwd_batch", batch),
                          ("grad_rev", fns.value_and_grad)):
-        compile_s, run_s = _timed(lambda: jitted(th, *args), repeat)
+        compile_s, run_s = _timed(lambda jitted=jitted: jitted(th, *args), repeat)  # called in this iteration
         timings[name] = Timing(compile_s, run_s, _temp_bytes(jitted, th, *args))
     return BenchResult(scene=scene.name, keys=tuple(keys), n_residuals=obj.n_residuals,
                        n_particles=int(scene.state.x.shape[0]), max_steps=obj.config.max_steps, dx=dx,

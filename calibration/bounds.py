@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from typing import Mapping, Sequence
+from collections.abc import Mapping, Sequence
 
 import jax
 import jax.numpy as jnp
@@ -51,7 +51,7 @@ class Bounds:
     upper: tuple[float, ...]
 
     @classmethod
-    def create(cls, keys: Sequence[str], overrides: Mapping[str, tuple[float, float]] | None = None) -> "Bounds":
+    def create(cls, keys: Sequence[str], overrides: Mapping[str, tuple[float, float]] | None = None) -> Bounds:
         keys = tuple(keys)
         if not keys:
             raise ValueError("keys: at least one parameter must be fitted")

@@ -15,7 +15,8 @@ from __future__ import annotations
 
 import dataclasses
 import time
-from typing import Any, Callable, Sequence
+from collections.abc import Callable, Sequence
+from typing import Any
 
 import numpy as np
 
@@ -65,7 +66,7 @@ class CoverageResult:
     wall_s: float
 
     @classmethod
-    def from_json(cls, out: dict[str, Any]) -> "CoverageResult":
+    def from_json(cls, out: dict[str, Any]) -> CoverageResult:
         """The result again from ``to_json``'s dict (to redraw a saved study)."""
         rows = tuple(CoverageRow(**row) for row in out["rows"])
         return cls(tuple(out["keys"]), dict(out["truth"]), float(out["noise"]), bool(out["quick"]), rows,

@@ -38,7 +38,8 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
-from typing import Any, Callable, Mapping
+from collections.abc import Callable, Mapping
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -192,7 +193,8 @@ def _restore(optimiser, saved: Mapping[str, Any], history: History):
 def fit(objective, init: Mapping[str, float] | None = None, *, method: str = "lm", steps: int = 30,
         out=None, resume: bool = False, overwrite: bool = False, learning_rate: float = 0.05, clip: float = 1.0,
         grad_mode: str = "fwd",
-        xtol: float = 1e-6, ftol: float = 1e-7, stat_tol: float = 0.1, max_rejections: int = 6, progress: bool = False, callback: Callable | None = None,
+        xtol: float = 1e-6, ftol: float = 1e-7, stat_tol: float = 0.1, max_rejections: int = 6, progress: bool = False,
+        callback: Callable | None = None,
         noise: Mapping[str, float] | float | None = None, uncertainty: bool = True,
         roundoff_samples: int = ROUNDOFF_SAMPLES, sampling_seeds: int = 0, reference_noise: float = 0.01,
         threshold: float = 0.1,
@@ -297,8 +299,8 @@ def fit(objective, init: Mapping[str, float] | None = None, *, method: str = "lm
         loss_b = float(np.sum(r_b * r_b))
     converged = done and message.startswith("converged")
     verdict, unc = judge_point(objective, r_b, J_b, theta_best, converged=converged, message=message, noise=noise,
-                               uncertainty=uncertainty, roundoff_samples=roundoff_samples, sampling_seeds=sampling_seeds,
-                               reference_noise=reference_noise, threshold=threshold)
+                               uncertainty=uncertainty, roundoff_samples=roundoff_samples,
+                               sampling_seeds=sampling_seeds, reference_noise=reference_noise, threshold=threshold)
     return FitResult(keys=keys, theta={k: float(v) for k, v in zip(keys, theta_best)}, loss=float(loss_b),
                      iterations=len(hist["loss"]), wall_s=float(hist["wall_s"][-1]) if len(hist["wall_s"]) else 0.0,
                      method=method, converged=converged, message=message,

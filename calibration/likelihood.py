@@ -29,7 +29,8 @@ from __future__ import annotations
 import dataclasses
 import math
 import time
-from typing import Any, Mapping, Sequence
+from collections.abc import Mapping, Sequence
+from typing import Any
 
 import jax.numpy as jnp
 import numpy as np
@@ -113,7 +114,8 @@ class ProfileLikelihood:
         return {"key": self.key, "keys": list(self.keys), "values": self.values.tolist(), "chi2": self.chi2.tolist(),
                 "others": {k: self.others[:, j].tolist() for j, k in enumerate(k for k in self.keys if k != self.key)},
                 "status": self.status.tolist(), "theta_hat": self.theta_hat, "chi2_hat": self.chi2_hat,
-                "ci95_profile": list(self.ci95), "ci95_gauss_newton": None if self.gn_ci95 is None else list(self.gn_ci95),
+                "ci95_profile": list(self.ci95),
+                "ci95_gauss_newton": None if self.gn_ci95 is None else list(self.gn_ci95),
                 "delta_chi2_95": DELTA_CHI2_95, "noise": self.noise, "wall_s": round(self.wall_s, 2)}
 
 
@@ -169,8 +171,9 @@ def profile_likelihood(objective, fit_result, key: str, *, span: float = 4.0, n:
                        noise: Mapping[str, float] | float | None = None) -> ProfileLikelihood:
     """The profile likelihood of ``key`` around ``fit_result``'s point: ``n`` values over
     ± ``span`` Gauss–Newton standard errors (clipped inside the bounds; or the given
-    ``values``; the fit's own value is one of the grid's), the other keys refitted at each (``steps`` damped Gauss–Newton steps, warm
-    started from the neighbour nearer the fit). ``noise``: σ by block (default: the fit's)."""
+    ``values``; the fit's own value is one of the grid's), the other keys refitted at each
+    (``steps`` damped Gauss–Newton steps, warm started from the neighbour nearer the fit).
+    ``noise``: σ by block (default: the fit's)."""
     clock = time.perf_counter()
     keys = tuple(objective.keys)
     if key not in keys:

@@ -39,7 +39,8 @@ import dataclasses
 import math
 import sys
 import time
-from typing import Any, Mapping
+from collections.abc import Mapping
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -109,7 +110,8 @@ class McmcPosterior:
         return self.draws.reshape(-1, len(self.keys))
 
     def to_json(self) -> dict[str, Any]:
-        return {"keys": list(self.keys), "method": "NUTS (blackjax), whitened logit coordinates, forward-mode gradients",
+        return {"keys": list(self.keys),
+                "method": "NUTS (blackjax), whitened logit coordinates, forward-mode gradients",
                 "prior": "flat inside the bounds", "chains": self.chains, "warmup": self.warmup,
                 "draws_per_chain": int(self.draws.shape[1]), "seed": self.seed,
                 "mean": self.mean, "sd": self.sd, "ci95": {k: list(v) for k, v in self.ci95.items()},

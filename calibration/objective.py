@@ -35,7 +35,8 @@ import functools
 import hashlib
 import json
 import math
-from typing import Any, Mapping, Sequence
+from collections.abc import Mapping, Sequence
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -61,7 +62,7 @@ class ProfileTarget:
     source: str | None = None
 
     @classmethod
-    def of(cls, data) -> "ProfileTarget":
+    def of(cls, data) -> ProfileTarget:
         """From a ``calibration.data.Profile`` (or anything with ``x``, ``h`` and ``time_s``)."""
         return cls(np.asarray(data.x, float), np.asarray(data.h, float), getattr(data, "time_s", None),
                    getattr(data, "path", None))
@@ -86,7 +87,7 @@ class FrontTarget:
     correlation_time: float | None = None
 
     @classmethod
-    def of(cls, data) -> "FrontTarget":
+    def of(cls, data) -> FrontTarget:
         return cls(np.asarray(data.t, float), np.asarray(data.x_front, float), getattr(data, "path", None))
 
 

@@ -18,7 +18,8 @@ from __future__ import annotations
 import dataclasses
 import functools
 import math
-from typing import Callable, NamedTuple
+from collections.abc import Callable
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -230,7 +231,8 @@ def _model_functions(config: Config, observations: Observations, keys: tuple[str
         return jacobian_by_columns(lambda z_: residual_z(z_, lower, upper, state, base, data), z)
 
     return ModelFunctions(
-        config=config, predict=predict, predictions=jax.jit(predict), residual=residual, residuals=jax.jit(residual), jacobian=jax.jit(jac),
+        config=config, predict=predict, predictions=jax.jit(predict), residual=residual, residuals=jax.jit(residual),
+        jacobian=jax.jit(jac),
         jacobian_z=jax.jit(jac_z), value_and_grad=jax.jit(jax.value_and_grad(loss, has_aux=True)),
         batched=jax.jit(jax.vmap(residual, in_axes=(0, None, None, None))),
         batched_jacobian_z=jax.jit(jax.vmap(jac_z, in_axes=(0, None, None, None, None, None))))

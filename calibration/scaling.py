@@ -16,7 +16,8 @@ from __future__ import annotations
 
 import dataclasses
 import time
-from typing import Any, Callable, Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
+from typing import Any
 
 import numpy as np
 
@@ -47,8 +48,8 @@ def law_from_table(table) -> Callable:
 
 
 def runout_objective(a: float, keys: Sequence[str], law: Callable = runout_law, L0: float = 0.05,
-                     dx: float | None = None, ppc: float | None = None, values: Mapping[str, float] | None = None, dtype=None,
-                     jacobian: str = "fd", fd_step: float = 0.05):
+                     dx: float | None = None, ppc: float | None = None, values: Mapping[str, float] | None = None,
+                     dtype=None, jacobian: str = "fd", fd_step: float = 0.05):
     """The S5 objective at aspect ratio ``a``: the final front against ``law(a)``. The Jacobian
     defaults to central differences over ±5 %: in the tall, violent columns (a ≥ 4) the final
     front scatters by ~0.1 L0 between neighbouring parameter values, and the autodiff

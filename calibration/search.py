@@ -145,7 +145,7 @@ class SearchResult:
     wall_s: float
     compile_s: float
     start_note: str = ""
-    coarse: "SearchResult | None" = None  # the coarse stage of coarse_to_fine, if there was one
+    coarse: SearchResult | None = None  # the coarse stage of coarse_to_fine, if there was one
 
     @property
     def within_noise(self) -> list[Minimum]:
@@ -353,8 +353,9 @@ def coarse_to_fine(objective, coarse, starts: int | np.ndarray = DEFAULT_STARTS,
     on a cheaper resolution) finds the basins; the best ``refine`` distinct minima it reports
     (by loss; every one within the noise of its best is kept if there are more; endpoints that break
     a rule of the engine, such as μ1 > μ2, are replaced by the last valid point on the line from
-    their start) are then refined by a batched ``search`` on ``objective`` from those points. ``options`` (steps, noise, ...)
-    go to the fine stage; ``coarse_options`` override ``COARSE_OPTIONS`` for the coarse one, whose
+    their start) are then refined by a batched ``search`` on ``objective`` from those points.
+    ``options`` (steps, noise, ...) go to the fine stage; ``coarse_options`` override
+    ``COARSE_OPTIONS`` for the coarse one, whose
     loose tolerances stop it once it knows the basin (its own model error, not the data's noise,
     limits how well it can place a minimum). The result is the fine stage's, with the coarse one
     as ``.coarse``.
@@ -400,7 +401,8 @@ def coarse_to_fine(objective, coarse, starts: int | np.ndarray = DEFAULT_STARTS,
     thetas = np.stack([t for t, _ in chosen])
     moved = sum(1 for _, mv in chosen if mv)
     if progress:
-        print(f"coarse_to_fine: refining {len(thetas)} of {len(first.minima)} coarse minima", file=sys.stderr, flush=True)
+        print(f"coarse_to_fine: refining {len(thetas)} of {len(first.minima)} coarse minima", file=sys.stderr,
+              flush=True)
     result = search(objective, thetas, seed=seed, design=design, progress=progress, **options)
     result.coarse = first
     if moved:

@@ -31,7 +31,8 @@ import math
 import os
 import sys
 import time
-from typing import Any, Mapping, Sequence
+from collections.abc import Mapping, Sequence
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -439,9 +440,10 @@ def sweep(objective, thetas, *, chunk: int | None = None, mode: str = "auto",
                        n_devices=n_dev, wall_s=time.perf_counter() - clock, compile_s=evaluator.compile_s)
 
 
-def write_sweep(path, result: SweepResult, objective=None) -> None:
+def write_sweep(path, result: SweepResult, objective=None, extra=None) -> None:
     """Write a sweep to the HDF5 file ``path``: attributes ``keys_json`` (and ``objective_json``,
-    the objective's ``describe()``), datasets ``thetas``, ``loss``, ``status`` and ``residuals``.
+    the objective's ``describe()``), datasets ``thetas``, ``loss``, ``status`` and ``residuals``;
+    ``extra(f)``, if given, adds to the open file (the cluster sweep's task of each member).
     Written to a temporary file in the same folder and renamed (the atomic write of the fit
     histories), so a reader never sees a partial file and a failure leaves the old one."""
     import json
@@ -457,5 +459,7 @@ def write_sweep(path, result: SweepResult, objective=None) -> None:
         f.create_dataset("loss", data=np.asarray(result.loss))
         f.create_dataset("status", data=np.asarray(result.status))
         f.create_dataset("residuals", data=np.asarray(result.residuals))
+        if extra is not None:
+            extra(f)
 
     atomic_h5(pathlib.Path(path), write)

@@ -8,11 +8,13 @@ step and rollout factories, the public ``simulate`` call, HDF5 output (``io``) a
 from importlib import metadata as _metadata
 
 from . import io, scenes, tables
+from ._version import __version__ as __version__  # the one source of the version (pyproject.toml reads it)
 from .boundary import Terrain, Wall
 from .config import Config, Grid
 from .materials import CriticalState, Hencky, Material, hencky_stress, invariants
 from .params import DEFAULTS, MATERIAL_KEYS, PARAM_KEYS, Params, validate_params
 from .rollout import frame_observer, make_rollout
+from .sampling import SAMPLINGS, seed_box
 from .simulate import Result, SimulationError, compiled_rollout, simulate
 from .state import (
     BUDGET,
@@ -25,7 +27,6 @@ from .state import (
     describe_status,
     init_state,
 )
-from .sampling import SAMPLINGS, seed_box
 from .step import make_step
 
 
@@ -47,11 +48,10 @@ def _warn_known_bad_jaxlib():
 
 _warn_known_bad_jaxlib()
 
-from ._version import __version__ as __version__  # the one source of the version (pyproject.toml reads it)
-
 __all__ = [
-    "BUDGET", "Config", "CriticalState", "EDGE", "DEFAULTS", "GRID_FULL", "Grid", "Hencky", "J_NONPOSITIVE", "LEFT_GRID", "Material",
-    "MATERIAL_KEYS", "NONFINITE", "PARAM_KEYS", "Params", "Result", "SAMPLINGS", "SimulationError", "State", "Terrain", "Wall",
+    "BUDGET", "Config", "CriticalState", "EDGE", "DEFAULTS", "GRID_FULL", "Grid", "Hencky", "J_NONPOSITIVE",
+    "LEFT_GRID", "Material", "MATERIAL_KEYS", "NONFINITE", "PARAM_KEYS", "Params", "Result", "SAMPLINGS",
+    "SimulationError", "State", "Terrain", "Wall",
     "compiled_rollout", "describe_status", "frame_observer", "hencky_stress", "init_state",
     "invariants", "io", "make_rollout", "make_step", "scenes", "seed_box", "simulate", "tables", "validate_params",
 ]

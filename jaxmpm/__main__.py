@@ -209,7 +209,8 @@ def _run_avalanche(args) -> int:
     if args.ppc is not None and (int(args.ppc) != args.ppc or args.ppc < 1):
         raise ValueError(f"--ppc must be a positive integer for the avalanche, got {args.ppc}")
     if args.frames is not None and args.frames < 2:
-        raise ValueError(f"--frames must be >= 2 for the avalanche (its fields are sampled on the frames), got {args.frames}")
+        raise ValueError("--frames must be >= 2 for the avalanche (its fields are sampled on the frames), "
+                         f"got {args.frames}")
     if args.terrain is not None:
         from .boundary import Terrain
 
@@ -354,8 +355,10 @@ def build_parser() -> argparse.ArgumentParser:
     validate.add_argument("--quick", action="store_true", help="a reduced, faster version")
     validate.add_argument("--json", action="store_true", help="print one JSON object")
     validate.add_argument("--plot", default=None, metavar="DIR", help="write the study's figure into DIR")
-    validate.add_argument("--alpha", type=float, default=None, help="AFLIP blend for the bagnold studies (default 0.95)")
-    validate.add_argument("--xpic", type=int, default=None, help="XPIC order on the FLIP part, bagnold studies only (0: off)")
+    validate.add_argument("--alpha", type=float, default=None,
+                          help="AFLIP blend for the bagnold studies (default 0.95)")
+    validate.add_argument("--xpic", type=int, default=None,
+                          help="XPIC order on the FLIP part, bagnold studies only (0: off)")
     validate.add_argument("--slopes", default=None, help="comma-separated slopes (deg), bagnold only")
     validate.add_argument("--divisions", default=None, help="comma-separated h/dx, bagnold only")
     validate.add_argument("--dtype", choices=("float32", "float64"), default="float32",
@@ -373,7 +376,8 @@ def build_parser() -> argparse.ArgumentParser:
     bench.add_argument("--grad", action="store_true", help="benchmark reverse-mode gradients instead")
     bench.add_argument("--active-nodes", type=int, default=None, metavar="K",
                        help="the sparse grid with K node slots instead of the dense grid (forward run)")
-    bench.add_argument("--steps", type=int, default=None, help="steps: for --grad (default 5000); for the forward run, a cap (default: until t_end)")
+    bench.add_argument("--steps", type=int, default=None,
+                       help="steps: for --grad (default 5000); for the forward run, a cap (default: until t_end)")
     return parser
 
 

@@ -169,7 +169,7 @@ class Terrain:
             raise ValueError(f"Terrain.thickness must be > 0, got {self.thickness!r}")
 
     @classmethod
-    def from_csv(cls, path, **kwargs) -> "Terrain":
+    def from_csv(cls, path, **kwargs) -> Terrain:
         """A terrain from a CSV of ``x_m, z_m`` rows (the project's table format: ``#`` header
         lines, then the column names)."""
         from .tables import read_columns

@@ -199,7 +199,8 @@ class Config:
         if self.block_size is not None and (int(self.block_size) != self.block_size or self.block_size < 1):
             raise ValueError(f"block_size must be a positive integer or None, got {self.block_size!r}")
         if self.active_nodes is not None:
-            if isinstance(self.active_nodes, bool) or int(self.active_nodes) != self.active_nodes or self.active_nodes < 1:
+            if (isinstance(self.active_nodes, bool) or int(self.active_nodes) != self.active_nodes
+                    or self.active_nodes < 1):
                 raise ValueError(f"active_nodes must be a positive integer or None, got {self.active_nodes!r}")
             set_("active_nodes", int(self.active_nodes))
         if self.grid.n_nodes >= 2**31 - 1:
@@ -226,7 +227,8 @@ class Config:
 
         def plain(obj):
             if dataclasses.is_dataclass(obj):
-                return {"type": type(obj).__name__, **{f.name: plain(getattr(obj, f.name)) for f in dataclasses.fields(obj)}}
+                return {"type": type(obj).__name__,
+                        **{f.name: plain(getattr(obj, f.name)) for f in dataclasses.fields(obj)}}
             if isinstance(obj, (tuple, list)):
                 return [plain(o) for o in obj]
             if isinstance(obj, float) and not math.isfinite(obj):

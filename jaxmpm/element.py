@@ -46,7 +46,7 @@ class ElementHistory:
     pc: Any
     eps_v_p: Any
     gamma_dot: Any
-    I: Any
+    I: Any  # noqa: E741 - the inertial number I: a public field, named like the "I" internal variable
     mu_eff: Any
     F: Any  # elastic deformation gradient
     lateral_error: Any  # triaxial: |lateral Cauchy stress + pressure| after the step (Pa); else 0

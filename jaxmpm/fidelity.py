@@ -212,7 +212,7 @@ def _plot_resolution(out, plot_dir):
         data = out["scenes"][name]
         for row, (label, value) in enumerate((
                 ("worst scalar error (" + ", ".join(data["scalars"]) + ")",
-                 lambda r: max(abs(r["error"][k]) for k in data["scalars"])),
+                 lambda r, data=data: max(abs(r["error"][k]) for k in data["scalars"])),  # used in this iteration
                 (f"deposit profile error (rel. L2, σ = {SIGMA * 1e3:g} mm)", lambda r: r["error"]["profile"]))):
             ax = axes[row, col]
             for r in data["runs"]:

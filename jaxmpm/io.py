@@ -32,7 +32,8 @@ import os
 import pathlib
 import tempfile
 import uuid
-from typing import Any, Mapping
+from collections.abc import Mapping
+from typing import Any
 
 import h5py
 import jax

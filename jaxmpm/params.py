@@ -23,7 +23,8 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from typing import Any, Mapping
+from collections.abc import Mapping
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -70,7 +71,7 @@ class Params:
     mu_w: Any
 
     @classmethod
-    def create(cls, dtype=None, **values: float) -> "Params":
+    def create(cls, dtype=None, **values: float) -> Params:
         """Defaults of docs/model.md §4 overridden by ``values``, validated, as arrays of ``dtype``.
 
         ``dtype`` defaults to JAX's default float type (float32 unless x64 is enabled).
@@ -91,7 +92,7 @@ class Params:
         dtype = jnp.dtype(dtype) if dtype is not None else jnp.zeros(()).dtype
         return cls(**{k: jnp.asarray(v, dtype=dtype) for k, v in merged.items()})
 
-    def replace(self, **values) -> "Params":
+    def replace(self, **values) -> Params:
         """A copy with some leaves replaced (no validation: this is used inside traced code)."""
         return dataclasses.replace(self, **values)
 
@@ -152,7 +153,8 @@ def validate_params(params: Params | Mapping[str, Any]) -> None:
         bad = mu2 < mu1
         if np.any(bad):
             raise ValueError("mu2 (the limiting friction) must be >= mu1, got "
-                             f"mu1 = {_show(mu1[bad] if mu1.ndim else mu1)} and mu2 = {_show(mu2[bad] if mu2.ndim else mu2)}")
+                             f"mu1 = {_show(mu1[bad] if mu1.ndim else mu1)} and "
+                             f"mu2 = {_show(mu2[bad] if mu2.ndim else mu2)}")
 
 
 def _show(value: np.ndarray) -> str:

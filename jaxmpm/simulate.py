@@ -21,7 +21,7 @@ __all__ = ["Result", "SimulationError", "simulate", "compiled_rollout", "check_s
 class SimulationError(RuntimeError):
     """A run finished with status bits set. ``.result`` holds what it produced."""
 
-    def __init__(self, status: int, result: "Result"):
+    def __init__(self, status: int, result: Result):
         self.status = status
         self.result = result
         reasons = "; ".join(describe_status(status))

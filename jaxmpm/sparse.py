@@ -8,8 +8,9 @@ in K slots:
 
 1. the stencil's flat node numbers (S, N) are sorted (one sort of S·N integers); the first of
    each run of equal numbers opens a slot, in increasing node order;
-2. each stencil entry gets its node's slot number (a binary search per stencil row); P2G scatters into, and G2P gathers from,
-   K-long arrays through these slots, and the walls and terrain see each slot's node position;
+2. each stencil entry gets its node's slot number (a binary search per stencil row); P2G scatters
+   into, and G2P gathers from, K-long arrays through these slots, and the walls and terrain see
+   each slot's node position;
 3. if more than K nodes are touched, the step sets the ``GRID_FULL`` status bit (the run must be
    repeated with a larger K): nothing is dropped silently.
 

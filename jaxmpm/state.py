@@ -73,7 +73,7 @@ class State:
     def n_particles(self) -> int:
         return self.x.shape[-2]
 
-    def replace(self, **values) -> "State":
+    def replace(self, **values) -> State:
         return dataclasses.replace(self, **values)
 
 

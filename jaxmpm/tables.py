@@ -238,7 +238,8 @@ def numeric_rows(parsed: Table, rows, names: tuple[str, ...]) -> tuple[np.ndarra
     return values, lines
 
 
-def read_columns(path: str | os.PathLike, required: tuple[str, ...] = ()) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
+def read_columns(path: str | os.PathLike,
+                 required: tuple[str, ...] = ()) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
     """A file of this format with a row of column names: ``(header, columns)``, the header
     decoded and each column a float64 array (every cell checked). ``required`` names columns
     the file must have."""

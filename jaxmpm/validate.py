@@ -174,7 +174,8 @@ def _plot_from_rest(out, plot_dir):
     a2.axhline(0.03, color="k", lw=0.6, ls=":")
     a2.set_xlabel("t (s)")
     a2.legend(fontsize=7)
-    suffix = ("" if out["alpha"] == 0.95 else f"_alpha{out['alpha']:g}") + (f"_xpic{out['xpic']}" if out["xpic"] else "")
+    suffix = (("" if out["alpha"] == 0.95 else f"_alpha{out['alpha']:g}")
+              + (f"_xpic{out['xpic']}" if out["xpic"] else ""))
     suffix += "" if out["dtype"] == "float32" else "_" + out["dtype"]
     _save(fig, plot_dir, f"bagnold_from_rest{suffix}.png", 100)
 
@@ -352,7 +353,8 @@ def speed_accuracy(quick=False, plot_dir=None) -> dict:
     t_end = 0.3 if quick else 1.0
     ref_dx = 0.005 if quick else 0.0025
     variants = [dict(dx=dx) for dx in ((0.02, 0.01) if quick else (0.02, 0.01, 0.005))]
-    variants += [dict(dx=0.01, transfer="pic"), dict(dx=0.01, transfer="apic"), dict(dx=0.01, sampling="lattice", ppc=2)]
+    variants += [dict(dx=0.01, transfer="pic"), dict(dx=0.01, transfer="apic"),
+                 dict(dx=0.01, sampling="lattice", ppc=2)]
     if not quick:
         variants += [dict(dx=0.01, sampling=smp, ppc=n) for smp in ("lattice", "jitter") for n in (3, 4)]
         variants += [dict(dx=0.01, sampling="jitter", ppc=2), dict(dx=0.01, sampling="poisson", ppc=2.45),
@@ -401,7 +403,8 @@ def speed_accuracy(quick=False, plot_dir=None) -> dict:
                 ax.loglog(r["wall_s"], max(r[key], 1e-4), marker, color="C3" if r["pareto"] else "C0", ms=7)
                 ax.annotate(f"{r['dx'] * 1e3:g}mm {r['transfer']} {r['sampling'][:3]} ppc{r['ppc']:g}"
                             + (f" xpic{r['xpic']}" if r["xpic"] else "")
-                            + (" f64" if r["dtype"] == "float64" else "") + (f" cfl{r['cfl']}" if r["cfl"] != 0.5 else ""),
+                            + (" f64" if r["dtype"] == "float64" else "")
+                            + (f" cfl{r['cfl']}" if r["cfl"] != 0.5 else ""),
                             (r["wall_s"], max(r[key], 1e-4)), fontsize=5.5, xytext=(3, 3), textcoords="offset points")
             for level in (0.01, 0.02, 0.05):
                 ax.axhline(level, color="k", lw=0.6, ls=":")

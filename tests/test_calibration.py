@@ -15,7 +15,14 @@ import numpy as np
 import pytest
 
 from calibration import (
-    Bounds, CompositeObjective, FrontTarget, Objective, ProfileTarget, fit, gauss_newton_uncertainty, read_history,
+    Bounds,
+    CompositeObjective,
+    FrontTarget,
+    Objective,
+    ProfileTarget,
+    fit,
+    gauss_newton_uncertainty,
+    read_history,
 )
 from jaxmpm import scenes
 from jaxmpm.observables import deposit_profile, front_from_profile
@@ -28,8 +35,9 @@ def tiny_scene(t_end=0.1, **values):
     return scenes.cohesive_collapse(dx=0.089 / 6, t_end=t_end, **{"beta": 0.25, **values})
 
 
-def synthetic(scene, keys, theta, xs=np.linspace(0.0, 0.16, 17), times=(0.05, 0.1)):
-    """Data made by the model itself at ``theta``."""
+def synthetic(scene, keys, theta, xs=None, times=(0.05, 0.1)):
+    """Data made by the model itself at ``theta`` (``xs``: default 17 points over [0, 0.16] m)."""
+    xs = np.linspace(0.0, 0.16, 17) if xs is None else xs
     gen = Objective(scene, keys, profile=ProfileTarget(xs, np.ones_like(xs)),
                     front=FrontTarget(np.asarray(times), np.ones(len(times))), check_data=False)  # placeholders
     _, pred = gen.residuals(theta)
@@ -178,7 +186,8 @@ def test_several_profiles_and_composite_objective(problem):
     way share one compilation whatever their data; a composite's loss is its members' sum."""
     scene, truth, _ = problem
     xs = np.linspace(0.0, 0.16, 9)
-    gen = Objective(scene, KEYS, profile=[ProfileTarget(xs, np.ones_like(xs), 0.05), ProfileTarget(xs, np.ones_like(xs))],
+    gen = Objective(scene, KEYS,
+                    profile=[ProfileTarget(xs, np.ones_like(xs), 0.05), ProfileTarget(xs, np.ones_like(xs))],
                     check_data=False)  # placeholders
     _, pred = gen.residuals(truth)
     h = np.asarray(pred["h"])
@@ -253,7 +262,8 @@ def test_resume_refuses_a_different_fit(problem, tmp_path):
         fit(objective, {"beta": 0.2}, method="adam", steps=2, out=tmp_path / "f.h5", resume=True)
 
 
-@pytest.mark.slow  # 40-60 s; the resume logic itself is tested in-process above and by the CLI in test_robust_calibration
+# 40-60 s; the resume logic itself is tested in-process above and by the CLI in test_robust_calibration.
+@pytest.mark.slow
 def test_killed_command_line_fit_resumes(tmp_path):
     """SIGKILL a running ``python -m calibration fit`` once its file holds two iterations; the
     resumed run keeps them and finishes with the same history as an uninterrupted one."""

@@ -113,7 +113,8 @@ def test_front_history_wpd_needs_both_units(tmp_path):
 
 def test_front_history_time_must_increase(tmp_path):
     path = write(tmp_path, "t_s,xf_m\n0,0.2\n0.2,0.3\n0.1,0.25\n", "f.csv")
-    with pytest.raises(ValueError, match=r"f\.csv: t is not strictly increasing: line 3 \(t = 0\.2 s\) is followed by line 4"):
+    with pytest.raises(ValueError, match=r"f\.csv: t is not strictly increasing: "
+                                         r"line 3 \(t = 0\.2 s\) is followed by line 4"):
         load_front_history(path)
     assert load_front_history(path, sort=True).t.tolist() == [0.0, 0.1, 0.2]
 
@@ -264,7 +265,7 @@ def test_manifest_lists_every_file():
     datasets = list_datasets()
     listed = {info.path.resolve() for info in datasets.values()}
     shipped = {p.resolve() for p in DATA.rglob("*") if p.is_file() and p.name not in
-               ("README.md", "manifest.json", "generate.py") and "__pycache__" not in p.parts}
+               ("README.md", "manifest.json", "generate.py", "__init__.py") and "__pycache__" not in p.parts}
     assert listed == shipped
     for info in datasets.values():
         assert info.kind in ("setup", "scaling_law", "analytic", "synthetic", "example", "measured", "terrain")
@@ -462,9 +463,12 @@ def test_dataset_lookup_errors(tmp_path, monkeypatch):
     assert load_profile(dataset_path("mine"), units="m").n == 3
 
 
-def test_data_dir_missing_after_plain_install(tmp_path, monkeypatch):
-    # as after `pip install .`: calibration/ in site-packages, no experiments_data/ beside it
+def test_data_dir_missing_says_where_it_looked(tmp_path, monkeypatch):
+    # calibration/ with no experiments_data/ beside it and no installed jaxmpm.experiments_data
+    # (a broken install): the error names both places and the environment variable.
     monkeypatch.delenv("JAXMPM_EXPERIMENTS_DATA", raising=False)
     monkeypatch.setattr(data, "__file__", str(tmp_path / "site-packages" / "calibration" / "data.py"))
-    with pytest.raises(FileNotFoundError, match=r"experiments_data/ not found .*pip install -e \.\).*JAXMPM_EXPERIMENTS_DATA"):
+    monkeypatch.setattr(data, "_installed_data_dir", lambda: None)
+    with pytest.raises(FileNotFoundError,
+                       match=r"experiments_data/ not found.*source checkout.*not installed.*JAXMPM_EXPERIMENTS_DATA"):
         list_datasets()

@@ -357,12 +357,12 @@ def test_mu_of_I_at_a_single_return(dim, beta):
         p, q, pc, gd = out["p"], out["q"], out["pc"], out["gamma_dot"]
         p_bar = p + beta * pc
         S = np.sqrt((pc - p) * p_bar)
-        I = gd * d / np.sqrt(p_bar / rho_s)
-        mu_I = mu1 + (mu2 - mu1) / (1.0 + I0 / I)
+        inertial = gd * d / np.sqrt(p_bar / rho_s)
+        mu_I = mu1 + (mu2 - mu1) / (1.0 + I0 / inertial)
         assert np.all(gd > 0)
         np.testing.assert_allclose(q, mu_I * S, rtol=1e-10)
         np.testing.assert_allclose(q, q_tr - G * dt * gd, rtol=1e-10)
-        np.testing.assert_allclose(out["I"], I, rtol=1e-12)
+        np.testing.assert_allclose(out["I"], inertial, rtol=1e-12)
         np.testing.assert_allclose(out["mu_I"], mu_I, rtol=1e-12)
         assert np.all(q > mu1 * S) and np.all(q < mu2 * S)
         np.testing.assert_allclose(ref["q"], mu1 * S, rtol=1e-12)
@@ -399,7 +399,7 @@ def _point_checks(p_tr, q_tr, evp, beta, xi, pc0, mu2, dt):
     """Rate-dependent (μ2) outputs and their gradients w.r.t. everything, for dim 2 and 3."""
     results = []
     for dim in (2, 3):
-        def f(p_tr, q_tr, evp, beta, xi, pc0, mu1, mu2, I0):
+        def f(p_tr, q_tr, evp, beta, xi, pc0, mu1, mu2, I0, dim=dim):  # dim bound: f is used in this iteration
             params = _params().replace(beta=beta, xi=xi, pc0=pc0, mu1=mu1, mu2=mu2, I0=I0)
             out = return_invariants(p_tr, q_tr, evp, params, dt, dim)
             return _all_outputs_scalar(out), out
@@ -422,8 +422,10 @@ def _floor(x):
 
 # |p_tr|, q_tr ≤ 300 p_c0 and |ξ ε_v^p| ≤ 0.5 keep p_tr/p_c below ~500: see
 # test_far_beyond_compression_tip_converges for trial states further out.
-_p_tr = st.one_of(st.just(0.0), st.floats(-20.0, 20.0, **_finite_floats), st.floats(-300.0, 300.0, **_finite_floats)).map(_floor)
-_q_tr = st.one_of(st.just(0.0), st.floats(0.0, 20.0, **_finite_floats), st.floats(0.0, 300.0, **_finite_floats)).map(_floor)
+_p_tr = st.one_of(st.just(0.0), st.floats(-20.0, 20.0, **_finite_floats),
+                  st.floats(-300.0, 300.0, **_finite_floats)).map(_floor)
+_q_tr = st.one_of(st.just(0.0), st.floats(0.0, 20.0, **_finite_floats),
+                  st.floats(0.0, 300.0, **_finite_floats)).map(_floor)
 _beta = st.one_of(st.just(0.0), st.floats(0.0, 0.6, **_finite_floats))
 _xi = st.one_of(st.just(0.0), st.floats(0.0, 50.0, **_finite_floats))
 _evp = st.floats(-0.01, 0.01, **_finite_floats)

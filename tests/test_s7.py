@@ -103,7 +103,8 @@ def test_shipped_surface_loads_with_its_provenance_and_licence():
     # the header travels verbatim with the data
     lines = dataset_path(DATA_NAME).read_text().splitlines()
     assert lines[0].startswith("# experiment: Bui, Fukagawa, Sako & Ohno (2008)")
-    assert any(line.startswith("# licence: the digitised file is distributed in a GPL-3.0 repository") for line in lines)
+    assert any(line.startswith("# licence: the digitised file is distributed in a GPL-3.0 repository")
+               for line in lines)
 
 
 def test_objective_accepts_the_shipped_surface():

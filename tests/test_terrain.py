@@ -114,9 +114,9 @@ def test_terrain_result_does_not_depend_on_where_the_vertices_fall():
 
 def test_gradient_with_respect_to_terrain_friction_matches_finite_differences():
     """d(mean downslope speed at t = 0.05 s)/dμ_w through the whole sliding run, reverse mode
-    against central differences in float64 (the test suite's precision; measured agreement 1e-10 relative). It is near the
-    rigid-block value −g t cos θ = −0.425 (measured −0.454: the normal force overshoots while the
-    contact builds up in the first steps)."""
+    against central differences in float64 (the test suite's precision; measured agreement 1e-10
+    relative). It is near the rigid-block value −g t cos θ = −0.425 (measured −0.454: the normal
+    force overshoots while the contact builds up in the first steps)."""
     cfg, state, params = _block_on_slope(dx=0.025, t_end=0.05, n_frames=0, dtype=jnp.float64)
     rollout = make_rollout(cfg, observer=None)
     tangent = jnp.asarray(TANGENT)

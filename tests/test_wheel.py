@@ -57,8 +57,10 @@ def test_an_installed_copy_finds_its_data_without_the_environment_variable(wheel
         "from jaxmpm.scenes.avalanche import default_terrain_path\n"
         "found = {n: str(d.dataset_path(n)) for n in d.list_datasets()}\n"
         "print(json.dumps({'module': calibration.__file__, 'data': str(d.data_dir()), 'found': found,\n"
-        "                  'terrain': str(default_terrain_path()), 'setup': d.load_setup('setups/S4_cohesive_collapse') is not None,\n"
-        "                  'profile_points': len(d.load_profile(d.dataset_path('bui2008/bui2008_final_surface')).x)}))\n"
+        "                  'terrain': str(default_terrain_path()),"
+        " 'setup': d.load_setup('setups/S4_cohesive_collapse') is not None,\n"
+        "                  'profile_points':"
+        " len(d.load_profile(d.dataset_path('bui2008/bui2008_final_surface')).x)}))\n"
     )
     run = subprocess.run([sys.executable, "-c", script], cwd=tmp_path, env=env, capture_output=True, text=True,
                          timeout=300)

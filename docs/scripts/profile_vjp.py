@@ -32,8 +32,6 @@ from jaxmpm.step import make_step
 from jaxmpm.transfer import g2p, grid_velocities, p2g
 
 
-
-
 def timed(fn, *args, repeat=20):
     return median_time(fn, *args, repeat=repeat)
 

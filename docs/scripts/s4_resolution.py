@@ -18,7 +18,6 @@ docs/results/s4_convergence.json and docs/figures/s4_convergence.png.
 """
 
 import argparse
-
 import json
 import pathlib
 import time
@@ -59,11 +58,13 @@ def main():
         unc = result.uncertainty
         metres = objective.in_metres(result.residuals)["profile"]
         row = {"cells_per_L": n, "ppc": ppc, "dx": L / n, "n_particles": int(scene.state.n_particles),
-               "params": result.theta, "verdict": result.verdict.to_dict()["verdict"], "verified": result.verdict.verified,
+               "params": result.theta, "verdict": result.verdict.to_dict()["verdict"],
+               "verified": result.verdict.verified,
                "reasons": list(result.verdict.reasons), "iterations": result.iterations,
                "stderr": None if unc.withheld else dict(zip(KEYS, unc.stderr.tolist())),
                "corr": float(unc.corr[0, 1]), "profile_rms_m": float(np.sqrt(np.mean(metres ** 2))),
-               "error": {k: result.theta[k] - t for k, t in zip(KEYS, TRUTH)}, "wall_s": round(time.perf_counter() - t0, 1)}
+               "error": {k: result.theta[k] - t for k, t in zip(KEYS, TRUTH)},
+               "wall_s": round(time.perf_counter() - t0, 1)}
         rows.append(row)
         print(json.dumps({k: row[k] for k in ("cells_per_L", "ppc", "params", "verdict", "stderr", "profile_rms_m",
                                               "wall_s")}), flush=True)
@@ -94,7 +95,7 @@ def plot(out, tag):
             x, y = r["cells_per_L"], r["params"][k]
             if not r["stderr"]:
                 ax.annotate("not a fit", (x, y), fontsize=7, xytext=(3, 3), textcoords="offset points")
-        ax.axhline(out["truth"][k], color="k", lw=1, label="truth (data at L/%d)" % out["reference_cells_per_L"])
+        ax.axhline(out["truth"][k], color="k", lw=1, label=f"truth (data at L/{out['reference_cells_per_L']:d})")
         ax.set_xlabel("cells per column length L")
         ax.set_ylabel(k)
         ax.legend(fontsize=7)

@@ -1,4 +1,4 @@
-"""Roughness of the loss along the β–μ1 valley (issue 10, item 3): docs/results/valley_roughness.json
+r"""Roughness of the loss along the β–μ1 valley (issue 10, item 3): docs/results/valley_roughness.json
 and docs/figures/calibration_valley_roughness.png.
 
 S4 with p_c0 = 500 Pa, ξ = 50, dx = L/8, one final profile (50 points) of the first far twin
@@ -9,7 +9,8 @@ combination there) at two spacings: Δβ = 0.005 over [0.02, 0.30] and Δβ = 2e
 Roughness: the rms of the loss about a local quadratic (Savitzky–Golay, 7 points), in χ² units of
 a 2 % noise on the 50 points. Run from the repository root, on the twin's profile made as in docs/calibration.md:
 
-    python -m jaxmpm run cohesive-collapse --dx 0.011125 --set pc0=500 --set xi=50 --set beta=0.1 --set mu1=0.30 --profile-csv twin.csv
+    python -m jaxmpm run cohesive-collapse --dx 0.011125 --set pc0=500 --set xi=50 --set beta=0.1 \
+        --set mu1=0.30 --profile-csv twin.csv
     python docs/scripts/valley_roughness.py twin.csv     # about 15 minutes on 2 cores
     python docs/scripts/valley_roughness.py --plot-only  # the figure from the saved JSON
 """
@@ -67,7 +68,8 @@ def main(twin_csv):
                           "roughness_chi2": roughness(loss, len(members), np.asarray(data.x).size)}
             print(name, label, f"roughness {res[label]['roughness_chi2']:.3g} chi2", flush=True)
         res.update(wall_s=time.perf_counter() - t0, members=len(members),
-                   particles=sum(int(m.scene.state.x.shape[0]) for m in members), min_loss=float(min(res["wide"]["loss"])))
+                   particles=sum(int(m.scene.state.x.shape[0]) for m in members),
+                   min_loss=float(min(res["wide"]["loss"])))
         out[name] = res
     (ROOT / "docs" / "results" / "valley_roughness.json").write_text(json.dumps(out, indent=1))
     plot(out)

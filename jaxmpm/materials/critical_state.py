@@ -48,7 +48,7 @@ def yield_function(p, q, pc, params):
     return q * q + params.mu1**2 * (p - pc) * (p + params.beta * pc)
 
 
-def mu_of_I(I, params):
+def mu_of_I(I, params):  # noqa: E741 - I is the inertial number, as in μ(I); renaming would change the API
     """μ(I) = μ1 + (μ2 - μ1) I / (I0 + I)."""
     return params.mu1 + (params.mu2 - params.mu1) * safe_div(I, params.I0 + I)
 

@@ -1,8 +1,22 @@
 """Scene builders: each returns a ``Scene`` that unpacks as ``(config, state, params)``."""
 
 from .collapse import (
-    DEFAULT_PPC, DEFAULT_SAMPLING, S2_PARAMS, S3_PARAMS, S4_PARAMS, S5_PARAMS, S7_PARAMS, Scene, aluminium_bars,
-    aspect_ratio_collapse, cohesive_collapse, collapse, gates_collapse, height_law, runout_law, slope_collapse,
+    DEFAULT_PPC,
+    DEFAULT_SAMPLING,
+    S2_PARAMS,
+    S3_PARAMS,
+    S4_PARAMS,
+    S5_PARAMS,
+    S7_PARAMS,
+    Scene,
+    aluminium_bars,
+    aspect_ratio_collapse,
+    cohesive_collapse,
+    collapse,
+    gates_collapse,
+    height_law,
+    runout_law,
+    slope_collapse,
 )
 from .elastic import falling_block
 from .incline import S1_PARAMS, bagnold_velocity, incline
@@ -10,12 +24,15 @@ from .info import SceneInfo
 
 __all__ = [
     "SCENE_NAMES", "add_scene_arguments", "build_scene", "parse_set", "scene_from_args",
-    "DEFAULT_PPC", "DEFAULT_SAMPLING", "S1_PARAMS", "bagnold_velocity", "incline", "S2_PARAMS", "S3_PARAMS", "S4_PARAMS", "S5_PARAMS", "S7_PARAMS", "Scene", "SceneInfo", "aluminium_bars", "aspect_ratio_collapse", "cohesive_collapse",
+    "DEFAULT_PPC", "DEFAULT_SAMPLING", "S1_PARAMS", "bagnold_velocity", "incline", "S2_PARAMS", "S3_PARAMS",
+    "S4_PARAMS", "S5_PARAMS", "S7_PARAMS", "Scene", "SceneInfo", "aluminium_bars", "aspect_ratio_collapse",
+    "cohesive_collapse",
     "collapse", "falling_block", "gates_collapse", "height_law", "runout_law", "slope_collapse",
 ]
 
 #: Scene names accepted by ``build_scene`` and the command line.
-SCENE_NAMES = ("cohesive-collapse", "gates-collapse", "slope-collapse", "aspect-ratio", "aluminium-bars", "elastic-block")
+SCENE_NAMES = ("cohesive-collapse", "gates-collapse", "slope-collapse", "aspect-ratio", "aluminium-bars",
+               "elastic-block")
 
 
 def build_scene(name: str, dx=None, ppc=None, dim=2, width=None, t_end=None, frames=0, slope=None, aspect=None,

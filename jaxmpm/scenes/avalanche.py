@@ -83,7 +83,8 @@ def avalanche(terrain: str | pathlib.Path | Terrain | None = None, dx: float = 1
     xv, zv = np.asarray(ground.x), np.asarray(ground.z)
     x0, x1 = float(release[0]), float(release[1])
     if not (xv[0] <= x0 < x1 <= xv[-1]):
-        raise ValueError(f"release must be an interval inside the terrain's x range [{xv[0]}, {xv[-1]}], got {release!r}")
+        raise ValueError(f"release must be an interval inside the terrain's x range [{xv[0]}, {xv[-1]}], "
+                         f"got {release!r}")
     x_end = float(xv[-1]) if x_end is None else float(x_end)
     if not x1 < x_end:
         raise ValueError(f"x_end must lie beyond the release ({x1} m), got {x_end!r}")
@@ -100,7 +101,8 @@ def avalanche(terrain: str | pathlib.Path | Terrain | None = None, dx: float = 1
     if len(pts) == 0:
         raise ValueError("the release holds no particle: dx is too coarse for the thickness")
 
-    z_lo = float(np.min(zv[(xv >= x0 - margin) & (xv <= x_end)])) if np.any((xv >= x0) & (xv <= x_end)) else float(zv.min())
+    z_lo = (float(np.min(zv[(xv >= x0 - margin) & (xv <= x_end)])) if np.any((xv >= x0) & (xv <= x_end))
+            else float(zv.min()))
     z_hi = float(pts[:, 1].max()) + 20.0 * dx + 10.0
     origin = (x0 - margin - 2 * dx, z_lo - margin - 2 * dx)
     cells = (math.ceil((x_end - origin[0]) / dx), math.ceil((z_hi - origin[1]) / dx))

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from typing import Callable
+from collections.abc import Callable
 
 from ..boundary import Wall
 from ..config import Config, Grid
@@ -25,8 +25,9 @@ from ..step import step_budget
 from .info import SceneInfo
 
 __all__ = [
-    "DEFAULT_PPC", "DEFAULT_SAMPLING", "S2_DEFAULT_PPC", "Scene", "floor_lift", "S2_PARAMS", "S3_PARAMS", "S4_PARAMS", "S5_PARAMS",
-    "S7_PARAMS", "gates_collapse", "slope_collapse", "cohesive_collapse", "aspect_ratio_collapse", "aluminium_bars",
+    "DEFAULT_PPC", "DEFAULT_SAMPLING", "S2_DEFAULT_PPC", "Scene", "floor_lift", "S2_PARAMS", "S3_PARAMS",
+    "S4_PARAMS", "S5_PARAMS", "S7_PARAMS", "gates_collapse", "slope_collapse", "cohesive_collapse",
+    "aspect_ratio_collapse", "aluminium_bars",
     "collapse", "runout_law", "height_law",
 ]
 
@@ -169,7 +170,8 @@ def collapse(
     if wall_gap is not None and not (isinstance(wall_gap, (int, float)) and math.isfinite(wall_gap)
                                      and 0.0 <= wall_gap <= 2.0 * dx):
         raise ValueError(f"wall_gap must be in [0, 2 dx] (m), got {wall_gap!r}")
-    gap = 0.501 * dx if wall_gap is None else wall_gap  # side walls (0.501: see floor_lift); the floor follows the sample
+    # The side walls' gap (0.501: see floor_lift); the floor follows the sample.
+    gap = 0.501 * dx if wall_gap is None else wall_gap
     if not (math.isfinite(slope_deg) and -60.0 < slope_deg < 60.0):
         raise ValueError(f"slope_deg must be in (-60, 60) degrees, got {slope_deg!r}")
     if not (isinstance(frames, int) and frames >= 0):

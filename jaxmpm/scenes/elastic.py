@@ -6,8 +6,8 @@ import math
 
 from ..boundary import Wall
 from ..config import Config, Grid
-from ..params import Params
 from ..materials.hencky import Hencky
+from ..params import Params
 from ..sampling import seed_box
 from ..state import init_state
 from ..step import step_budget
