@@ -78,6 +78,10 @@ def _check_run_outputs(args, frames: int) -> None:
              if getattr(args, attr)]
     if args.out:
         check_output_file(args.out, "--out")
+    if getattr(args, "ply", None):
+        from .io import check_output_dir
+
+        check_output_dir(args.ply, "--ply")
     if args.profile_csv:
         check_output_file(args.profile_csv, "--profile-csv")
     if args.plot:
@@ -163,6 +167,10 @@ def _run(args) -> int:
         path = output("--out", lambda: io.write_h5(args.out, result, config, params, attrs=meta, initial=state))
         if path is not None:
             summary["out"] = str(path)
+    if args.ply:
+        written = output("--ply", lambda: io.write_ply_frames(args.ply, result, initial=state))
+        if written is not None:
+            summary["ply"] = [str(w) for w in written]
     profile = None
     if (args.profile_csv or args.plot) and not np.all(np.isfinite(x)):
         for option in ("--profile-csv", "--plot"):
@@ -253,6 +261,10 @@ def _run_avalanche(args) -> int:
         path = output("--out", lambda: io.write_h5(args.out, result, config, params, attrs=meta, initial=state))
         if path is not None:
             summary["out"] = str(path)
+    if args.ply:
+        written = output("--ply", lambda: io.write_ply_frames(args.ply, result, initial=state))
+        if written is not None:
+            summary["ply"] = [str(w) for w in written]
     if args.profile_csv:
         output("--profile-csv", lambda: tables.write_table(args.profile_csv, fields.columns(), {
             "experiment": f"avalanche (synthetic, jaxmpm {_version()})", "units": "m, m/s, kPa", "synthetic": True,
@@ -334,6 +346,8 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--profile-csv", default=None, help="write the final deposit profile h(x) as CSV")
     run.add_argument("--plot", default=None, metavar="FIG.png", help="final deposit and profile")
     run.add_argument("--gif", default=None, metavar="ANIM.gif", help="animation of the frames")
+    run.add_argument("--ply", default=None, metavar="DIR",
+                     help="the particles as binary PLY point clouds (ParaView): initial, every frame, final")
     run.add_argument("--no-progress", action="store_true", help="no progress bar")
     run.add_argument("--json", action="store_true", help="print one JSON object")
 

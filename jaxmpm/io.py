@@ -20,6 +20,10 @@ each frame dataset keeps the batch axes in front.
 Particles keep their order: row k of /initial/x and of /final/x is the same particle, so
 ``final["x"] - initial["x"]`` is its displacement (the region that moved).
 
+``write_ply`` writes particles as a binary PLY point cloud (ParaView, MeshLab, CloudCompare open
+it; the reference code writes the same format) and ``write_ply_frames`` one file per frame.
+docs/output.md documents both formats for readers without jaxmpm.
+
 The CSV format (deposit profiles and other tables) lives in ``jaxmpm.tables``; its
 ``write_profile_csv`` and ``PROFILE_COLUMNS`` are importable from here as well.
 """
@@ -47,8 +51,8 @@ from .simulate import Result
 from .state import State, describe_status
 from .tables import PROFILE_COLUMNS, write_profile_csv  # the CSV format's home is tables
 
-__all__ = ["write_h5", "read_h5", "write_profile_csv", "PROFILE_COLUMNS", "check_output_file", "check_output_dir",
-           "json_safe"]
+__all__ = ["write_h5", "read_h5", "write_ply", "write_ply_frames", "write_profile_csv", "PROFILE_COLUMNS",
+           "check_output_file", "check_output_dir", "json_safe"]
 
 #: Root attributes stored as JSON strings (decoded by ``read_h5``).
 _JSON_KEY_LIST = "json_keys"
@@ -327,3 +331,71 @@ def json_safe(obj) -> tuple[Any, list[str]]:
         return value
 
     return walk(obj, ""), bad
+
+
+def _ply_columns(x: np.ndarray, fields: Mapping[str, Any]) -> dict[str, np.ndarray]:
+    x = np.asarray(x)
+    if x.ndim != 2 or x.shape[1] not in (2, 3):
+        raise ValueError(f"x must have shape (n, 2) or (n, 3), got {x.shape}")
+    n = x.shape[0]
+    columns = {"x": x[:, 0], "y": x[:, 1], "z": x[:, 2] if x.shape[1] == 3 else np.zeros(n)}
+    for name, value in fields.items():
+        if not isinstance(name, str) or not name.replace("_", "").isalnum():
+            raise ValueError(f"fields: a PLY property name must be alphanumeric (with _), got {name!r}")
+        value = np.asarray(value)
+        if value.shape[:1] != (n,):
+            raise ValueError(f"fields[{name!r}] has shape {value.shape}, not one row per particle ({n})")
+        flat = value.reshape(n, -1)
+        if flat.shape[1] == 1:
+            columns[name] = flat[:, 0]
+        else:  # vectors and tensors by component: v_0, v_1, ...
+            columns.update({f"{name}_{k}": flat[:, k] for k in range(flat.shape[1])})
+    return columns
+
+
+def write_ply(path: str | os.PathLike, x, fields: Mapping[str, Any] | None = None) -> pathlib.Path:
+    """Write particles at ``x`` (n, 2 or 3; z = 0 in 2D) with per-particle ``fields`` (scalars,
+    or arrays split into components ``name_0, name_1, ...``) as a binary little-endian PLY point
+    cloud: positions as float64, fields as float32. Written atomically, like ``write_h5``."""
+    columns = _ply_columns(x, dict(fields or {}))
+    n = len(columns["x"])
+    dtype = np.dtype([(k, "<f8" if k in ("x", "y", "z") else "<f4") for k in columns])
+    rows = np.empty(n, dtype)
+    for k, v in columns.items():
+        rows[k] = v
+    kinds = {"<f8": "double", "<f4": "float"}
+    header = ["ply", "format binary_little_endian 1.0", f"comment jaxmpm {_version()}", f"element vertex {n}"]
+    header += [f"property {kinds[dtype[k].str]} {k}" for k in columns] + ["end_header"]
+    path = pathlib.Path(path)
+    if not path.parent.is_dir():
+        raise ValueError(f"path's parent directory does not exist: {str(path.parent)!r}")
+    tmp = path.with_name(f"{path.name}.{uuid.uuid4().hex[:8]}.tmp")
+    try:
+        with open(tmp, "wb") as f:
+            f.write(("\n".join(header) + "\n").encode("ascii"))
+            f.write(rows.tobytes())
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+    return path
+
+
+def write_ply_frames(folder: str | os.PathLike, result: Result, initial: State | None = None) -> list[pathlib.Path]:
+    """One PLY per frame of ``result`` (``frame_00000.ply`` ...), plus ``initial.ply`` (if given)
+    and ``final.ply``, in ``folder`` (created if missing). Unbatched results only."""
+    folder = pathlib.Path(folder)
+    if np.ndim(result.state.x) != 2:
+        raise ValueError("write_ply_frames writes one run: the result is batched (vmapped)")
+    folder.mkdir(parents=True, exist_ok=True)
+    written = []
+    if initial is not None:
+        values = _state_values(initial)
+        written.append(write_ply(folder / "initial.ply", values.pop("x"), values))
+    arrays = _leaves(result.frames)
+    for k, _ in enumerate(result.frame_times if arrays and "x" in arrays else ()):
+        values = {name: arr[k] for name, arr in arrays.items()}
+        written.append(write_ply(folder / f"frame_{k:05d}.ply", values.pop("x"), values))
+    values = _state_values(result.state)
+    written.append(write_ply(folder / "final.ply", values.pop("x"), values))
+    return written

@@ -2,6 +2,7 @@
 documented JSON fields (timings are reported, never asserted)."""
 
 import json
+import pathlib
 import subprocess
 import sys
 
@@ -19,9 +20,13 @@ def _cli(*args, cwd=None):
 def test_run_writes_h5_csv_and_json(tmp_path):
     path, csv = tmp_path / "run.h5", tmp_path / "deposit.csv"
     out = _cli("run", "cohesive-collapse", "--dx", "0.0111", "--t-end", "0.05", "--frames", "2", "--out", str(path),
-               "--profile-csv", str(csv), "--json", "--no-progress", "--set", "beta=0.1")
+               "--profile-csv", str(csv), "--json", "--no-progress", "--set", "beta=0.1",
+               "--ply", str(tmp_path / "ply"))
     assert out.returncode == 0, out.stderr
     summary = json.loads(out.stdout)
+    assert [pathlib.Path(f).name for f in summary["ply"]] == ["initial.ply", "frame_00000.ply", "frame_00001.ply",
+                                                              "final.ply"]
+    assert (tmp_path / "ply" / "final.ply").read_bytes().startswith(b"ply\nformat binary_little_endian 1.0\n")
     for key in ("scene", "n_particles", "n_steps", "dx", "t_end", "x_min", "x_max", "y_max", "runout", "status",
                 "compile_s", "run_s"):
         assert key in summary

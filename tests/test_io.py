@@ -140,3 +140,43 @@ def test_initial_state_round_trip(run, tmp_path):
     with pytest.raises(ValueError, match="not the same run's initial state"):
         io.write_h5(tmp_path / "bad.h5", result, cfg, params, initial=fewer)
     assert not (tmp_path / "bad.h5").exists()
+
+
+def _read_ply(path):
+    """A reader written from the PLY specification, independent of write_ply."""
+    blob = path.read_bytes()
+    end = blob.index(b"end_header\n") + len(b"end_header\n")
+    lines = blob[:end].decode("ascii").splitlines()
+    assert lines[:2] == ["ply", "format binary_little_endian 1.0"]
+    n = next(int(line.split()[2]) for line in lines if line.startswith("element vertex"))
+    kinds = {"double": "<f8", "float": "<f4"}
+    props = [(line.split()[2], kinds[line.split()[1]]) for line in lines if line.startswith("property")]
+    rows = np.frombuffer(blob[end:], dtype=np.dtype(props), count=n)
+    assert len(blob) == end + n * rows.dtype.itemsize  # nothing after the vertices
+    return rows
+
+
+def test_ply_frames_hold_the_particles(run, tmp_path):
+    cfg, params, result = run
+    initial = jm.init_state(cfg, *jm.seed_box((0.3, 0.1), (0.6, 0.4), cfg.grid.dx, 2))
+    written = io.write_ply_frames(tmp_path / "ply", result, initial=initial)
+    assert [w.name for w in written] == ["initial.ply", "frame_00000.ply", "frame_00001.ply", "frame_00002.ply",
+                                         "final.ply"]
+    final = _read_ply(tmp_path / "ply" / "final.ply")
+    x = np.asarray(result.state.x)
+    np.testing.assert_array_equal(final["x"], x[:, 0])
+    np.testing.assert_array_equal(final["y"], x[:, 1])
+    assert np.all(final["z"] == 0)  # 2D: the plane z = 0
+    np.testing.assert_allclose(final["v_1"], np.asarray(result.state.v)[:, 1], rtol=1e-6)
+    frame = _read_ply(tmp_path / "ply" / "frame_00001.ply")
+    np.testing.assert_allclose(frame["p"], np.asarray(result.frames["p"][1]), rtol=1e-6)
+    assert sorted(p.name for p in (tmp_path / "ply").iterdir()) == sorted(w.name for w in written)  # no .tmp
+
+
+def test_ply_refuses_bad_fields(tmp_path):
+    with pytest.raises(ValueError, match="x must have shape"):
+        io.write_ply(tmp_path / "a.ply", np.zeros((3, 4)))
+    with pytest.raises(ValueError, match=r"fields\['p'\] has shape"):
+        io.write_ply(tmp_path / "a.ply", np.zeros((3, 2)), {"p": np.zeros(4)})
+    with pytest.raises(ValueError, match="alphanumeric"):
+        io.write_ply(tmp_path / "a.ply", np.zeros((3, 2)), {"p q": np.zeros(3)})
