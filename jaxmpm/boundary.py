@@ -198,11 +198,15 @@ class Terrain:
         return h, vertex[k] + tc * (vertex[k + 1] - vertex[k])
 
     def signed_distance(self, p):
-        """(φ, n) at points ``p`` (dim, n): φ > 0 above the ground, n the unit normal, (dim, n)."""
+        """(φ, n) at points ``p`` (dim, n): φ > 0 above the ground, n the unit normal, (dim, n).
+        A jax array gives jax arrays (traced inside the step); anything else numpy, in float64
+        (for scene set-up, before tracing)."""
+        xp = jnp if isinstance(p, jax.Array) else np
+        p = p if xp is jnp else np.asarray(p, float)
         h, s = self._evaluate(p[0])
-        inv = jax.lax.rsqrt(1.0 + s * s)
-        comps = [-s * inv] + [jnp.zeros_like(s)] * (p.shape[0] - 2) + [inv]
-        return (p[-1] - h) * inv, jnp.stack(comps)
+        inv = jax.lax.rsqrt(1.0 + s * s) if xp is jnp else 1.0 / np.sqrt(1.0 + s * s)
+        comps = [-s * inv] + [xp.zeros_like(s)] * (p.shape[0] - 2) + [inv]
+        return (p[-1] - h) * inv, xp.stack(comps)
 
 
 def _as_floats(name, value):

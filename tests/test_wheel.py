@@ -4,6 +4,7 @@ installed copy (not editable, not next to a checkout) finds its data with no env
 import json
 import os
 import pathlib
+import shutil
 import subprocess
 import sys
 import zipfile
@@ -14,17 +15,25 @@ ROOT = pathlib.Path(__file__).resolve().parents[1]
 
 
 def _tracked(*folders: str) -> list[str]:
+    """The files git tracks (under ``folders``), deleted ones left out."""
     try:
         out = subprocess.run(["git", "ls-files", *folders], cwd=ROOT, capture_output=True, text=True, check=True)
     except (OSError, subprocess.CalledProcessError):
         pytest.skip("not a git checkout: the tracked files are unknown")
-    return [line for line in out.stdout.splitlines() if line]
+    return [line for line in out.stdout.splitlines() if line and (ROOT / line).is_file()]
 
 
 @pytest.fixture(scope="module")
 def wheel(tmp_path_factory) -> pathlib.Path:
+    # Built from a copy of the tracked files: setuptools reuses a checkout's build/ folder, which
+    # could hold files that are no longer in the repository.
+    source = tmp_path_factory.mktemp("source")
+    for name in _tracked():
+        target = source / name
+        target.parent.mkdir(parents=True, exist_ok=True)
+        shutil.copy2(ROOT / name, target)
     out = tmp_path_factory.mktemp("wheel")
-    build = subprocess.run([sys.executable, "-m", "pip", "wheel", str(ROOT), "--no-deps", "--quiet", "-w", str(out)],
+    build = subprocess.run([sys.executable, "-m", "pip", "wheel", str(source), "--no-deps", "--quiet", "-w", str(out)],
                            capture_output=True, text=True, timeout=600)
     assert build.returncode == 0, build.stderr[-3000:]
     (path,) = out.glob("jaxmpm-*.whl")

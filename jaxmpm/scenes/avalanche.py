@@ -95,7 +95,7 @@ def avalanche(terrain: str | pathlib.Path | Terrain | None = None, dx: float = 1
     top = float(np.max(ground.height(np.linspace(x0, x1, 64)))) + thickness * 2.0 + dx
     low = float(np.min(ground.height(np.linspace(x0, x1, 64)))) - dx
     pts, vol = seed_box((x0, low), (x1, top), dx, ppc)
-    phi, _ = _phi(ground, np.asarray(pts, float))
+    phi, _ = ground.signed_distance(np.asarray(pts, float).T)
     keep = (phi > 0.5 * dx) & (phi < 0.5 * dx + thickness)
     pts, vol = np.asarray(pts)[keep], np.asarray(vol)[keep]
     if len(pts) == 0:
@@ -118,10 +118,3 @@ def avalanche(terrain: str | pathlib.Path | Terrain | None = None, dx: float = 1
     info = SceneInfo(dim=2, dx=dx, ppc=ppc, sampling="lattice", front0=x1, length=x1 - x0, height=thickness,
                      wall_gap=0.5 * dx, particles_per_cell=float(ppc * ppc))
     return Scene("avalanche", config, init_state(config, pts, vol, dtype=dtype), params, info)
-
-
-def _phi(ground: Terrain, pts: np.ndarray):
-    """φ and n at (N, 2) points, in numpy."""
-    h, s = ground._evaluate(pts[:, 0])
-    inv = 1.0 / np.sqrt(1.0 + s * s)
-    return (pts[:, 1] - h) * inv, np.stack([-s * inv, inv])
