@@ -140,6 +140,7 @@ def test_jacobian_matches_central_differences(problem):
             np.testing.assert_allclose(J[:, j], fd, atol=1e-5 * scale, rtol=0)
 
 
+@pytest.mark.slow  # 12 s; the forward-mode Jacobian against differences stays in the default suite
 def test_finite_difference_jacobian_option(problem):
     """``jacobian="fd"``: one vmapped batch of 2n + 1 runs; with a tiny step it is the autodiff
     Jacobian (on one branch of the run, see above); ``check_jacobian`` reports the match."""
@@ -181,6 +182,7 @@ def test_front_from_profile_and_empty_profile_gradients():
     assert np.all(np.isfinite(np.asarray(g)))
 
 
+@pytest.mark.slow  # 18 s
 def test_several_profiles_and_composite_objective(problem):
     """Two profiles at two times in one objective; objectives that observe the same run the same
     way share one compilation whatever their data; a composite's loss is its members' sum."""

@@ -46,6 +46,7 @@ def test_fit_prints_the_documented_json_and_writes_history_and_figures(capsys, t
         assert pathlib.Path(fig).stat().st_size > 5_000
 
 
+@pytest.mark.slow  # 19 s; the WebPlotDigitizer reader and its units are tested by default in tests/test_data.py
 def test_fit_reads_a_webplotdigitizer_export_with_units(capsys):
     code, out = run(capsys, "fit", "--scene", "cohesive-collapse", "--data", WPD, "--units", "mm", "--t-end",
                     "0.5", "--fit", "mu1", "--steps", "1", "--starts", "2", "--roundoff-samples", "0",

@@ -30,6 +30,7 @@ def twin():
     return scene, objective, result
 
 
+@pytest.mark.slow  # 19 s; the grid posterior on the same twin stays in the default suite
 def test_profile_likelihood_matches_gauss_newton_on_a_near_linear_twin(twin):
     _, objective, result = twin
     se = result.uncertainty.stderr
@@ -69,6 +70,7 @@ def test_grid_posterior_agrees_with_gauss_newton(twin):
         grid_posterior(three, result)
 
 
+@pytest.mark.slow  # 20 s
 def test_held_out_prediction_with_its_band(twin):
     """Fit the final profile, predict the front the fit never saw: the prediction at the fit's
     point, a band from its covariance (twice the covariance's square root: twice the band)."""

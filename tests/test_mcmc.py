@@ -38,6 +38,7 @@ def _fit_result(keys, theta, cov, sigma):
     return types.SimpleNamespace(keys=keys, theta=dict(zip(keys, np.asarray(theta, float))), uncertainty=unc)
 
 
+@pytest.mark.slow  # 24 s; the bound-cut posterior and one chain of NUTS stay in the default suite
 def test_nuts_recovers_a_gaussian_posterior_from_a_wrong_preconditioner():
     rng = np.random.default_rng(0)
     A = rng.standard_normal((30, 2)) @ np.array([[1.0, 0.9], [0.0, 0.3]])  # correlated columns
