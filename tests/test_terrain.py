@@ -171,14 +171,23 @@ def _point_mass_stop(x0, mu, centripetal=True, h=2e-5):
         x += h
 
 
-def test_a_block_on_a_hockey_stick_stops_where_a_sliding_point_mass_does():
-    """A thin elastic block (0.1 m × 0.02 m, APIC, dx = 0.01) let go on the 30° slope of a
-    hockey stick (arc of radius 1 m into a flat floor, a polyline of 5 mm segments) with μ_w = 0.3
-    comes to rest (speed below 1 mm/s) where a point mass sliding with Coulomb friction stops:
-    within 3 % of the travel (measured −1.4 %). The energy line with slope μ_w, which leaves out
-    the centripetal part of the normal force on the bend, puts the stop 7 % of the travel further
-    (the point mass's own difference); the block is within 10 % of it (measured −8.5 %)."""
-    dx, mu, start, length, thick = 0.01, 0.3, 0.15, 0.1, 0.02
+@pytest.mark.parametrize("dx, transfer", [
+    (0.01, "apic"),
+    pytest.param(0.0075, "apic", marks=pytest.mark.slow),
+    pytest.param(0.005, "pic", marks=pytest.mark.slow),
+    pytest.param(0.005, "apic", marks=[pytest.mark.slow, pytest.mark.xfail(strict=True, reason=(
+        "with APIC at dx = 0.005 the block stops 8.9 % of the travel short of the point mass (PIC at the "
+        "same dx: -2.3 %); not analysed, like the AFLIP bounce of tests/test_physics.py"))]),
+])
+def test_a_block_on_a_hockey_stick_stops_where_a_sliding_point_mass_does(dx, transfer):
+    """A thin elastic block (0.1 m × 0.02 m) let go on the 30° slope of a hockey stick (arc of
+    radius 1 m into a flat floor, a polyline of 5 mm segments) with μ_w = 0.3 comes to rest
+    (speed below 1 mm/s) where a point mass sliding with Coulomb friction stops: within 3 % of
+    the travel (measured −1.4 % at dx = 0.01 with APIC, −2.5 % at 0.0075, −2.3 % at 0.005 with
+    PIC). The energy line with slope μ_w, which leaves out the centripetal part of the normal
+    force on the bend, puts the stop 7 % of the travel further (the point mass's own difference);
+    the block is within 10 % of it (measured −8.5 % at dx = 0.01)."""
+    mu, start, length, thick = 0.3, 0.15, 0.1, 0.02
     xs = np.arange(0.0, HS["x2"] + HS["flat"] + 1e-9, 0.005)
     terrain = jm.Terrain(tuple(xs), tuple(_hockey_stick(x)[0] for x in xs), friction="mu_w")
     loc, vol = jm.seed_box((0.0, 0.0), (length, thick), dx, 2)
@@ -191,7 +200,7 @@ def test_a_block_on_a_hockey_stick_stops_where_a_sliding_point_mass_does():
     params = jm.Params.create(E=2e5, nu=0.3, rho=1550.0, mu_w=mu)
     grid = jm.Grid(cells, dx, origin=origin)
     budget = step_budget(jm.Config(grid=grid, t_end=t_end, max_steps=1).material, params, dx, t_end)
-    cfg = jm.Config(grid=grid, t_end=t_end, max_steps=budget, walls=(terrain,), transfer="apic",
+    cfg = jm.Config(grid=grid, t_end=t_end, max_steps=budget, walls=(terrain,), transfer=transfer,
                     frame_times=(t_end - 0.2, t_end))
     result = jm.simulate(cfg, jm.init_state(cfg, x, vol), params, observer=_mean)
     assert result.state.status == 0, result.status_text
