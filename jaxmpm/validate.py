@@ -161,7 +161,7 @@ def _plot_from_rest(out, plot_dir):
     for i, snap in enumerate(shown):
         prof = np.array([np.nan if v is None else v for v in snap["profile"]])
         a1.plot(prof, z, "-", color=cmap(i / max(1, len(shown) - 1)), label=f"t = {snap['t']:.1f} s")
-    a1.plot(out["analytic"], z, "k--", lw=1.5, label="Bagnold (MODEL §6)")
+    a1.plot(out["analytic"], z, "k--", lw=1.5, label="Bagnold (docs/model.md §6)")
     a1.set_xlabel("v (m/s)")
     a1.set_ylabel("height above bed (mm)")
     a1.set_title(f"S1, θ = {out['slope_deg']:g}° from rest, dx = h/{round(0.038 / out['dx'])}, {out['dtype']}"
@@ -191,7 +191,7 @@ def _plot_bagnold(profiles, slopes, divisions, cases, plot_dir, name="bagnold.pn
             vx, y, h = profiles[(slope, div)]
             ax.plot(vx, y * 1e3, ".", ms=2, label=f"dx = h/{div}")
         z = np.linspace(0, h, 100)
-        ax.plot(scenes.bagnold_velocity(z, h, slope, params), z * 1e3, "k-", lw=1.2, label="Bagnold (MODEL §6)")
+        ax.plot(scenes.bagnold_velocity(z, h, slope, params), z * 1e3, "k-", lw=1.2, label="Bagnold (docs/model.md §6)")
         ax.set_title(f"θ = {slope:g}°")
         ax.set_xlabel("v (m/s)")
         ax.set_ylabel("height above bed (mm)")

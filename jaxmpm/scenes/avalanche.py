@@ -9,8 +9,8 @@ dx = 1 m holds 7.5 million nodes, the flow touches a few thousand of them.
 
 Snow. No source fixes the μ(I)/critical-state parameters of the ISeeSnow snow (the intercomparison's
 depth-averaged codes have only the basal friction), so both sets below are illustrative
-choices, stated as such; the study in ``validate avalanche`` reports how the runout depends on μ1
-and β.
+choices, stated as such; the study ``docs/scripts/avalanche_study.py`` (docs/avalanche.md)
+reports how the runout depends on μ1 and β.
 
 - ``"dry"``: ρ = 300 kg/m³ (docs/scenes.md), E = 1 MPa, ν = 0.3, μ1 = tan 20° = 0.364 (a low internal
   friction, since the test case prescribes only basal friction), μ2 = tan 30° = 0.577, I0 = 0.279
