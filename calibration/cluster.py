@@ -41,7 +41,7 @@ import numpy as np
 
 from jaxmpm import describe_status
 
-from .sweep import SweepResult, _check_thetas, _jsonable, write_sweep
+from .sweep import SweepResult, _check_thetas, _jsonable, member_losses, sweep, write_sweep
 
 __all__ = ["ClusterSweepResult", "cluster_sweep", "parse_cluster", "write_cluster_sweep"]
 
@@ -82,8 +82,6 @@ def _run_task(token: str, make_objective: Callable[[], Any], rows: np.ndarray, x
     if objective is None:
         _WORKER_OBJECTIVES.clear()  # an earlier sweep's objective and its executables
         objective = _WORKER_OBJECTIVES[token] = make_objective()
-    from .sweep import sweep
-
     result = sweep(objective, rows, mode="vmap", chunk=rows.shape[0], validate=False)
     try:
         from distributed import get_worker
@@ -314,12 +312,10 @@ def _merge(keys, thetas, starts, size, outputs: Mapping[int, dict], n_workers: i
         status[start:stop] = out["status"][:n]
         predictions = jax.tree.map(lambda full, part, a=start, b=stop, k=n: _put(full, part[:k], a, b),
                                    predictions, out["predictions"])
-    loss = np.sum(residuals * residuals, axis=-1)
-    failed = (status != 0) | ~np.isfinite(loss)
-    loss = np.where(failed, np.nan, loss)
+    loss, failed = member_losses(residuals, status)
     compile_s = max((o["compile_s"] for o in outputs.values()), default=0.0)
     return SweepResult(keys=keys, thetas=thetas, loss=loss, status=status, residuals=residuals,
-                       predictions=predictions, failed=np.flatnonzero(failed), mode="cluster", chunk=size,
+                       predictions=predictions, failed=failed, mode="cluster", chunk=size,
                        n_devices=n_workers, wall_s=time.perf_counter() - clock, compile_s=compile_s)
 
 

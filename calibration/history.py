@@ -18,11 +18,9 @@ and an existing file is never replaced by a new fit unless asked to.
 from __future__ import annotations
 
 import json
-import os
 import pathlib
 import re
 import time
-import uuid
 from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
@@ -36,14 +34,13 @@ FIELDS = ("theta", "z", "loss", "grad_norm", "status", "accepted", "lam", "wall_
 
 def atomic_h5(path: pathlib.Path, write: Callable[[h5py.File], None]) -> None:
     """``write`` an HDF5 file to a temporary file next to ``path``, then rename it to ``path``."""
-    tmp = path.with_name(f".{path.name}.{uuid.uuid4().hex[:8]}.tmp")
-    try:
+    from jaxmpm.io import atomic_write
+
+    def write_file(tmp):
         with h5py.File(tmp, "w") as f:
             write(f)
-        os.replace(tmp, path)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
+
+    atomic_write(path, write_file, hidden=True)
 
 
 class _NotAHistory(Exception):

@@ -336,6 +336,14 @@ def _check_thetas(objective, thetas) -> tuple[tuple[str, ...], np.ndarray]:
     return keys, thetas
 
 
+def member_losses(residuals: np.ndarray, status: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(loss, failed): Σ r² per member, summed on the host, NaN where a member failed (a status
+    bit or a non-finite loss), and the indices of the failed members."""
+    loss = np.sum(residuals * residuals, axis=-1)
+    failed = (status != 0) | ~np.isfinite(loss)
+    return np.where(failed, np.nan, loss), np.flatnonzero(failed)
+
+
 def sweep(objective, thetas, *, chunk: int | None = None, mode: str = "auto",
           memory_budget_bytes: int | None = None, progress: bool = False, validate: bool = True) -> SweepResult:
     """Evaluate ``objective.residual_fn`` at every row of ``thetas``.
@@ -432,11 +440,9 @@ def sweep(objective, thetas, *, chunk: int | None = None, mode: str = "auto",
 
     residuals = np.asarray(residuals, float).reshape(n_members, -1)
     status = np.asarray(status).astype(np.int64).reshape(n_members)
-    loss = np.sum(residuals * residuals, axis=-1)
-    failed_mask = (status != 0) | ~np.isfinite(loss)
-    loss = np.where(failed_mask, np.nan, loss)
+    loss, failed = member_losses(residuals, status)
     return SweepResult(keys=keys, thetas=thetas, loss=loss, status=status, residuals=residuals,
-                       predictions=predictions, failed=np.flatnonzero(failed_mask), mode=mode, chunk=size,
+                       predictions=predictions, failed=failed, mode=mode, chunk=size,
                        n_devices=n_dev, wall_s=time.perf_counter() - clock, compile_s=evaluator.compile_s)
 
 

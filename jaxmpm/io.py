@@ -51,8 +51,8 @@ from .simulate import Result
 from .state import State, describe_status
 from .tables import PROFILE_COLUMNS, write_profile_csv  # the CSV format's home is tables
 
-__all__ = ["write_h5", "read_h5", "write_ply", "write_ply_frames", "write_profile_csv", "PROFILE_COLUMNS",
-           "check_output_file", "check_output_dir", "json_safe"]
+__all__ = ["write_h5", "read_h5", "write_ply", "write_ply_frames", "atomic_write", "write_profile_csv",
+           "PROFILE_COLUMNS", "check_output_file", "check_output_dir", "json_safe"]
 
 #: Root attributes stored as JSON strings (decoded by ``read_h5``).
 _JSON_KEY_LIST = "json_keys"
@@ -144,6 +144,22 @@ def _write(f: h5py.File, result: Result, config: Config, params: Params, extra: 
     attrs[_JSON_KEY_LIST] = _dumps(json_keys)
 
 
+def atomic_write(path: str | os.PathLike, write, hidden: bool = False) -> pathlib.Path:
+    """Call ``write(tmp)`` on a temporary path next to ``path`` (``.name.XXXX.tmp`` if
+    ``hidden``), then rename it onto ``path``: a file at ``path`` is never a partial one, and on
+    any error the temporary file is removed and the error re-raised."""
+    path = pathlib.Path(path)
+    tag = uuid.uuid4().hex[:8]
+    tmp = path.with_name(f".{path.name}.{tag}.tmp" if hidden else f"{path.name}.{tag}.tmp")
+    try:
+        write(tmp)
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+    return path
+
+
 def write_h5(
     path: str | os.PathLike,
     result: Result,
@@ -185,15 +201,11 @@ def write_h5(
     if path.is_dir():
         raise ValueError(f"path is a directory: {str(path)!r}")
 
-    tmp = path.with_name(f"{path.name}.{uuid.uuid4().hex[:8]}.tmp")
-    try:
+    def write(tmp):
         with h5py.File(tmp, "x") as f:
             _write(f, result, config, params, extra, initial)
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
-    return path
+
+    return atomic_write(path, write)
 
 
 def _plain(value):
@@ -369,16 +381,12 @@ def write_ply(path: str | os.PathLike, x, fields: Mapping[str, Any] | None = Non
     path = pathlib.Path(path)
     if not path.parent.is_dir():
         raise ValueError(f"path's parent directory does not exist: {str(path.parent)!r}")
-    tmp = path.with_name(f"{path.name}.{uuid.uuid4().hex[:8]}.tmp")
-    try:
+    def write(tmp):
         with open(tmp, "wb") as f:
             f.write(("\n".join(header) + "\n").encode("ascii"))
             f.write(rows.tobytes())
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
-    return path
+
+    return atomic_write(path, write)
 
 
 def write_ply_frames(folder: str | os.PathLike, result: Result, initial: State | None = None) -> list[pathlib.Path]:
