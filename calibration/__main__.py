@@ -331,12 +331,14 @@ def _sweep(args) -> int:
                                   progress=not args.no_progress, objective=objective)
         result = clustered.sweep
         out = clustered.to_json()
+        lost = [t["index"] for t in clustered.tasks if t["lost"]]
         write = lambda: write_cluster_sweep(args.out, clustered, objective) or True  # noqa: E731
     else:
         result = sweep(objective, thetas, chunk=args.chunk, mode=args.mode, progress=not args.no_progress)
         out = result.to_json()
         out["n_members"] = result.n
         write = lambda: write_sweep(args.out, result, objective) or True  # noqa: E731
+        lost = []
     out.pop("residuals", None)  # per-member residual vectors go to --out, not to the terminal
     out["scene"] = scene.name
     errors: dict[str, str] = {}
@@ -344,7 +346,10 @@ def _sweep(args) -> int:
         out["out"] = str(args.out)
     if args.plot:
         out["figures"] = _guard(errors, "--plot", lambda: _sweep_plot(args.plot, result, keys))
-    return _finish(out, args, errors)
+    code = _finish(out, args, errors)
+    # A task that failed every attempt left members without a result: the sweep did not run
+    # in full (its members are in "failed" with the errors), so it does not exit 0.
+    return 1 if lost else code
 
 
 def _sweep_plot(directory, result, keys) -> list[str]:

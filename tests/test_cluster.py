@@ -111,3 +111,32 @@ def test_the_sweep_command_runs_on_a_local_cluster_with_the_in_process_numbers(t
     np.testing.assert_array_equal(clustered["loss"], plain["loss"])
     with h5py.File(tmp_path / "c.h5") as f:
         assert f["loss"].shape == (4,) and list(f["task"][...]) == [0, 0, 1, 1]
+
+
+def test_the_sweep_command_does_not_exit_0_when_a_task_was_lost(monkeypatch, capsys):
+    """Members left without a result by a task that failed every attempt: reported in "failed"
+    with the error, and the command exits 1 (the cluster itself is replaced by a stand-in)."""
+    import json
+
+    import calibration.cluster as cluster
+    from calibration.__main__ import main
+    from calibration.sweep import SweepResult
+
+    def lost_sweep(make_objective, thetas, **kw):
+        n = len(thetas)
+        result = SweepResult(keys=("beta",), thetas=thetas, loss=np.full(n, np.nan), status=np.zeros(n, np.int64),
+                             residuals=np.full((n, 3), np.nan), predictions=None, failed=np.arange(n),
+                             mode="cluster", chunk=n, n_devices=2, wall_s=0.0, compile_s=0.0)
+        task = {"index": 0, "members": [0, n], "attempts": 3, "worker": None, "pid": None, "wall_s": None,
+                "errors": ["KilledWorker: lost"] * 3, "lost": True}
+        return cluster.ClusterSweepResult(sweep=result, task=np.zeros(n, int), tasks=(task,), cluster="local:2")
+
+    monkeypatch.setattr(cluster, "cluster_sweep", lost_sweep)
+    root = pathlib.Path(__file__).resolve().parents[1]
+    data = str(root / "experiments_data" / "synthetic" / "S4_beta0.25.csv")
+    code = main(["sweep", "--scene", "cohesive-collapse", "--data", data, "--over", "beta=0.1:0.3:2",
+                 "--dx", str(0.089 / 6), "--cluster", "local:2", "--no-progress", "--json"])
+    out = json.loads(capsys.readouterr().out)
+    assert code == 1
+    assert out["n_members"] == 2 and [f["index"] for f in out["failed"]] == [0, 1]
+    assert "KilledWorker" in out["failed"][0]["why"]
