@@ -247,11 +247,18 @@ def _contact_velocity(wall, v_rel, normal, friction):
     return jnp.where(vn < 0, vt, v_rel)  # separable
 
 
-def apply_walls(walls, v, node_x, t, dt, params=None):
+def apply_walls(walls, v, node_x, t, dt, params=None, mass=None):
     """Apply every wall and terrain in order to grid velocities ``v`` (dim, n_nodes) at nodes
     ``node_x`` (dim, n_nodes), at time ``t`` for a step of ``dt``. ``params`` supplies μ_w to
-    the boundaries declared with ``friction="mu_w"``."""
+    the boundaries declared with ``friction="mu_w"``.
+
+    With the node masses ``mass`` (n_nodes,), also return the impulse each boundary received
+    from the material in this step, (n_walls, dim): Σ_nodes m (v before − v after that
+    boundary), so that the force on it is impulse / dt (docs/model.md §5: the walls act on the
+    grid velocities, and this is the momentum they remove)."""
+    impulses = []
     for wall in walls:
+        before = v
         dtype = v.dtype
         friction = wall.friction
         if isinstance(friction, str):
@@ -264,6 +271,7 @@ def apply_walls(walls, v, node_x, t, dt, params=None):
             if math.isfinite(wall.thickness):
                 contact &= signed > -wall.thickness
             v = jnp.where(contact, _contact_velocity(wall, v, normal, friction), v)
+            impulses.append(None if mass is None else jnp.sum(mass * (before - v), axis=1))
             continue
         normal = jnp.asarray(wall.normal, dtype)[:, None]
         wall_v = jnp.asarray(wall.velocity, dtype)[:, None]
@@ -276,4 +284,8 @@ def apply_walls(walls, v, node_x, t, dt, params=None):
             edge = jnp.asarray(wall.edge, dtype)[:, None]
             contact &= jnp.sum((node_x - point) * edge, axis=0) >= 0
         v = jnp.where(contact, _contact_velocity(wall, v - wall_v, normal, friction) + wall_v, v)
-    return v
+        impulses.append(None if mass is None else jnp.sum(mass * (before - v), axis=1))
+    if mass is None:
+        return v
+    impulse = jnp.stack(impulses) if impulses else jnp.zeros((0, v.shape[0]), v.dtype)
+    return v, impulse

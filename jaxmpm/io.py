@@ -7,7 +7,9 @@ Layout of a file written by ``write_h5``::
     /initial                  the state the run started from (when ``write_h5`` is given it,
                               as ``python -m jaxmpm run`` does): the same datasets as /final
     /final                    the final state: x, v, p, q, vol (current particle volumes,
-                              V0 det F_e exp(eps_v^p)) and the internal variables
+                              V0 det F_e exp(eps_v^p)), the internal variables, and impulse
+                              (n_walls, dim): the momentum each wall and terrain of the
+                              config took from the material since t = 0 (State.impulse)
     root attributes           ``param/<key>`` per parameter, ``params_json``, ``config_json``,
                               ``jaxmpm_version``, ``status``, ``status_text`` (JSON list),
                               ``t_end``, ``steps``, ``frame_times`` and any extra attributes
@@ -121,6 +123,7 @@ def _write(f: h5py.File, result: Result, config: Config, params: Params, extra: 
         group = f.create_group(group_name)
         for name, arr in _state_values(group_state).items():
             group.create_dataset(name, data=np.asarray(arr))
+        group.create_dataset("impulse", data=np.asarray(group_state.impulse))  # per wall, not per particle
 
     attrs = f.attrs
     param_values = params.to_dict()
@@ -391,7 +394,9 @@ def write_ply(path: str | os.PathLike, x, fields: Mapping[str, Any] | None = Non
 
 def write_ply_frames(folder: str | os.PathLike, result: Result, initial: State | None = None) -> list[pathlib.Path]:
     """One PLY per frame of ``result`` (``frame_00000.ply`` ...), plus ``initial.ply`` (if given)
-    and ``final.ply``, in ``folder`` (created if missing). Unbatched results only."""
+    and ``final.ply``, in ``folder`` (created if missing). Unbatched results only. Frame fields
+    that are not one row per particle (the walls' impulse) are not written: they are not point
+    data, and ``write_h5`` keeps them."""
     folder = pathlib.Path(folder)
     if np.ndim(result.state.x) != 2:
         raise ValueError("write_ply_frames writes one run: the result is batched (vmapped)")
@@ -400,7 +405,9 @@ def write_ply_frames(folder: str | os.PathLike, result: Result, initial: State |
     if initial is not None:
         values = _state_values(initial)
         written.append(write_ply(folder / "initial.ply", values.pop("x"), values))
-    arrays = _leaves(result.frames)
+    n = np.shape(result.state.x)[0]
+    # a PLY holds particles: frame fields with another shape (a wall's impulse) stay in the HDF5
+    arrays = {name: arr for name, arr in _leaves(result.frames).items() if np.shape(arr)[1:2] == (n,)}
     for k, _ in enumerate(result.frame_times if arrays and "x" in arrays else ()):
         values = {name: arr[k] for name, arr in arrays.items()}
         written.append(write_ply(folder / f"frame_{k:05d}.ply", values.pop("x"), values))

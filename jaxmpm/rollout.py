@@ -26,9 +26,10 @@ Observer = Callable[[Any, Any], Any]
 
 
 def frame_observer(state, params):
-    """The default frame: positions, velocities, p and q, and the internal variables."""
+    """The default frame: positions, velocities, p and q, the internal variables, and the walls'
+    impulse (``State.impulse``: one row per wall, not per particle)."""
     p, q = invariants(state.tau)
-    return {"x": state.x, "v": state.v, "p": p, "q": q, **state.internal}
+    return {"x": state.x, "v": state.v, "p": p, "q": q, **state.internal, "impulse": state.impulse}
 
 
 def _scan_steps(fn, carry, n: int, checkpoint: bool):

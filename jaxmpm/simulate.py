@@ -116,6 +116,10 @@ def check_state(config: Config, state: State) -> None:
         raise ValueError("state.x is empty: the scene has no particles")
     if not np.all(np.isfinite(x)):
         raise ValueError("state.x must be finite")
+    want = (len(config.walls), config.dim)
+    if np.shape(state.impulse)[-2:] != want:
+        raise ValueError(f"state.impulse must end in shape {want} (one row per wall and terrain of the config), got "
+                         f"{np.shape(state.impulse)}: build the state with init_state(config, ...) for this config")
     lower, upper = config.grid.lower, config.grid.upper
     outside = config.grid.outside(x)
     if np.any(outside):

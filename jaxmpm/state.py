@@ -3,7 +3,10 @@
 Glossary: x positions, v velocities, C the APIC affine matrix, F the elastic deformation
 gradient F_e, tau the Kirchhoff stress from the last constitutive update (update-stress-last),
 vol0 initial particle volumes V0, internal the material's internal variables, t the time,
-steps the number of steps taken, status a bitmask (below), dt the last step size.
+steps the number of steps taken, status a bitmask (below), dt the last step size, impulse the
+momentum each of the configuration's walls and terrains has received from the material since t = 0
+((n_walls, dim), N·s, per unit width in 2D): the force on a wall over an interval is the change of
+its impulse over the interval's length.
 """
 
 from __future__ import annotations
@@ -68,6 +71,7 @@ class State:
     dt: Any
     steps: Any
     status: Any
+    impulse: Any
 
     @property
     def n_particles(self) -> int:
@@ -119,4 +123,5 @@ def init_state(config: Config, x, vol0, v=None, dtype=None) -> State:
         dt=jnp.zeros((), dtype),
         steps=jnp.zeros((), jnp.int32),
         status=jnp.zeros((), jnp.int32),
+        impulse=jnp.zeros((len(config.walls), dim), dtype),
     )

@@ -5,7 +5,8 @@
 1. dt = min(cfl·dx/max|v_p|, cfl_e·dx/c), clipped so the step lands exactly on the next frame
    time or the end time; after t_end the step returns the state unchanged;
 2. APIC P2G of mass, momentum and internal force (stress from the previous step: USL);
-3. grid update with gravity, then the walls;
+3. grid update with gravity, then the walls (each one's impulse from the material accumulates
+   in ``state.impulse``);
 4. G2P (PIC/APIC/AFLIP), positions advected with the PIC velocity;
 5. F_e,trial = (I + dt ∇v) F_e and the material update (new F_e, τ, internal variables);
 6. status bits: particle left the grid, non-finite state, det F_e,trial <= 0.
@@ -74,7 +75,7 @@ def make_step(config: Config):
         mass = params.rho * state.vol0
         fields = p2g(stencil, mass, state.v, state.C, state.vol0, state.tau, n_grid)
         v_old, v_new = grid_velocities(fields, dt, jnp.asarray(config.gravity, dtype))
-        v_new = apply_walls(config.walls, v_new, node_x, state.t, dt, params)
+        v_new, impulse = apply_walls(config.walls, v_new, node_x, state.t, dt, params, mass=fields.mass)
         v_flip = state.v
         if config.xpic and config.transfer == "aflip" and alpha != 0.0:
             v_flip = xpic_velocity(stencil, mass, fields.mass, state.v, config.xpic)
@@ -99,7 +100,7 @@ def make_step(config: Config):
         )
         return state.replace(
             x=x, v=moved.v, C=moved.C, F=F, tau=tau, internal=internal,
-            t=t_new, dt=dt, steps=state.steps + 1, status=state.status | flags,
+            t=t_new, dt=dt, steps=state.steps + 1, status=state.status | flags, impulse=state.impulse + impulse,
         )
 
     def step(state, params):
