@@ -122,7 +122,7 @@ def _run(args) -> int:
     check_scene_args(args)
     if args.scene == "avalanche":
         return _run_avalanche(args)
-    for option, value in (("--terrain", args.terrain), ("--station", args.station)):
+    for option, value in (("--terrain", args.terrain), ("--station", args.station), ("--obstacle", args.obstacle)):
         if value is not None:
             raise ValueError(f"{option} applies to the avalanche scene, not {args.scene}")
     if args.quick or args.snow != "dry":
@@ -227,9 +227,8 @@ def _run_avalanche(args) -> int:
     if args.dtype == "float64":
         jax.config.update("jax_enable_x64", True)
     from . import io, tables
-    from .avalanche import path_fields
+    from .avalanche import run_avalanche
     from .scenes.avalanche import avalanche
-    from .simulate import simulate
     from .state import describe_status
 
     t_end = args.t_end if args.t_end is not None else (20.0 if args.quick else 100.0)
@@ -238,15 +237,13 @@ def _run_avalanche(args) -> int:
           "snow": args.snow, "dtype": args.dtype, **dict(parse_set(item) for item in args.set)}
     if args.ppc is not None:
         kw["ppc"] = int(args.ppc)
+    if args.obstacle is not None:
+        if args.station is None:
+            raise ValueError("--obstacle needs --station X, the obstacle's place along the path")
+        kw["obstacle"] = (args.station, args.obstacle)
     scene = avalanche(args.terrain, **kw)
     config, state, params = scene
-    observer = lambda s, p: {"x": s.x, "v": s.v}  # noqa: E731
-    result = simulate(config, state, params, observer=observer, throw=False, progress=not args.no_progress,
-                      timed=True)
-    ground = config.walls[0]
-    times = np.asarray(config.frame_times)
-    fields = path_fields(ground, result.frames["x"], result.frames["v"], state.vol0, times, float(params.rho),
-                         config.grid.dx, station=args.station)
+    result, fields = run_avalanche(scene, station=args.station, progress=not args.no_progress)
     summary = {"scene": "avalanche", "snow": args.snow, "n_particles": int(state.n_particles),
                "n_steps": int(result.state.steps), "dx": config.grid.dx, "t_end": config.t_end,
                "grid_nodes_dense": config.grid.n_nodes, "active_nodes": config.active_nodes,
@@ -340,6 +337,8 @@ def build_parser() -> argparse.ArgumentParser:
     avalanche.add_argument("--snow", choices=("dry", "wet"), default="dry", help="the snow's parameter set")
     avalanche.add_argument("--station", type=float, default=None, metavar="X",
                            help="obstacle station x, m, for the force history (default: half way along the reach)")
+    avalanche.add_argument("--obstacle", type=float, default=None, metavar="HEIGHT",
+                           help="simulate a rigid vertical wall this high (m) at --station and report the force on it")
     avalanche.add_argument("--quick", action="store_true", help="a coarse, short run (dx = 2 m, 20 s)")
     run.add_argument("--frames", type=int, default=None, help="output frames (default 0, or 40 with --gif)")
     run.add_argument("--out", default=None, help="HDF5 output file")
@@ -365,7 +364,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     validate = sub.add_parser("validate", help="run a validation study (docs/validation.md)")
     validate.add_argument("study", choices=("bagnold", "bagnold-from-rest", "convergence", "aspect-ratio", "cohesion",
-                                            "speed-accuracy", "stability", "resolution", "cross-code"))
+                                            "speed-accuracy", "stability", "resolution", "cross-code", "avalanche"))
     validate.add_argument("--quick", action="store_true", help="a reduced, faster version")
     validate.add_argument("--json", action="store_true", help="print one JSON object")
     validate.add_argument("--plot", default=None, metavar="DIR", help="write the study's figure into DIR")

@@ -14,9 +14,12 @@ run's frame times:
 - ``runout_x``: the farthest x where the peak (over the frames) flow thickness exceeded the
   threshold, the ISeeSnow comparison's definition;
 - the deposit: h(x) at the last frame;
-- the force on an obstacle at a station: the momentum flux ρ u² h through the station per unit
-  width (kN/m), the standard design estimate of the force on a rigid wall normal to the flow. It
-  is computed from the flow, not from a simulated obstacle (none is modelled).
+- the force on an obstacle at a station, two ways: the momentum flux ρ u² h through the station
+  per unit width (kN/m), the standard design estimate of the force on a rigid wall normal to the
+  flow, computed from the flow; and, where the scene has a simulated obstacle (``avalanche(...,
+  obstacle=(x, height))``), the force the snow exerts on that wall, the change of its recorded
+  impulse (``State.impulse``) between frames over the frame interval: the mean force over
+  each interval, exact in momentum.
 
 Peaks are over the frames only: a finer frame spacing catches sharper peaks.
 """
@@ -24,10 +27,12 @@ Peaks are over the frames only: a finer frame spacing catches sharper peaks.
 from __future__ import annotations
 
 import dataclasses
+import math
 
+import jax
 import numpy as np
 
-__all__ = ["PathFields", "path_fields"]
+__all__ = ["PathFields", "path_fields", "run_avalanche", "smooth_runout"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -43,6 +48,7 @@ class PathFields:
     station: float  # obstacle station x, m
     force_kn_per_m: np.ndarray  # (T,) ρ u² h at the station, kN/m
     threshold: float
+    obstacle_force_kn_per_m: np.ndarray | None = None  # (T, 2) on the simulated obstacle (x: downstream), kN/m
 
     @property
     def peak_thickness(self) -> np.ndarray:
@@ -78,6 +84,10 @@ class PathFields:
             "station_x": self.station,
             "force_max_kn_per_m": float(self.force_kn_per_m.max()),
             "threshold_m": self.threshold,
+            **({} if self.obstacle_force_kn_per_m is None else {
+                "obstacle_force_max_kn_per_m": float(self.obstacle_force_kn_per_m[:, 0].max()),
+                "obstacle_impulse_kn_s_per_m": float(np.sum(self.obstacle_force_kn_per_m[:, 0]
+                                                            * np.diff(self.times, prepend=0.0)))}),
         }
 
     def columns(self) -> dict[str, np.ndarray]:
@@ -88,10 +98,17 @@ class PathFields:
 
 
 def path_fields(terrain, x, v, vol, times, rho: float, dx: float, threshold: float = 0.1,
-                station: float | None = None, bin_width: float | None = None) -> PathFields:
+                station: float | None = None, bin_width: float | None = None, impulse=None) -> PathFields:
     """The fields of the module docstring from frames ``x``, ``v`` (T, N, 2), reference volumes
-    ``vol`` (N,) and frame ``times`` (T,), on ``terrain`` (a ``boundary.Terrain``)."""
+    ``vol`` (N,) and frame ``times`` (T,), on ``terrain`` (a ``boundary.Terrain``); ``impulse``
+    (T, 2): a simulated obstacle's impulse at the frames (from t = 0), for its force history."""
     x, v, vol, times = (np.asarray(a, float) for a in (x, v, vol, times))
+    obstacle_force = None
+    if impulse is not None:
+        impulse = np.asarray(impulse, float)
+        if impulse.shape != (len(times), 2):
+            raise ValueError(f"impulse must be (frames, 2), got {impulse.shape}")
+        obstacle_force = np.diff(impulse, axis=0, prepend=0.0) / np.diff(times, prepend=0.0)[:, None] / 1e3
     if x.ndim != 3 or x.shape[-1] != 2 or v.shape != x.shape or vol.shape != x.shape[1:2]:
         raise ValueError(f"x and v must be (frames, particles, 2) and vol (particles,), got {x.shape}, {v.shape}, "
                          f"{vol.shape}")
@@ -128,4 +145,69 @@ def path_fields(terrain, x, v, vol, times, rho: float, dx: float, threshold: flo
     j = int(np.clip(np.searchsorted(edges, station, side="right") - 1, 0, n_bins - 1))
     force = rho * speed[:, j] ** 2 * thickness[:, j] / 1e3
     return PathFields(centres, z, times, thickness, speed, pressure, front, front_speed, float(station), force,
-                      float(threshold))
+                      float(threshold), obstacle_force)
+
+
+def smooth_runout(x, vol0, terrain, xs, threshold: float = 0.1, width: float | None = None,
+                  sharpness: float | None = None, length: float | None = None):
+    """A differentiable runout of particles at ``x`` (N, 2) with reference volumes ``vol0`` (N,),
+    on the evenly spaced evaluation points ``xs`` (M,), which must reach past the deposit.
+
+    h(s) is the thickness normal to the terrain from a Gaussian kernel of ``width`` (default:
+    4 × the spacing of ``xs``), and g(h) a logistic step from 0 (bare ground) to 1 centred on
+    ``threshold`` with width ``sharpness`` (default threshold / 4). Counted from the far end,
+    C(s) = ∫_s g ds' is the length of ground beyond s covered thicker than the threshold, and
+    the runout is where C reaches about ``length`` (default ``width``):
+
+        R = xs[0] + length + ∫ (1 − exp(−C(s)/length)) ds,
+
+    which for a deposit with a sharp front at R0 (g = 1 behind it, 0 beyond) is R0 up to
+    e^{−(R0 − xs[0])/length}: the ``runout_x`` rule of ``PathFields`` on a smooth field. Gaps in
+    the deposit behind the front do not matter; a stray particle ahead of it, far thinner than
+    the threshold, adds its small g to C over the whole distance between: R grows by about that
+    g-length × distance / ``length``. Written in jax.numpy: it can be differentiated with
+    respect to ``x``."""
+    import jax.numpy as jnp
+
+    xs_np = np.asarray(xs, float)  # concrete: the points are part of the definition, not traced
+    if xs_np.ndim != 1 or len(xs_np) < 2 or not np.all(np.diff(xs_np) > 0):
+        raise ValueError(f"xs must be at least two increasing points, got shape {xs_np.shape}")
+    step = float(xs_np[1] - xs_np[0])
+    if not np.allclose(np.diff(xs_np), step, rtol=1e-6):
+        raise ValueError("xs must be evenly spaced")
+    width = 4.0 * step if width is None else float(width)
+    sharpness = 0.25 * threshold if sharpness is None else float(sharpness)
+    length = width if length is None else float(length)
+    _, slope = terrain._evaluate(xs_np)
+    cos = jnp.asarray(1.0 / np.sqrt(1.0 + slope * slope), x.dtype)
+    xs = jnp.asarray(xs_np, x.dtype)
+    d = (xs[:, None] - x[None, :, 0]) / width
+    h = cos * jnp.sum(vol0 * jnp.exp(-0.5 * d * d), axis=1) / (width * math.sqrt(2.0 * math.pi))
+    # g shifted and scaled so that bare ground (h = 0) counts exactly 0 and a thick deposit 1
+    floor = 1.0 / (1.0 + math.exp(threshold / sharpness))
+    g = (jax.nn.sigmoid((h - threshold) / sharpness) - floor) / (1.0 - floor)
+    beyond = step * (jnp.cumsum(g[::-1])[::-1] - 0.5 * g)  # C at each point (midpoint rule)
+    return xs[0] - 0.5 * step + length + step * jnp.sum(1.0 - jnp.exp(-beyond / length))
+
+
+def _observer(state, params):
+    return {"x": state.x, "v": state.v, "impulse": state.impulse}
+
+
+def run_avalanche(scene, station: float | None = None, progress: bool = False, threshold: float = 0.1):
+    """Run an S6 ``scene`` (``jaxmpm.scenes.avalanche``) and return ``(result, fields)``: the
+    ``simulate`` result (``throw=False``: its status says whether the run is trusted; timed) and
+    the ``PathFields`` on its frames. ``station`` defaults to the obstacle's where the scene has
+    one, else half way along the flow's reach."""
+    from .scenes.avalanche import OBSTACLE
+    from .simulate import simulate
+
+    config, state, params = scene
+    result = simulate(config, state, params, observer=_observer, throw=False, progress=progress, timed=not progress)
+    has_obstacle = len(config.walls) > OBSTACLE
+    if station is None and has_obstacle:
+        station = float(config.walls[OBSTACLE].point[0])
+    fields = path_fields(config.walls[0], result.frames["x"], result.frames["v"], state.vol0,
+                         np.asarray(config.frame_times), float(params.rho), config.grid.dx, threshold=threshold,
+                         station=station, impulse=result.frames["impulse"][:, OBSTACLE] if has_obstacle else None)
+    return result, fields
