@@ -8,7 +8,8 @@
 - ``aspect-ratio``: S5 runout and final height against the glass-bead scaling laws (secondary);
 - ``cohesion``: S4 with β = 0 and β = 0.25 side by side;
 - ``speed-accuracy``: S3 at 10°, error against wall time over dx, ppc, transfer, dtype, cfl;
-- ``stability``: settings pushed until methods fail, and how each failure is reported.
+- ``stability``: settings pushed until methods fail, and how each failure is reported;
+- ``avalanche``: S6 against dx and against the snow's parameters, with an obstacle's force.
 
 Every study returns a JSON-ready dict and, with a plot directory, writes its figure there.
 ``--quick`` runs a reduced version (coarser, shorter) that finishes in a minute or two.
@@ -30,7 +31,7 @@ from .observables import deposit_profile, front_from_profile, particle_volumes
 from .simulate import simulate
 
 __all__ = ["STUDIES", "run_study", "bagnold", "convergence", "aspect_ratio", "cohesion", "speed_accuracy",
-           "stability"]
+           "stability", "avalanche"]
 
 
 def _save(fig, plot_dir, name, dpi):
@@ -473,9 +474,95 @@ def stability(quick=False, plot_dir=None) -> dict:
     return {"study": "stability", "scene": "cohesive-collapse", "t_end": t_end, "cases": rows}
 
 
+AVALANCHE_STATION = 3800.0  # on the run-out plain, where the study's obstacle stands
+
+
+def _avalanche_row(label, dx, snow="dry", obstacle=None, **values):
+    from .avalanche import run_avalanche
+    from .scenes.avalanche import avalanche as make
+
+    scene = make(dx=dx, snow=snow, t_end=100.0, frames=100, obstacle=obstacle, **values)
+    clock = time.perf_counter()
+    result, fields = run_avalanche(scene, station=AVALANCHE_STATION)
+    wall = time.perf_counter() - clock
+    state0, state = scene.state, result.state
+    vol0 = np.asarray(state0.vol0)  # one density: volume weights are mass weights
+    start, end = (np.average(np.asarray(s.x), axis=0, weights=vol0) for s in (state0, state))
+    volume = np.asarray(particle_volumes(state)) / vol0  # J = V / V0 of each particle
+    row = {"case": label, "dx": dx, "snow": snow, **{k: float(v) for k, v in values.items()},
+           "mu1": float(scene.params.mu1), "beta": float(scene.params.beta), "xi": float(scene.params.xi),
+           "obstacle": None if obstacle is None else list(obstacle), "n_particles": int(state0.n_particles),
+           "n_steps": int(state.steps), "status": result.status, **fields.summary(),
+           # the centre of mass's travel angle, against the basal energy line's atan(μ_w)
+           "com_travel_angle_deg": float(np.degrees(np.arctan2(start[1] - end[1], end[0] - start[0]))),
+           "energy_line_angle_deg": float(np.degrees(np.arctan(float(scene.params.mu_w)))),
+           "volume_ratio_percentiles": dict(zip(("p1", "p50", "p99"), np.percentile(volume, [1, 50, 99]).tolist())),
+           "compile_s": round(result.compile_s, 2), "run_s": round(result.run_s, 2), "wall_s": round(wall, 1)}
+    return row, fields
+
+
+def avalanche(quick=False, plot_dir=None) -> dict:
+    """S6 (docs/avalanche.md): runout and peak fields against dx (2, 1, 0.5 m; quick: 2, 1),
+    then at one dx (1 m; quick: 2 m) against the snow: wet, μ1 = tan 15° and tan 25°, the dry
+    set without hardening (ξ = 0), and a 5 m obstacle at x = 3800 m with the force on it. Each row
+    also gives the centre of mass's travel angle and the particles' volume ratio J = V/V0."""
+    grids = (2.0, 1.0) if quick else (2.0, 1.0, 0.5)
+    base = 2.0 if quick else 1.0
+    rows, shown = [], {}
+    for dx in grids:
+        row, fields = _avalanche_row(f"dry, dx = {dx:g} m", dx)
+        rows.append(row)
+        if dx == base:
+            shown["open"] = fields
+    cases = [("wet snow", {"snow": "wet"}), ("dry, mu1 = tan 15 deg", {"mu1": math.tan(math.radians(15.0))}),
+             ("dry, mu1 = tan 25 deg", {"mu1": math.tan(math.radians(25.0))}),
+             ("dry, xi = 0 (no hardening)", {"xi": 0.0}),
+             ("dry, 5 m obstacle at x = 3800 m", {"obstacle": (AVALANCHE_STATION, 5.0)})]
+    for label, opts in cases:
+        row, fields = _avalanche_row(label, base, **opts)
+        rows.append(row)
+    shown["obstacle"] = fields
+    runouts = [r["runout_x"] for r in rows[:len(grids)]]
+    out = {"study": "avalanche", "scene": "avalanche", "terrain": "ISeeSnow CoulombOnly centre line", "mu_w": 0.4,
+           "runs": rows, "runout_change_finest_pair": abs(runouts[-1] - runouts[-2]) / (runouts[-1] - 1345.0)}
+    if plot_dir:
+        from .plots import animate_avalanche, plot_avalanche
+
+        plot_avalanche(shown["open"], pathlib.Path(plot_dir) / "avalanche.png",
+                       title=f"S6 avalanche (ISeeSnow CoulombOnly terrain), dry snow, dx = {base:g} m, mu_w = 0.4")
+        animate_avalanche(shown["open"], pathlib.Path(plot_dir) / "avalanche.gif", fps=8)
+        _plot_obstacle(shown["open"], shown["obstacle"], base, plot_dir)
+    return out
+
+
+def _plot_obstacle(open_path, obstacle, dx, plot_dir):
+    from .plots import _pyplot
+
+    plt = _pyplot()
+    fig, (top, low) = plt.subplots(2, 1, figsize=(8, 6))
+    t = obstacle.times
+    top.step(t, obstacle.obstacle_force_kn_per_m[:, 0], where="pre", color="k",
+             label="simulated 5 m wall: its impulse's change over each 1 s frame")
+    top.plot(t, open_path.force_kn_per_m, "r--", label="open path: momentum flux ρu²h through the station")
+    top.set_xlabel("t (s)")
+    top.set_ylabel(f"force at x = {obstacle.station:g} m (kN/m)")
+    top.set_xlim(t[np.argmax(obstacle.obstacle_force_kn_per_m[:, 0] > 0)] - 5, t[-1])
+    top.legend(fontsize=8)
+    top.set_title(f"S6, dry snow, dx = {dx:g} m: the force on an obstacle", fontsize=10)
+    near = (open_path.x > obstacle.station - 400) & (open_path.x < obstacle.station + 500)
+    low.plot(open_path.x[near], open_path.deposit[near], "r--", label="deposit, open path")
+    near = (obstacle.x > obstacle.station - 400) & (obstacle.x < obstacle.station + 500)
+    low.plot(obstacle.x[near], obstacle.deposit[near], "k-", label="deposit, with the wall")
+    low.axvline(obstacle.station, color="grey", lw=3, alpha=0.5, label="wall")
+    low.set_xlabel("x along the path (m)")
+    low.set_ylabel("deposit thickness (m, at release density)")
+    low.legend(fontsize=8)
+    _save(fig, plot_dir, "avalanche_obstacle.png", 110)
+
+
 STUDIES = {"bagnold": bagnold, "bagnold-from-rest": bagnold_from_rest, "convergence": convergence,
            "aspect-ratio": aspect_ratio, "cohesion": cohesion, "speed-accuracy": speed_accuracy, "stability": stability,
-           "resolution": fidelity.resolution, "cross-code": fidelity.cross_code}
+           "resolution": fidelity.resolution, "cross-code": fidelity.cross_code, "avalanche": avalanche}
 
 
 def run_study(name: str, quick: bool = False, plot_dir=None, alpha: float | None = None, **options) -> dict:

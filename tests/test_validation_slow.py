@@ -52,3 +52,18 @@ def test_bagnold_velocity_profile_within_3_percent(bagnold, slope):
     profile is off by 11-23 % (docs/validation.md)."""
     case = next(c for c in bagnold["cases"] if c["slope_deg"] == slope)
     assert case["profile_rel_error"] < 0.03, case
+
+
+def test_avalanche_study_quick():
+    """``validate avalanche --quick`` (docs/avalanche.md, about 4 minutes): every run is clean; the
+    runout moves by under 1 % of the travel from dx = 2 to 1 m; the obstacle stops the snow
+    short of the open path's runout and carries a force; the default dry snow keeps its volume
+    (median J within 0.8–1.5), which without hardening (ξ = 0) it does not."""
+    out = run_study("avalanche", quick=True)
+    runs = {r["case"]: r for r in out["runs"]}
+    assert all(r["status"] == 0 for r in runs.values()), runs
+    assert out["runout_change_finest_pair"] < 0.01
+    open_path, obstacle = runs["dry, dx = 2 m"], runs["dry, 5 m obstacle at x = 3800 m"]
+    assert obstacle["runout_x"] < open_path["runout_x"] and obstacle["obstacle_force_max_kn_per_m"] > 0
+    assert 0.8 < open_path["volume_ratio_percentiles"]["p50"] < 1.5
+    assert runs["dry, xi = 0 (no hardening)"]["volume_ratio_percentiles"]["p50"] > 1.5
