@@ -1,7 +1,7 @@
 """The NUTS posterior (issue 11) of the S4 twin's (β, μ1) and of S7's μ1, checked against the
 quadrature of ``grid_posterior`` on the same target, with diagnostics and posterior predictives.
 
-    python docs/scripts/nuts_posterior.py [s4|s7|both]      (needs the [bayes] extra)
+    python docs/scripts/nuts_posterior.py [s4|s7|both] [--draws N] [--warmup W]   (needs [bayes])
 
 Resolutions cheap enough to sample on two CPU cores: S4 at dx = L/6 (the twin of
 ``beyond_gauss_newton.py``: truth β = 0.25, μ1 = 0.38, final profile, 2 % noise), S7 at dx = H/6
@@ -10,11 +10,11 @@ posterior predictive). Writes docs/results/nuts_{s4,s7}.json and docs/figures/{s
 {s4_twin,s7}_predictive.png; the posterior objects are pickled to $NUTS_PICKLE_DIR when set.
 """
 
+import argparse
 import json
 import os
 import pathlib
 import pickle
-import sys
 import time
 
 import numpy as np
@@ -29,6 +29,7 @@ from jaxmpm.scenes import aluminium_bars
 ROOT = pathlib.Path(__file__).resolve().parents[2]
 RESULTS, FIGURES = ROOT / "docs" / "results", ROOT / "docs" / "figures"
 CHAINS = 4
+SETTINGS = {"s4": {"warmup": 25, "draws": 60}, "s7": {"warmup": 20, "draws": 50}}
 
 
 def _finish(name, label, objective, result, grid, nuts, predictive_objective, extra):
@@ -58,7 +59,7 @@ def s4():
     t0 = time.perf_counter()
     result = fit(objective, dict(zip(keys, 0.9 * truth)), steps=25, noise=0.02)
     grid = grid_posterior(objective, result, n=15)
-    nuts = nuts_posterior(objective, result, chains=CHAINS, warmup=25, draws=60, progress=True)
+    nuts = nuts_posterior(objective, result, chains=CHAINS, progress=True, **SETTINGS["s4"])
     extra = {"truth": dict(zip(keys, truth.tolist())), "dx": scene.config.grid.dx, "noise": 0.02,
              "predictive_title": "S4 twin (dx = L/6): 40 NUTS draws against the noisy final profile",
              "wall_s": round(time.perf_counter() - t0, 1)}
@@ -74,7 +75,7 @@ def s7():
     t0 = time.perf_counter()
     result = fit(objective, {"mu1": 0.36}, steps=15)
     grid = grid_posterior(objective, result, n=41)
-    nuts = nuts_posterior(objective, result, chains=CHAINS, warmup=20, draws=50, progress=True)
+    nuts = nuts_posterior(objective, result, chains=CHAINS, progress=True, **SETTINGS["s7"])
     extra = {"dx": scene.config.grid.dx, "fitted_points": int(fitted.sum()), "split_x": 0.2,
              "friction_angle_deg": {"mean": float(np.degrees(np.arctan(nuts.mean["mu1"]))),
                                     "ci95": [float(np.degrees(np.arctan(v))) for v in nuts.ci95["mu1"]]},
@@ -84,7 +85,14 @@ def s7():
 
 
 if __name__ == "__main__":
-    which = sys.argv[1] if len(sys.argv) > 1 else "both"
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("which", nargs="?", default="both", choices=("s4", "s7", "both"))
+    parser.add_argument("--draws", type=int, help="draws kept per chain (default: s4 60, s7 50)")
+    parser.add_argument("--warmup", type=int, help="step-size adaptation steps per chain (default: s4 25, s7 20)")
+    args = parser.parse_args()
+    for name in SETTINGS:
+        SETTINGS[name].update({k: v for k, v in (("draws", args.draws), ("warmup", args.warmup)) if v is not None})
+    which = args.which
     if which in ("s7", "both"):
         s7()
     if which in ("s4", "both"):
