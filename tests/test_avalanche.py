@@ -139,7 +139,7 @@ def test_smooth_runout_of_a_known_layer():
     −40 to −20 m: the smoothed thickness is 1 m · ½ erfc((s − 100)/(w√2)) near the front; the
     smooth runout equals its definition on that exact thickness (quadrature), lies within w/5 of
     where it falls to 0.1 m (s = 100 + 1.2816 w), does not see the gap, a stray particle of
-    1/40,000 of the snow 50 m ahead moves it by under 10 cm, and moving every particle by δ moves it by δ (d runout/d
+    1/10,000 of the snow 50 m ahead moves it by under 0.5 m, and moving every particle by δ moves it by δ (d runout/d
     shift = 1, to the sum's discretisation, by forward and reverse mode alike)."""
     import jax
     import jax.numpy as jnp
@@ -147,7 +147,7 @@ def test_smooth_runout_of_a_known_layer():
     from jaxmpm.avalanche import smooth_runout
 
     terrain = jm.Terrain((-50.0, 300.0), (0.0, 0.0))
-    spacing = 0.05
+    spacing = 0.1
     X, Z = np.meshgrid(np.arange(0.5 * spacing, 100.0, spacing), np.arange(0.5 * spacing, 1.0, spacing))
     x = jnp.asarray(np.stack([X.ravel(), Z.ravel()], -1))
     vol = jnp.full(x.shape[0], spacing * spacing)
@@ -164,11 +164,11 @@ def test_smooth_runout_of_a_known_layer():
     assert abs(r - (s[0] + width + np.trapezoid(1.0 - np.exp(-beyond / width), s))) < 0.01, r
     assert abs(r - (100.0 + 1.2816 * width)) < 0.2 * width  # near the crossing h = 0.1 m
     gap = jnp.concatenate([x, x[(x[:, 0] < 20.0)] - jnp.array([60.0, 0.0])])
-    wide = np.arange(-60.0, 200.0, 0.25)
+    wide = np.arange(-50.0, 200.0, 0.25)
     assert abs(float(smooth_runout(gap, jnp.full(gap.shape[0], spacing**2), terrain, wide)) - r) < 1e-6
     stray = jnp.concatenate([x, jnp.array([[150.0, 0.5]])])
-    # its g (about 2e-3 m of "thick" ground) lifts 1 − exp(−C/w) by 2e-3 over the 50 m between: 9 cm
-    assert abs(float(smooth_runout(stray, jnp.append(vol, spacing**2), terrain, xs)) - r) < 0.1
+    # its g (about 8e-3 m of "thick" ground) lifts 1 − exp(−C/w) by 8e-3 over the 50 m between: 0.38 m
+    assert abs(float(smooth_runout(stray, jnp.append(vol, spacing**2), terrain, xs)) - r) < 0.5
 
     def shifted(delta):
         return smooth_runout(x + jnp.array([delta, 0.0]), vol, terrain, xs)
