@@ -69,6 +69,7 @@ def test_nuts_recovers_a_gaussian_posterior_from_a_wrong_preconditioner():
     assert out["converged"] == post.converged and set(out["rhat"]) == set(objective.keys)
 
 
+@pytest.mark.slow  # 24 s; the linear-Gaussian posterior and the gradient checks stay in the default suite
 def test_nuts_samples_a_posterior_cut_by_a_bound():
     """θ ∈ (0, 1), the likelihood N(0.05, 0.1²): the posterior is that normal truncated at 0, whose
     mean (0.115) is far from the likelihood's peak. Sampled in z = logit θ, only the log-Jacobian
@@ -132,6 +133,7 @@ def test_log_density_gradient_matches_finite_differences():
     np.testing.assert_allclose(g_failed, np.asarray(L).T @ (1 - 2 * s), rtol=1e-10)  # the log-Jacobian's alone
 
 
+@pytest.mark.slow  # 16 s; the custom-VJP gradient with a failed run stays in the default suite
 def test_one_chain_prints_no_nan():
     """R-hat needs two chains: with one it is null in the JSON, never NaN, and not converged."""
     objective = LinearObjective(np.ones((2, 1)), np.full(2, 0.5), lower=(0.0,), upper=(1.0,))

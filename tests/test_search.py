@@ -66,6 +66,7 @@ def test_the_search_finds_the_truth_of_a_twin_from_no_start(found):
     assert out["verdict"]["verdict"] == "a fit of the data" and "ci95" in out
 
 
+@pytest.mark.slow  # 14 s; the search finding a twin's truth stays in the default suite
 def test_a_batch_of_starts_takes_the_steps_of_single_fits(found, objective):
     """The batch shares calibration.lm with fit(): each start's iterates equal a single fit's."""
     for i in (0, 1):
@@ -222,6 +223,7 @@ def test_coarse_to_fine_refines_the_coarse_minima_and_finds_the_truth(objective)
         coarse_to_fine(objective, Objective(coarse.scene, ("mu1",), profile=coarse.profiles[0]), K)
 
 
+@pytest.mark.slow  # 17 s; the search finding a twin's truth stays in the default suite
 def test_the_runs_round_off_verifies_a_stopped_minimum_and_widens_its_interval(found, objective):
     """model_scatter: perturbed runs (relative 1e-6) near a float32 twin's minimum show the run's
     own scatter; an optimiser stopped there (no convergence test met) is verified by it, a point

@@ -192,6 +192,7 @@ print(json.dumps({{"n_devices_seen": len(jax.devices()), **result.to_json()}}))
 """
 
 
+@pytest.mark.slow  # 16 s; vmap against loop stays in the default suite
 def test_sharded_over_four_cpu_devices_matches_loop(tmp_path, looped):
     script = tmp_path / "shard.py"
     script.write_text(textwrap.dedent(SHARD_SCRIPT.format(tests=str(pathlib.Path(__file__).parent))))
