@@ -83,6 +83,28 @@ def _apex_increment(p_tr, pc_n, params, K, iterations):
     return jax.lax.fori_loop(0, iterations, body, eps)
 
 
+def _tip_increments(p_tr, pc_n, params, K, iterations):
+    """ε at the compression tip p = p_c and at the tension tip p = -β p_c of the updated ellipse,
+    t(ε) = p_tr + Kε ∓ s p_c,n e^{-ξε} = 0 (s = 1, β), by Newton from the root with p_c frozen.
+
+    The return of a trial state far beyond a tip ends near that tip, and Newton on g(ε) from the
+    trial state or the bracket's middle only halves the distance per step out there (g is
+    quadratic in p): started from the tip it converges at once. t is monotone (K > ξ β p_c
+    wherever a step is stable) and convex or concave, so Newton converges from one side."""
+
+    def solve(sign):
+        scale = jnp.where(sign > 0, 1.0, params.beta) * pc_n  # the tip's p_c factor: 1 or -β
+
+        def body(_, eps):
+            pc = scale * jnp.exp(-params.xi * eps)
+            t, slope = p_tr + K * eps - sign * pc, K + sign * params.xi * pc
+            return eps - safe_div(t, slope, fill=0.0)
+
+        return jax.lax.fori_loop(0, iterations, body, (sign * scale - p_tr) / K)
+
+    return solve(1.0), solve(-1.0)
+
+
 def _surface_residual(eps, p_tr, q_tr, pc_n, params, K, G):
     """g(ε) = y(p(ε), q(ε), p_c(ε)) along the return path."""
     p = p_tr + K * eps
@@ -150,16 +172,21 @@ def return_invariants(p_tr, q_tr, eps_v_p, params, dt, dim, iterations=12):
     zero = jnp.zeros_like(p_tr)
 
     # --- regular (cap or shear side) return: root of g(ε) between the trial state (g > 0) and
-    # the apex of the updated ellipse (g < 0). Newton starts at the trial state or at the middle
-    # of the bracket, whichever has the smaller residual (a barely plastic state starts at the
-    # trial state and converges quadratically); bisection takes over when a step leaves the
-    # bracket.
+    # the apex of the updated ellipse (g < 0). Newton starts at the trial state, the middle of
+    # the bracket or the nearer tip (compression or tension), whichever has the smallest residual
+    # (a barely plastic state starts at the trial state and converges quadratically, one far
+    # beyond a tip at the tip); bisection takes over when a step leaves the bracket.
     # The apex solve is a monotone Newton iteration (quadratic convergence from the first step):
     # half the iterations suffice.
     eps_apex = _apex_increment(p_s, pc_s, params_s, K_s, max(3, iterations // 2))
     residual_s = lambda e: _surface_residual(e, p_s, q_s, pc_s, params_s, K_s, G_s)  # noqa: E731
-    middle = 0.5 * eps_apex
-    start = jnp.where(jnp.abs(residual_s(zero)) <= jnp.abs(residual_s(middle)), zero, middle)
+    lo, hi = jnp.minimum(eps_apex, zero), jnp.maximum(eps_apex, zero)
+    start, best = zero, jnp.abs(residual_s(zero))
+    for candidate in (0.5 * eps_apex, *_tip_increments(p_s, pc_s, params_s, K_s, 3)):
+        candidate = jnp.clip(candidate, lo, hi)  # a start inside the bracket (NaN-free: t's slope is > 0)
+        g = jnp.abs(residual_s(candidate))
+        better = g < best  # False for NaN: a candidate that failed is never taken
+        start, best = jnp.where(better, candidate, start), jnp.where(better, g, best)
     eps_root = _safeguarded_newton(residual_s, eps_apex, zero, start, iterations)
     eps_reg = _implicit_step(
         lambda e: _surface_residual(e, p_tr, q_tr, pc_n, params, K, G), eps_root, jnp.abs(eps_apex)
