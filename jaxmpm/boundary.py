@@ -258,34 +258,38 @@ def apply_walls(walls, v, node_x, t, dt, params=None, mass=None):
     grid velocities, and this is the momentum they remove)."""
     impulses = []
     for wall in walls:
-        before = v
-        dtype = v.dtype
         friction = wall.friction
         if isinstance(friction, str):
             if params is None:
                 raise ValueError(f"{type(wall).__name__} friction 'mu_w' needs the parameters (params=None)")
-            friction = jnp.asarray(params.mu_w, dtype)
-        if isinstance(wall, Terrain):
-            signed, normal = wall.signed_distance(node_x + dt * v)
-            contact = signed <= 0
-            if math.isfinite(wall.thickness):
-                contact &= signed > -wall.thickness
-            v = jnp.where(contact, _contact_velocity(wall, v, normal, friction), v)
-            impulses.append(None if mass is None else jnp.sum(mass * (before - v), axis=1))
-            continue
-        normal = jnp.asarray(wall.normal, dtype)[:, None]
-        wall_v = jnp.asarray(wall.velocity, dtype)[:, None]
-        point = jnp.asarray(wall.point, dtype)[:, None] + (t * wall_v if wall.moving else 0.0)
-        signed = jnp.sum((node_x + dt * v - point) * normal, axis=0)
-        contact = signed <= 0
-        if math.isfinite(wall.thickness):
-            contact &= signed > -wall.thickness
-        if wall.edge is not None:
-            edge = jnp.asarray(wall.edge, dtype)[:, None]
-            contact &= jnp.sum((node_x - point) * edge, axis=0) >= 0
-        v = jnp.where(contact, _contact_velocity(wall, v - wall_v, normal, friction) + wall_v, v)
-        impulses.append(None if mass is None else jnp.sum(mass * (before - v), axis=1))
+            friction = jnp.asarray(params.mu_w, v.dtype)
+        after = _apply_wall(wall, v, node_x, t, dt, friction)
+        if mass is not None:
+            impulses.append(jnp.sum(mass * (v - after), axis=1))
+        v = after
     if mass is None:
         return v
     impulse = jnp.stack(impulses) if impulses else jnp.zeros((0, v.shape[0]), v.dtype)
     return v, impulse
+
+
+def _apply_wall(wall, v, node_x, t, dt, friction):
+    """The grid velocities (dim, n_nodes) after one wall's or terrain's contact rule."""
+    if isinstance(wall, Terrain):
+        signed, normal = wall.signed_distance(node_x + dt * v)
+        contact = signed <= 0
+        if math.isfinite(wall.thickness):
+            contact &= signed > -wall.thickness
+        return jnp.where(contact, _contact_velocity(wall, v, normal, friction), v)
+    dtype = v.dtype
+    normal = jnp.asarray(wall.normal, dtype)[:, None]
+    wall_v = jnp.asarray(wall.velocity, dtype)[:, None]
+    point = jnp.asarray(wall.point, dtype)[:, None] + (t * wall_v if wall.moving else 0.0)
+    signed = jnp.sum((node_x + dt * v - point) * normal, axis=0)
+    contact = signed <= 0
+    if math.isfinite(wall.thickness):
+        contact &= signed > -wall.thickness
+    if wall.edge is not None:
+        edge = jnp.asarray(wall.edge, dtype)[:, None]
+        contact &= jnp.sum((node_x - point) * edge, axis=0) >= 0
+    return jnp.where(contact, _contact_velocity(wall, v - wall_v, normal, friction) + wall_v, v)
