@@ -1,6 +1,16 @@
-"""Tests run in float64 with strict dtype promotion, set here and never at import time."""
+"""Tests run in float64 with strict dtype promotion, set here and never at import time.
 
-import jax
+The suite runs in pytest-xdist workers (``-n auto --dist loadfile`` in pyproject.toml: a file's
+tests, and its module fixtures, stay in one worker), each on a single-threaded XLA unless
+XLA_FLAGS says otherwise: the test problems are small, and on two cores one single-threaded
+process per core does more work than processes that each spread over both (a 1.1 s Jacobian of
+S7 at H/6 takes 1.7 s on XLA's default thread pool)."""
+
+import os
+
+os.environ.setdefault("XLA_FLAGS", "--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1")
+
+import jax  # noqa: E402  (after XLA_FLAGS, which the backend reads when it starts)
 import pytest
 
 jax.config.update("jax_enable_x64", True)
