@@ -24,6 +24,12 @@ How it samples (the choices, and why):
   ``target_accept``), per chain, from dispersed starts w ~ N(0, ``spread``² I); the mass matrix
   stays the identity of the whitened coordinates (adapting it from a few hundred draws would
   add noise, not information, where the Gauss–Newton covariance already scales the problem).
+- **Longer chains, not new ones.** ``resume=`` goes on with stored chains (``to_json`` and
+  ``McmcPosterior.from_json``) from their last draws, with their step sizes and no new warm-up:
+  a run that has not reached R̂ < 1.01 is made longer, and its diagnostics are those of the
+  whole chains. The new segment's random keys fold in its length so far and each chain's number,
+  so chains taken apart (``take``) and resumed in separate processes draw exactly what they
+  would have drawn together, and ``join`` gives the one posterior back.
 - **Diagnostics.** Rank-normalised split R̂, bulk and tail effective sample sizes (Vehtari et al.
   2021, blackjax's, the same estimators as ArviZ's defaults), the number of divergent
   transitions, the mean acceptance and the mean number of leapfrog steps (each one run's
@@ -52,6 +58,9 @@ from .uncertainty import NOISE_FLOOR
 
 __all__ = ["McmcPosterior", "nuts_posterior", "posterior_predictive"]
 
+#: The fields ``_summary`` computes, in its order.
+_SUMMARY = ("mean", "sd", "ci95", "rhat", "ess_bulk", "ess_tail")
+
 #: R̂ and bulk-ESS thresholds of Vehtari et al. (2021) for a posterior to be reported as converged.
 RHAT_MAX, ESS_MIN = 1.01, 100.0
 
@@ -72,7 +81,10 @@ class McmcPosterior:
     point ``theta_hat`` and Gauss–Newton standard error. Per chain: the adapted ``step_size``
     (in the whitened coordinates, where 1 is the scale of the Gauss–Newton posterior), the
     ``divergences``, the mean ``acceptance`` and the mean leapfrog ``steps`` per draw;
-    ``gradient_evaluations`` counts the runs' Jacobians, warm-up included."""
+    ``gradient_evaluations`` counts the runs' Jacobians, warm-up included. ``gn_cov``: the
+    Gauss–Newton covariance that whitened the chains (None where an old record lacks it);
+    ``segments``: (seed, draws per chain) of the first run and of every ``resume`` after it;
+    ``chain_ids``: each chain's number in its run (``take`` and ``join`` keep them)."""
 
     keys: tuple[str, ...]
     draws: np.ndarray
@@ -94,6 +106,53 @@ class McmcPosterior:
     noise: dict[str, float]
     seed: int
     wall_s: float
+    gn_cov: np.ndarray | None = None
+    segments: tuple[tuple[int, int], ...] = ()
+    chain_ids: tuple[int, ...] = ()
+
+    @property
+    def ids(self) -> tuple[int, ...]:
+        """Each chain's number in the run it belongs to (0, 1, ... unless ``take`` chose some)."""
+        return self.chain_ids or tuple(range(self.draws.shape[0]))
+
+    def take(self, chains) -> McmcPosterior:
+        """The posterior of the chains at positions ``chains`` only (to resume them apart, in
+        another process, and ``join`` them again); diagnostics of those chains."""
+        idx = [int(c) for c in chains]
+        if not idx or any(not 0 <= c < self.chains for c in idx) or len(set(idx)) != len(idx):
+            raise ValueError(f"chains must be distinct positions in range({self.chains}), got {list(chains)!r}")
+        pick = lambda values: tuple(values[c] for c in idx)  # noqa: E731
+        draws = self.draws[idx]
+        return dataclasses.replace(
+            self, draws=draws, log_density=self.log_density[idx], **dict(zip(_SUMMARY, _summary(self.keys, draws))),
+            step_size=pick(self.step_size), divergences=pick(self.divergences), acceptance=pick(self.acceptance),
+            steps=pick(self.steps), chain_ids=pick(self.ids),
+            gradient_evaluations=round(self.gradient_evaluations * len(idx) / self.chains))
+
+    @classmethod
+    def join(cls, parts) -> McmcPosterior:
+        """One posterior of the chains of ``parts`` (posteriors of one fit and target, with the
+        same segments, from ``take`` and a resume each), ordered by chain number; diagnostics of
+        the whole. Wall time is the longest part's (they ran side by side)."""
+        parts = sorted(parts, key=lambda part: part.ids[0])
+        first = parts[0]
+        for part in parts[1:]:
+            same = (part.keys == first.keys and part.segments == first.segments and part.warmup == first.warmup
+                    and part.noise == first.noise and part.theta_hat == first.theta_hat
+                    and part.draws.shape[1:] == first.draws.shape[1:])
+            if not same:
+                raise ValueError("parts: every part must sample the same keys, fit and noise with the same segments")
+        ids = sum((part.ids for part in parts), ())
+        if len(set(ids)) != len(ids):
+            raise ValueError(f"parts: a chain is in more than one part ({list(ids)})")
+        draws = np.concatenate([part.draws for part in parts])
+        cat = lambda name: sum((tuple(getattr(part, name)) for part in parts), ())  # noqa: E731
+        return dataclasses.replace(
+            first, draws=draws, log_density=np.concatenate([part.log_density for part in parts]),
+            **dict(zip(_SUMMARY, _summary(first.keys, draws))), step_size=cat("step_size"),
+            divergences=cat("divergences"), acceptance=cat("acceptance"), steps=cat("steps"), chain_ids=ids,
+            gradient_evaluations=sum(part.gradient_evaluations for part in parts),
+            wall_s=max(part.wall_s for part in parts))
 
     @property
     def chains(self) -> int:
@@ -115,15 +174,46 @@ class McmcPosterior:
                 "prior": "flat inside the bounds", "chains": self.chains, "warmup": self.warmup,
                 "draws_per_chain": int(self.draws.shape[1]), "seed": self.seed,
                 "mean": self.mean, "sd": self.sd, "ci95": {k: list(v) for k, v in self.ci95.items()},
-                # R-hat needs two chains: null (not NaN) for one
-                "rhat": {k: v if math.isfinite(v) else None for k, v in self.rhat.items()},
-                "ess_bulk": self.ess_bulk, "ess_tail": self.ess_tail,
+                # R-hat needs two chains, the ESS four draws a chain: null (not NaN) without
+                "rhat": _nulls(self.rhat), "ess_bulk": _nulls(self.ess_bulk), "ess_tail": _nulls(self.ess_tail),
                 "converged": self.converged, "theta_hat": self.theta_hat, "gauss_newton_stderr": self.gn_stderr,
                 "sd_over_gauss_newton": {k: self.sd[k] / self.gn_stderr[k] for k in self.keys},
                 "step_size": list(self.step_size), "divergences": list(self.divergences),
                 "acceptance": list(self.acceptance), "leapfrog_steps_per_draw": list(self.steps),
                 "gradient_evaluations": self.gradient_evaluations, "noise": self.noise, "wall_s": round(self.wall_s, 2),
-                "draws": {k: self.draws[..., j].tolist() for j, k in enumerate(self.keys)}}
+                "gauss_newton_cov": None if self.gn_cov is None else np.asarray(self.gn_cov).tolist(),
+                "segments": [list(seg) for seg in self.segments], "chain_ids": list(self.ids),
+                "draws": {k: self.draws[..., j].tolist() for j, k in enumerate(self.keys)},
+                "log_density": None if not np.all(np.isfinite(self.log_density)) else self.log_density.tolist()}
+
+    @classmethod
+    def from_json(cls, record: Mapping[str, Any]) -> McmcPosterior:
+        """The posterior back from ``to_json`` (so that ``nuts_posterior(..., resume=)`` can extend
+        a stored run). A record written before the fields existed has no log densities (NaN here),
+        no covariance (None: a resume then checks the standard errors only) and one segment."""
+        keys = tuple(record["keys"])
+        draws = np.stack([np.asarray(record["draws"][k], float) for k in keys], axis=-1)
+        if draws.ndim != 3:
+            raise ValueError(f"record: draws must be (chains, n) per key, got shape {draws.shape[:-1]}")
+        logp = record.get("log_density")
+        logp = np.full(draws.shape[:2], np.nan) if logp is None else np.asarray(logp, float)
+        nans = lambda d: {k: float("nan") if v is None else float(v) for k, v in d.items()}  # noqa: E731
+        rhat = nans(record["rhat"])
+        cov = record.get("gauss_newton_cov")
+        segments = tuple(tuple(int(v) for v in seg) for seg in record.get("segments") or
+                         [(record["seed"], draws.shape[1])])
+        return cls(keys, draws, logp, dict(record["mean"]), dict(record["sd"]),
+                   {k: tuple(v) for k, v in record["ci95"].items()}, rhat, nans(record["ess_bulk"]),
+                   nans(record["ess_tail"]), dict(record["theta_hat"]), dict(record["gauss_newton_stderr"]),
+                   tuple(record["step_size"]), tuple(int(v) for v in record["divergences"]),
+                   tuple(record["acceptance"]), tuple(record["leapfrog_steps_per_draw"]),
+                   int(record["gradient_evaluations"]), int(record["warmup"]), dict(record["noise"]),
+                   int(record["seed"]), float(record["wall_s"]), None if cov is None else np.asarray(cov, float),
+                   segments, tuple(int(c) for c in record.get("chain_ids") or range(draws.shape[0])))
+
+
+def _nulls(values: Mapping[str, float]) -> dict[str, float | None]:
+    return {k: v if math.isfinite(v) else None for k, v in values.items()}
 
 
 def _row_weights(objective, sigma: Mapping[str, float]) -> np.ndarray:
@@ -179,15 +269,34 @@ def _log_density_fn(objective, weights, z_hat, L, lower, upper):
     return log_density, theta_of
 
 
-def nuts_posterior(objective, fit_result, *, chains: int = 4, warmup: int = 100, draws: int = 200, seed: int = 0,
-                   noise: Mapping[str, float] | float | None = None, target_accept: float = 0.8,
-                   max_doublings: int = 6, spread: float = 1.0, progress: bool = False) -> McmcPosterior:
+def nuts_posterior(objective, fit_result, *, chains: int | None = None, warmup: int | None = None,
+                   draws: int = 200, seed: int = 0, noise: Mapping[str, float] | float | None = None,
+                   target_accept: float = 0.8, max_doublings: int = 6, spread: float = 1.0,
+                   resume: McmcPosterior | None = None, progress: bool = False) -> McmcPosterior:
     """NUTS draws of ``objective``'s keys around ``fit_result`` (which must carry a Gauss–Newton
-    covariance: the sampler's preconditioner, see the module docstring). ``chains`` run one after
-    the other (on the CPU a vmapped batch of runs costs more than the runs in turn), each with
-    ``warmup`` step-size adaptation steps, then ``draws`` kept; ``noise``: σ by block (default: the
-    fit's); ``max_doublings``: the tree depth limit (2^depth leapfrog steps at most per draw)."""
+    covariance: the sampler's preconditioner, see the module docstring). ``chains`` (default 4)
+    run one after the other (on the CPU a vmapped batch of runs costs more than the runs in
+    turn), each with ``warmup`` (default 100) step-size adaptation steps, then ``draws`` kept;
+    ``noise``: σ by block (default: the fit's); ``max_doublings``: the tree depth limit (2^depth
+    leapfrog steps at most per draw).
+
+    ``resume``: a posterior of the same objective, fit and noise (its own ``to_json`` record
+    through ``McmcPosterior.from_json`` will do) whose chains go on for ``draws`` more each, from
+    their last draws with their adapted step sizes and no new warm-up, on random keys that
+    ``seed`` and the draws so far fold in. The result holds every draw, and its diagnostics are
+    those of the whole chains: a chain that has not converged is made longer, not restarted."""
     blackjax = _blackjax()
+    if resume is not None:
+        if not isinstance(resume, McmcPosterior):
+            raise ValueError(f"resume must be a McmcPosterior (McmcPosterior.from_json of a record), got "
+                             f"{type(resume).__name__}")
+        if warmup is not None:
+            raise ValueError("warmup: a resumed chain keeps its adapted step size and runs no warm-up; pass none")
+        if chains is not None and chains != resume.chains:
+            raise ValueError(f"chains: resume holds {resume.chains} chains, got chains={chains!r}")
+        chains, warmup = resume.chains, resume.warmup
+    chains = 4 if chains is None else chains
+    warmup = 100 if warmup is None else warmup
     for name, value, least in (("chains", chains, 1), ("warmup", warmup, 1), ("draws", draws, 4),
                                ("max_doublings", max_doublings, 1)):
         if not isinstance(value, (int, np.integer)) or isinstance(value, bool) or value < least:
@@ -204,6 +313,8 @@ def nuts_posterior(objective, fit_result, *, chains: int = 4, warmup: int = 100,
         raise ValueError("fit_result: no Gauss-Newton covariance (not a fit of the data, or fitted without "
                          "uncertainty); the sampler needs one to precondition the chains")
     sigma = _sigma(objective, fit_result, noise)
+    if resume is not None:
+        _check_resume(resume, keys, fit_result, sigma)
     clock = time.perf_counter()
     # The chains' precision: JAX's default float (float64 where x64 is on, even for a float32 run,
     # whose residuals are cast: blackjax's own arrays follow the default and must not mix).
@@ -247,39 +358,56 @@ def nuts_posterior(objective, fit_result, *, chains: int = 4, warmup: int = 100,
 
     init = jax.jit(init_fn)
     rng = np.random.default_rng(seed)
-    keys_all = jax.random.split(jax.random.key(seed), chains)
+    key = jax.random.key(seed)
+    chain_ids = tuple(range(chains)) if resume is None else resume.ids
+    if resume is None:
+        keys_all = jax.random.split(key, chains)
+    else:  # new keys for the new segment, one per chain by its number: the same whether a part's
+        # chains go on in one process or in several (``McmcPosterior.take`` and ``join``)
+        key = jax.random.fold_in(key, resume.draws.shape[1])
+        keys_all = [jax.random.fold_in(key, i) for i in chain_ids]
+        lasts = _whitened(resume.draws[:, -1, :], z_hat, L, lower_np, upper_np)
+    n_warm = 0 if resume is not None else warmup
     out_draws, out_logp, sizes, divs, accs, steps_mean = [], [], [], [], [], []
     evaluations = 0
     for c in range(chains):
-        for _ in range(20):  # a start whose run fails or breaks the support is drawn again
-            state = init(as_dtype(spread * rng.standard_normal(k)))
+        if resume is not None:
+            state = init(as_dtype(lasts[c]))
             evaluations += 1
-            if np.isfinite(float(state.logdensity)):
-                break
+            if not np.isfinite(float(state.logdensity)):
+                raise RuntimeError(f"resume: chain {c}'s last draw has no finite log density here: "
+                                   "not the objective it was drawn from")
+            size_final = as_dtype(resume.step_size[c])
         else:
-            raise RuntimeError(f"nuts_posterior: chain {c}: 20 starts around the fit all failed or lay "
-                               "outside the prior's support")
+            for _ in range(20):  # a start whose run fails or breaks the support is drawn again
+                state = init(as_dtype(spread * rng.standard_normal(k)))
+                evaluations += 1
+                if np.isfinite(float(state.logdensity)):
+                    break
+            else:
+                raise RuntimeError(f"nuts_posterior: chain {c}: 20 starts around the fit all failed or lay "
+                                   "outside the prior's support")
         da = da_init(1.0)
-        chain_keys = jax.random.split(keys_all[c], warmup + draws)
+        chain_keys = jax.random.split(keys_all[c], n_warm + draws)
         kept, logp, acc, div, nsteps = [], [], [], [], []
-        for i in range(warmup + draws):
-            if i < warmup:
+        for i in range(n_warm + draws):
+            if i < n_warm:
                 state, da, (a, d, n) = warmup_step(state, da, chain_keys[i])
-                if i == warmup - 1:
+                if i == n_warm - 1:
                     size_final = as_dtype(jnp.exp(da.log_step_size_avg))
             else:
                 state, (a, d, n) = step(state, chain_keys[i], size_final)
             evaluations += int(n)
-            if i >= warmup:
+            if i >= n_warm:
                 kept.append(np.asarray(state.position, float))
                 logp.append(float(state.logdensity))
                 acc.append(float(a))
                 div.append(bool(d))
                 nsteps.append(int(n))
-            if progress and (i + 1) % max(1, (warmup + draws) // 10) == 0:
-                size = jnp.exp(da.log_step_size) if i < warmup else size_final
-                print(f"nuts: chain {c + 1}/{chains}, {'warm-up' if i < warmup else 'sampling'} "
-                      f"{i + 1}/{warmup + draws}, step {float(size):.3g}, {time.perf_counter() - clock:.0f} s",
+            if progress and (i + 1) % max(1, (n_warm + draws) // 10) == 0:
+                size = jnp.exp(da.log_step_size) if i < n_warm else size_final
+                print(f"nuts: chain {c + 1}/{chains}, {'warm-up' if i < n_warm else 'sampling'} "
+                      f"{i + 1}/{n_warm + draws}, step {float(size):.3g}, {time.perf_counter() - clock:.0f} s",
                       file=sys.stderr, flush=True)
         w = np.stack(kept)
         out_draws.append(np.asarray(jax.vmap(theta_of)(as_dtype(w)), float))
@@ -288,8 +416,30 @@ def nuts_posterior(objective, fit_result, *, chains: int = 4, warmup: int = 100,
         divs.append(int(np.sum(div)))
         accs.append(float(np.mean(acc)))
         steps_mean.append(float(np.mean(nsteps)))
-    samples = np.stack(out_draws)  # (chains, n, k)
-    flat = samples.reshape(-1, k)
+    samples, log_dens = np.stack(out_draws), np.stack(out_logp)  # (chains, n, k), (chains, n)
+    wall, segments = time.perf_counter() - clock, ((int(seed), int(draws)),)
+    if resume is not None:  # the whole chains: per-draw means weighted by the segments' lengths
+        n0 = resume.draws.shape[1]
+        weigh = lambda old, new: tuple((n0 * a + draws * b) / (n0 + draws) for a, b in zip(old, new))  # noqa: E731
+        accs, steps_mean = weigh(resume.acceptance, accs), weigh(resume.steps, steps_mean)
+        divs = [a + b for a, b in zip(resume.divergences, divs)]
+        samples = np.concatenate([resume.draws, samples], axis=1)
+        log_dens = np.concatenate([resume.log_density, log_dens], axis=1)
+        evaluations += resume.gradient_evaluations
+        wall += resume.wall_s
+        segments = tuple(resume.segments) + segments
+    return McmcPosterior(keys, samples, log_dens, *_summary(keys, samples),
+                         dict(zip(keys, theta_hat.tolist())), dict(zip(keys, np.asarray(unc.stderr, float).tolist())),
+                         tuple(sizes), tuple(divs), tuple(accs), tuple(steps_mean), evaluations, warmup,
+                         {key: float(v) for key, v in sigma.items()}, int(segments[0][0]), wall,
+                         np.asarray(unc.cov, float), segments, chain_ids)
+
+
+def _summary(keys, samples):
+    """By key: mean, sd, 95 % interval, R̂ (NaN for one chain), bulk and tail ESS (NaN below four
+    draws a chain) of draws (chains, n, k)."""
+    blackjax = _blackjax()
+    flat = samples.reshape(-1, len(keys))
     mean = {key: float(flat[:, j].mean()) for j, key in enumerate(keys)}
     sd = {key: float(flat[:, j].std(ddof=1)) for j, key in enumerate(keys)}
     ci = {key: (float(np.quantile(flat[:, j], 0.025)), float(np.quantile(flat[:, j], 0.975)))
@@ -298,14 +448,48 @@ def nuts_posterior(objective, fit_result, *, chains: int = 4, warmup: int = 100,
     rhat, ess_b, ess_t = {}, {}, {}
     for j, key in enumerate(keys):
         x = jnp.asarray(samples[..., j])
+        rhat[key] = ess_b[key] = ess_t[key] = float("nan")
+        if samples.shape[1] < 4:  # the split-chain estimators need two draws per half
+            continue
         with jax.numpy_dtype_promotion("standard"):  # blackjax's estimators mix int and float
-            rhat[key] = float(diag.rhat(x)) if chains > 1 else float("nan")
+            rhat[key] = float(diag.rhat(x)) if samples.shape[0] > 1 else float("nan")
             ess_b[key] = float(diag.ess_bulk(x))
             ess_t[key] = float(diag.ess_tail(x))
-    return McmcPosterior(keys, samples, np.stack(out_logp), mean, sd, ci, rhat, ess_b, ess_t,
-                         dict(zip(keys, theta_hat.tolist())), dict(zip(keys, np.asarray(unc.stderr, float).tolist())),
-                         tuple(sizes), tuple(divs), tuple(accs), tuple(steps_mean), evaluations, warmup,
-                         {key: float(v) for key, v in sigma.items()}, seed, time.perf_counter() - clock)
+    return mean, sd, ci, rhat, ess_b, ess_t
+
+
+def _whitened(theta, z_hat, L, lower, upper):
+    """θ (n, k) -> w with θ = to_physical(ẑ + L w): the inverse of the chains' map."""
+    s = (np.asarray(theta, float) - lower) / (upper - lower)
+    return np.linalg.solve(L, (np.log(s) - np.log1p(-s) - z_hat).T).T
+
+
+def _check_resume(resume, keys, fit_result, sigma):
+    """A resumed chain must go on on the target it was drawn from: the same keys and noise (the
+    noise to 1e-5 relative: the log density then moves by ~1e-4, far below the Monte Carlo
+    error), and in the whitening of the same fit (its point to 1e-3 standard errors and its
+    covariance to 1e-3 relative). The whitening only preconditions: a fit that differs by
+    round-off (a run in float32 on another thread count, say) leaves the chain valid, as NUTS with
+    any fixed preconditioner keeps the target; a different fit is refused as a sign of a mix-up."""
+    if tuple(resume.keys) != keys:
+        raise ValueError(f"resume samples {tuple(resume.keys)}, the objective fits {keys}")
+    unc = fit_result.uncertainty
+    if set(resume.noise) != set(sigma):
+        raise ValueError(f"resume was drawn with noise on blocks {sorted(resume.noise)}, this one on {sorted(sigma)}")
+    se = np.asarray(unc.stderr, float)
+    checks = [("the fit's point", np.array([resume.theta_hat[k] for k in keys]),
+               np.array([fit_result.theta[k] for k in keys], float), 0.0, 1e-3 * se),
+              ("the Gauss-Newton standard errors", np.array([resume.gn_stderr[k] for k in keys]), se, 1e-3, 0.0),
+              ("the noise", np.array([resume.noise[b] for b in sorted(sigma)]),
+               np.array([float(sigma[b]) for b in sorted(sigma)]), 1e-5, 0.0)]
+    if resume.gn_cov is not None:
+        cov = np.asarray(unc.cov, float)
+        checks.append(("the Gauss-Newton covariance", np.asarray(resume.gn_cov, float), cov, 0.0,
+                       1e-3 * np.sqrt(np.outer(se, se))))
+    for what, a, b, rtol, atol in checks:
+        if np.any(np.abs(a - b) > rtol * np.abs(b) + atol):
+            raise ValueError(f"resume: {what} differs from this fit's ({a.tolist()} against {b.tolist()}): "
+                             "the chains were drawn for another fit")
 
 
 def posterior_predictive(objective, posterior: McmcPosterior, *, n: int = 40, seed: int = 0,

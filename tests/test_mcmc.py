@@ -141,3 +141,102 @@ def test_one_chain_prints_no_nan():
     out = post.to_json()
     assert out["rhat"] == {"k0": None} and not out["converged"]
     json.dumps(out, allow_nan=False)
+
+
+def _record(objective, result, draws, step_size=1.0):
+    """A stored posterior (``to_json`` form) whose chains end at ``draws`` (chains, n, k)."""
+    from calibration.likelihood import _sigma
+    keys = objective.keys
+    by_key = {key: 0.0 for key in keys}
+    chains, n = draws.shape[:2]
+    return {"keys": list(keys), "chains": chains, "warmup": 5, "draws_per_chain": n, "seed": 3,
+            "mean": by_key, "sd": by_key, "ci95": {key: [0.0, 0.0] for key in keys}, "rhat": by_key,
+            "ess_bulk": by_key, "ess_tail": by_key, "theta_hat": dict(result.theta),
+            "gauss_newton_stderr": dict(zip(keys, result.uncertainty.stderr.tolist())),
+            "gauss_newton_cov": np.asarray(result.uncertainty.cov).tolist(),
+            "step_size": [step_size] * chains, "divergences": [0] * chains, "acceptance": [0.9] * chains,
+            "leapfrog_steps_per_draw": [3.0] * chains, "gradient_evaluations": 3 * chains * n,
+            "noise": _sigma(objective, result, None), "wall_s": 1.0,
+            "draws": {key: draws[..., j].tolist() for j, key in enumerate(keys)}, "log_density": None}
+
+
+def test_resumed_chains_go_on_from_their_last_draws():
+    """``resume=`` extends stored chains: the stored draws are kept bit for bit, the new ones
+    follow from each chain's last draw with its step size (no warm-up), every diagnostic is that
+    of the whole chains, and the segments are recorded. The record passes through JSON."""
+    sigma = 0.1
+    objective = LinearObjective(np.ones((1, 1)), np.array([0.5]), lower=(0.0,), upper=(1.0,))
+    result = _fit_result(objective.keys, [0.5], [[sigma ** 2]], sigma)
+    old = np.array([[0.45, 0.52, 0.61], [0.55, 0.38, 0.49]])[..., None]  # 2 chains, 3 draws
+    record = json.loads(json.dumps(_record(objective, result, old)))
+    stored = McmcPosterior.from_json(record)
+    assert stored.segments == ((3, 3),) and stored.gn_cov.shape == (1, 1)
+    post = nuts_posterior(objective, result, draws=40, resume=stored, seed=3)
+    assert post.draws.shape == (2, 43, 1) and post.segments == ((3, 3), (3, 40))
+    np.testing.assert_array_equal(post.draws[:, :3], old)
+    assert post.step_size == (1.0, 1.0) and post.warmup == 5
+    assert post.gradient_evaluations > record["gradient_evaluations"] + 2 * 40
+    assert np.all(np.isnan(post.log_density[:, :3])) and np.all(np.isfinite(post.log_density[:, 3:]))
+    flat = post.flat()[:, 0]
+    assert post.mean["k0"] == pytest.approx(flat.mean()) and post.sd["k0"] == pytest.approx(flat.std(ddof=1))
+    assert abs(post.mean["k0"] - 0.5) < 0.06 and 0.05 < post.sd["k0"] < 0.2  # N(0.5, 0.1²), 86 draws
+    # the first new draw is one NUTS step from the last stored one: near it, on the target's scale
+    assert np.all(np.abs(post.draws[:, 3, 0] - old[:, -1, 0]) < 0.5)
+    again = McmcPosterior.from_json(json.loads(json.dumps(post.to_json(), allow_nan=False)))
+    np.testing.assert_array_equal(again.draws, post.draws)
+    assert again.segments == post.segments and again.rhat == pytest.approx(post.rhat)
+    # a chain resumed apart (another process, say) draws what it draws beside the others, and the
+    # parts join into the whole
+    apart = nuts_posterior(objective, result, draws=40, resume=stored.take([1]), seed=3)
+    assert apart.chain_ids == (1,) and apart.step_size == (1.0,)
+    np.testing.assert_array_equal(apart.draws[0], post.draws[1])
+    joined = McmcPosterior.join([apart, post.take([0])])
+    np.testing.assert_array_equal(joined.draws, post.draws)
+    assert joined.chain_ids == (0, 1) and joined.rhat == pytest.approx(post.rhat)
+    assert joined.ess_bulk == pytest.approx(post.ess_bulk) and joined.divergences == post.divergences
+    with pytest.raises(ValueError, match="a chain is in more than one part"):
+        McmcPosterior.join([apart, post.take([1])])
+    with pytest.raises(ValueError, match="chains must be distinct positions"):
+        post.take([0, 0])
+    short = stored.take([0]).to_json()  # three draws: no ESS, null in the JSON
+    assert short["ess_bulk"] == {"k0": None} and short["rhat"] == {"k0": None}
+    json.dumps(short, allow_nan=False)
+
+
+def test_resume_refuses_another_fit_before_sampling():
+    sigma = 0.1
+    objective = LinearObjective(np.ones((1, 1)), np.array([0.5]), lower=(0.0,), upper=(1.0,))
+    result = _fit_result(objective.keys, [0.5], [[sigma ** 2]], sigma)
+    stored = McmcPosterior.from_json(_record(objective, result, np.full((2, 3, 1), 0.5)))
+    with pytest.raises(ValueError, match="warmup: a resumed chain"):
+        nuts_posterior(objective, result, resume=stored, warmup=10)
+    with pytest.raises(ValueError, match="chains: resume holds 2 chains"):
+        nuts_posterior(objective, result, resume=stored, chains=4)
+    moved = _fit_result(objective.keys, [0.51], [[sigma ** 2]], sigma)
+    with pytest.raises(ValueError, match="the fit's point differs"):
+        nuts_posterior(objective, moved, resume=stored)
+    wider = _fit_result(objective.keys, [0.5], [[4 * sigma ** 2]], sigma)
+    with pytest.raises(ValueError, match="standard errors differs"):
+        nuts_posterior(objective, wider, resume=stored)
+    with pytest.raises(ValueError, match="the noise differs"):
+        nuts_posterior(objective, result, resume=stored, noise=0.2)
+    with pytest.raises(ValueError, match="resume must be a McmcPosterior"):
+        nuts_posterior(objective, result, resume={"draws": []})
+    other = LinearObjective(np.ones((1, 2)), np.array([0.5]), lower=(0.0, 0.0), upper=(1.0, 1.0))
+    two = _fit_result(other.keys, [0.5, 0.5], np.eye(2) * sigma ** 2, sigma)
+    with pytest.raises(ValueError, match="resume samples"):
+        nuts_posterior(other, two, resume=stored)
+
+
+def test_whitening_round_trips():
+    """``_whitened`` inverts the chains' map θ = to_physical(ẑ + L w), near the bounds too."""
+    from calibration.mcmc import _whitened
+    from calibration.observe import to_physical
+
+    rng = np.random.default_rng(0)
+    lower, upper = np.array([0.0, 0.1]), np.array([1.0, 0.9])
+    z_hat, L = np.array([0.3, -1.0]), np.array([[0.7, 0.0], [0.4, 0.2]])
+    w = rng.standard_normal((50, 2)) * 3
+    theta = np.asarray(jax.vmap(lambda v: to_physical(jnp.asarray(z_hat) + jnp.asarray(L) @ v, jnp.asarray(lower),
+                                                      jnp.asarray(upper)))(jnp.asarray(w)))
+    np.testing.assert_allclose(_whitened(theta, z_hat, L, lower, upper), w, rtol=1e-7, atol=1e-7)
