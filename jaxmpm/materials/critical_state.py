@@ -92,8 +92,8 @@ def _tip_increments(p_tr, pc_n, params, K, iterations):
     quadratic in p): started from the tip it converges at once. t is monotone (K > ξ β p_c
     wherever a step is stable) and convex or concave, so Newton converges from one side."""
 
-    def solve(sign):
-        scale = jnp.where(sign > 0, 1.0, params.beta) * pc_n  # the tip's p_c factor: 1 or -β
+    def solve(factor, sign):  # the tip p = sign · factor · p_c
+        scale = factor * pc_n
 
         def body(_, eps):
             pc = scale * jnp.exp(-params.xi * eps)
@@ -102,7 +102,7 @@ def _tip_increments(p_tr, pc_n, params, K, iterations):
 
         return jax.lax.fori_loop(0, iterations, body, (sign * scale - p_tr) / K)
 
-    return solve(1.0), solve(-1.0)
+    return solve(1.0, 1.0), solve(params.beta, -1.0)
 
 
 def _surface_residual(eps, p_tr, q_tr, pc_n, params, K, G):
