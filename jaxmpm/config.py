@@ -137,6 +137,13 @@ class Config:
         is, K slots for the nodes that the particles' stencils touch, found every step
         (``jaxmpm.sparse``); the ``GRID_FULL`` status bit is set when more are touched. The cost
         then follows the particles, not the bounding box.
+      rest_speed, rest_duration: a run that stops when the flow stops. None (default): every
+        run goes to t_end. A speed (m/s): once every particle has been slower than it for
+        ``rest_duration`` seconds of simulated time, the material is at rest and the remaining
+        steps do nothing but carry the state to the frame times and t_end (``State.quiet_since``
+        records when the quiet began). No particle moved faster than ``rest_speed`` during
+        the last ``rest_duration``; one creeping at that speed would have gone on by at most
+        ``rest_speed`` × the time skipped.
     """
 
     grid: Grid
@@ -153,6 +160,8 @@ class Config:
     frame_times: tuple[float, ...] = ()
     block_size: int | None = None
     active_nodes: int | None = None
+    rest_speed: float | None = None
+    rest_duration: float = 0.0
 
     def __post_init__(self):
         set_ = lambda k, v: object.__setattr__(self, k, v)  # noqa: E731 (frozen dataclass)
@@ -203,6 +212,15 @@ class Config:
                     or self.active_nodes < 1):
                 raise ValueError(f"active_nodes must be a positive integer or None, got {self.active_nodes!r}")
             set_("active_nodes", int(self.active_nodes))
+        if self.rest_speed is not None:
+            speed = float(self.rest_speed)
+            if not (math.isfinite(speed) and speed > 0):
+                raise ValueError(f"rest_speed must be > 0 and finite (m/s) or None, got {self.rest_speed!r}")
+            set_("rest_speed", speed)
+        duration = float(self.rest_duration)
+        if not (math.isfinite(duration) and duration >= 0):
+            raise ValueError(f"rest_duration must be >= 0 and finite (s), got {self.rest_duration!r}")
+        set_("rest_duration", duration)
         if self.grid.n_nodes >= 2**31 - 1:
             raise ValueError(f"the grid has {self.grid.n_nodes} nodes; node numbers must fit in int32 (< 2**31 - 1)")
 

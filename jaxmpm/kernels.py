@@ -8,31 +8,83 @@ A particle at x (grid units xi = (x - origin) / dx) touches the 3 nodes per axis
 which sum to one and reproduce linear fields exactly (sum_i w_i (x_i - x_p) = 0). The tensor
 product over ``dim`` axes gives S = 3^dim weights per particle, in row-major node order.
 
-Layout: stencil data is stencil-major, (S, N), and vector-valued data component-first,
-(dim, S, N), so that every kernel runs over contiguous planes and sums over the stencil are
-sums of S planes. On the CPU this is several times faster than particle-major (N, S, dim).
+Layout: a stencil keeps each axis's three weights, their derivatives and the node offsets as
+separate (N,) arrays, and the S weights of a particle are formed where they are used, as
+products of contiguous arrays (``Stencil.weight_plane``): XLA's CPU backend vectorises such
+products, while building (S, N) tensors from stacked per-axis arrays made it emit slow,
+unvectorised kernels. The (S, N) arrays (``weight``, ``grad``, ``offset``) remain available.
 """
 
 from __future__ import annotations
 
+import itertools
 from typing import NamedTuple
 
 import jax.numpy as jnp
 import numpy as np
 
-__all__ = ["Stencil", "bspline_weights", "make_stencil", "node_strides", "APIC_INERTIA"]
+__all__ = ["Stencil", "bspline_weights", "make_stencil", "node_strides", "stencil_nodes", "APIC_INERTIA"]
 
 #: Inverse of the APIC inertia tensor D = dx^2/4 I for quadratic B-splines, in units of 1/dx^2.
 APIC_INERTIA = 4.0
 
 
+def stencil_nodes(dim: int) -> tuple[tuple[int, ...], ...]:
+    """The per-axis node numbers (0, 1 or 2 along each axis) of the S = 3^dim stencil entries,
+    in row-major order (the last axis fastest), the order of ``Stencil.index``."""
+    return tuple(itertools.product(range(3), repeat=dim))
+
+
 class Stencil(NamedTuple):
-    """Per-particle interpolation data for S = 3^dim nodes each."""
+    """Per-particle interpolation data for S = 3^dim nodes each.
+
+    ``w[a][k]``, ``dw[a][k]`` and ``off[a][k]`` are the weight, its derivative and the offset
+    x_i - x_p of node k (0, 1, 2) along axis a, each an (N,) array."""
 
     index: jnp.ndarray  # (S, N) int32 flat node index
-    weight: jnp.ndarray  # (S, N) w_ip
-    grad: jnp.ndarray  # (dim, S, N) ∇w_ip (1/m)
-    offset: jnp.ndarray  # (dim, S, N) x_i - x_p (m)
+    w: tuple  # per axis, the 3 weights
+    dw: tuple  # per axis, d w / d x (1/m)
+    off: tuple  # per axis, x_i - x_p (m)
+
+    @property
+    def dim(self) -> int:
+        return len(self.w)
+
+    def weight_plane(self, s: int):
+        """w_ip of stencil entry ``s`` (an (N,) array)."""
+        node = stencil_nodes(self.dim)[s]
+        out = self.w[0][node[0]]
+        for a in range(1, self.dim):
+            out = out * self.w[a][node[a]]
+        return out
+
+    def grad_plane(self, s: int, b: int):
+        """Component ``b`` of ∇w_ip of stencil entry ``s`` (1/m)."""
+        node = stencil_nodes(self.dim)[s]
+        out = None
+        for a in range(self.dim):
+            factor = self.dw[a][node[a]] if a == b else self.w[a][node[a]]
+            out = factor if out is None else out * factor
+        return out
+
+    def offset_plane(self, s: int, b: int):
+        """Component ``b`` of x_i - x_p of stencil entry ``s`` (m)."""
+        return self.off[b][stencil_nodes(self.dim)[s][b]]
+
+    @property
+    def weight(self):
+        """(S, N) weights."""
+        return jnp.stack([self.weight_plane(s) for s in range(3**self.dim)])
+
+    @property
+    def grad(self):
+        """(dim, S, N) weight gradients (1/m)."""
+        return jnp.stack([jnp.stack([self.grad_plane(s, b) for s in range(3**self.dim)]) for b in range(self.dim)])
+
+    @property
+    def offset(self):
+        """(dim, S, N) node offsets x_i - x_p (m)."""
+        return jnp.stack([jnp.stack([self.offset_plane(s, b) for s in range(3**self.dim)]) for b in range(self.dim)])
 
 
 def bspline_weights(fx):
@@ -45,16 +97,6 @@ def bspline_weights(fx):
 def node_strides(node_shape) -> np.ndarray:
     """Strides of the flat, row-major node numbering."""
     return np.cumprod((1,) + tuple(node_shape[::-1]))[:-1][::-1].astype(np.int32)
-
-
-def _outer(per_axis):
-    """Tensor product over axes of per-axis (3, N) arrays, flattened to (3^dim, N)."""
-    dim = len(per_axis)
-    out = 1.0
-    for a, arr in enumerate(per_axis):
-        shape = tuple(3 if b == a else 1 for b in range(dim)) + (arr.shape[-1],)
-        out = out * arr.reshape(shape)
-    return out.reshape(-1, per_axis[0].shape[-1])
 
 
 def make_stencil(x, grid) -> Stencil:
@@ -76,14 +118,11 @@ def make_stencil(x, grid) -> Stencil:
 
     w_axis, dw_axis, off_axis = [], [], []
     for a in range(dim):
-        w, dw = bspline_weights(fx[:, a])
-        w_axis.append(jnp.stack(w))
-        dw_axis.append(jnp.stack(dw) / dx)
-        off_axis.append((jnp.arange(3, dtype=x.dtype)[:, None] - fx[None, :, a]) * dx)
-    weight = _outer(w_axis)
-    grad = jnp.stack([_outer(w_axis[:a] + [dw_axis[a]] + w_axis[a + 1 :]) for a in range(dim)])
-    ones = jnp.ones_like(w_axis[0])
-    offset = jnp.stack([_outer([ones] * a + [off_axis[a]] + [ones] * (dim - a - 1)) for a in range(dim)])
+        f = fx[:, a]
+        w, dw = bspline_weights(f)
+        w_axis.append(tuple(w))
+        dw_axis.append(tuple(d / dx for d in dw))
+        off_axis.append(tuple((k - f) * dx for k in range(3)))
 
     strides = node_strides(node_shape)
     if any(grid.periodic):
@@ -101,4 +140,4 @@ def make_stencil(x, grid) -> Stencil:
         for a in range(dim):
             flat_offsets = (flat_offsets[:, None] + np.arange(3, dtype=np.int32)[None, :] * strides[a]).reshape(-1)
         index = jnp.asarray(flat_offsets)[:, None] + jnp.sum(base * strides, axis=-1, dtype=jnp.int32)[None, :]
-    return Stencil(index=index, weight=weight, grad=grad, offset=offset)
+    return Stencil(index=index, w=tuple(w_axis), dw=tuple(dw_axis), off=tuple(off_axis))

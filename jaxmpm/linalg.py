@@ -10,6 +10,15 @@ with the divided differences written in a form that is accurate for equal and fo
 eigenvalues, so the derivative is exact and finite everywhere. The eigen-decomposition itself
 is never differentiated: a closed form in 2D, a fixed number of cyclic Jacobi sweeps in 3D
 (both vectorise well, unlike a batched LAPACK call on the CPU).
+
+Planes. Inside the time step a small matrix is held as a nested list of (N,) arrays, one per
+component ("planes": ``a[i][j]`` is the (i, j) entry of every particle), and a vector as a list
+of d arrays. Every operation is then a sum of elementwise products of contiguous arrays, which
+XLA's CPU backend vectorises; building (N, d, d) arrays with ``stack`` and slicing them again
+inside the step made it fuse interleaving copies into its kernels and recompute their inputs
+in each (docs/performance.md). ``planes`` and ``unplanes`` convert at the boundary; the
+array functions below (``mm``, ``sym_log``, ``sym_exp``) are these plane functions between
+them.
 """
 
 from __future__ import annotations
@@ -17,17 +26,39 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-__all__ = ["eigh_sym", "sym_log", "sym_exp", "sym", "trace", "det", "mm", "mt", "safe_sqrt", "safe_div"]
+__all__ = ["eigh_sym", "sym_log", "sym_exp", "sym", "trace", "det", "mm", "mt", "safe_sqrt", "safe_div",
+           "planes", "unplanes", "mm_planes", "det_planes", "sym_log_planes", "sym_exp_planes"]
 
 JACOBI_SWEEPS = 6
 
 
+def planes(a):
+    """The planes [[a[..., i, j]]] of a batch of matrices (..., m, n)."""
+    return [[a[..., i, j] for j in range(a.shape[-1])] for i in range(a.shape[-2])]
+
+
+def unplanes(p):
+    """The array (..., m, n) of matrix planes [[...]]."""
+    return jnp.stack([jnp.stack(row, -1) for row in p], -2)
+
+
+def mm_planes(a, b):
+    """a @ b for matrices held as planes."""
+    return [[sum(a[i][k] * b[k][j] for k in range(len(b))) for j in range(len(b[0]))] for i in range(len(a))]
+
+
+def det_planes(a):
+    """Determinant of a 2×2 or 3×3 matrix held as planes (cofactors)."""
+    if len(a) == 2:
+        return a[0][0] * a[1][1] - a[0][1] * a[1][0]
+    return (a[0][0] * (a[1][1] * a[2][2] - a[1][2] * a[2][1])
+            - a[0][1] * (a[1][0] * a[2][2] - a[1][2] * a[2][0])
+            + a[0][2] * (a[1][0] * a[2][1] - a[1][1] * a[2][0]))
+
+
 def mm(a, b):
     """a @ b for batches of small matrices, unrolled (XLA's batched dot is slow for 2×2/3×3)."""
-    d = a.shape[-1]
-    rows = [jnp.stack([sum(a[..., i, k] * b[..., k, j] for k in range(d)) for j in range(b.shape[-1])], -1)
-            for i in range(a.shape[-2])]
-    return jnp.stack(rows, axis=-2)
+    return unplanes(mm_planes(planes(a), planes(b)))
 
 
 def mt(a):
@@ -46,13 +77,7 @@ def trace(a):
 
 def det(a):
     """Determinant of 2×2 or 3×3 matrices by cofactors (cheaper than LU for tiny batches)."""
-    if a.shape[-1] == 2:
-        return a[..., 0, 0] * a[..., 1, 1] - a[..., 0, 1] * a[..., 1, 0]
-    return (
-        a[..., 0, 0] * (a[..., 1, 1] * a[..., 2, 2] - a[..., 1, 2] * a[..., 2, 1])
-        - a[..., 0, 1] * (a[..., 1, 0] * a[..., 2, 2] - a[..., 1, 2] * a[..., 2, 0])
-        + a[..., 0, 2] * (a[..., 1, 0] * a[..., 2, 1] - a[..., 1, 1] * a[..., 2, 0])
-    )
+    return det_planes(planes(a))
 
 
 def safe_sqrt(x, eps=None):
@@ -213,17 +238,18 @@ _sym_exp3 = _make_sym_fn(jnp.exp, _exp_divided_difference, "sym_exp")
 
 
 def _sym_parts2(a):
-    a00, a11 = a[..., 0, 0], a[..., 1, 1]
-    a01 = 0.5 * (a[..., 0, 1] + a[..., 1, 0])
+    """Mean m, half-difference, off-diagonal and r² of a symmetric 2×2 matrix held as planes."""
+    a00, a11 = a[0][0], a[1][1]
+    a01 = 0.5 * (a[0][1] + a[1][0])
     m = 0.5 * (a00 + a11)
     half = 0.5 * (a00 - a11)
     return m, half, a01, half * half + a01 * a01
 
 
 def _compose2(alpha, beta, half, a01):
-    return jnp.stack(
-        [jnp.stack([alpha + beta * half, beta * a01], -1), jnp.stack([beta * a01, alpha - beta * half], -1)], -2
-    )
+    """The planes of α I + β (A − m I)."""
+    off = beta * a01
+    return [[alpha + beta * half, off], [off, alpha - beta * half]]
 
 
 def _even_series(x2, f, c0, c1, c2, cut):
@@ -236,9 +262,9 @@ def _even_series(x2, f, c0, c1, c2, cut):
 
 def _sym_log2(a):
     m, half, a01, r2 = _sym_parts2(a)
-    tiny = jnp.finfo(a.dtype).tiny
-    det_ = jnp.maximum(m * m - r2, tiny)  # product of the eigenvalues, clamped away from 0
-    x2 = jnp.minimum(r2 / (m * m), 1.0 - jnp.finfo(a.dtype).eps)  # (r/m)² < 1 for SPD input
+    dtype = m.dtype
+    det_ = jnp.maximum(m * m - r2, jnp.finfo(dtype).tiny)  # product of the eigenvalues, clamped away from 0
+    x2 = jnp.minimum(r2 / (m * m), 1.0 - jnp.finfo(dtype).eps)  # (r/m)² < 1 for SPD input
     # β = atanh(r/m)/r = (1/m) atanh(x)/x, x = r/m
     beta = _even_series(x2, lambda x: jnp.arctanh(x) / x, 1.0, 1.0 / 3.0, 1.0 / 5.0, 1e-4) / m
     return _compose2(0.5 * jnp.log(det_), beta, half, a01)
@@ -252,12 +278,22 @@ def _sym_exp2(a):
     return _compose2(alpha, beta, half, a01)
 
 
+def sym_log_planes(a):
+    """``sym_log`` of a symmetric matrix held as planes (2D in closed form, 3D by ``sym_log``)."""
+    return _sym_log2(a) if len(a) == 2 else planes(_sym_log3(unplanes(a)))
+
+
+def sym_exp_planes(a):
+    """``sym_exp`` of a symmetric matrix held as planes (2D in closed form, 3D by ``sym_exp``)."""
+    return _sym_exp2(a) if len(a) == 2 else planes(_sym_exp3(unplanes(a)))
+
+
 def sym_log(a):
     """Matrix logarithm of symmetric positive-definite 2×2/3×3 matrices (eigenvalues clamped
     away from 0), with finite derivatives everywhere."""
-    return _sym_log2(a) if a.shape[-1] == 2 else _sym_log3(a)
+    return unplanes(_sym_log2(planes(a))) if a.shape[-1] == 2 else _sym_log3(a)
 
 
 def sym_exp(a):
     """Matrix exponential of symmetric 2×2/3×3 matrices, with finite derivatives everywhere."""
-    return _sym_exp2(a) if a.shape[-1] == 2 else _sym_exp3(a)
+    return unplanes(_sym_exp2(planes(a))) if a.shape[-1] == 2 else _sym_exp3(a)

@@ -6,7 +6,8 @@ vol0 initial particle volumes V0, internal the material's internal variables, t 
 steps the number of steps taken, status a bitmask (below), dt the last step size, impulse the
 momentum each of the configuration's walls and terrains has received from the material since t = 0
 ((n_walls, dim), N·s, per unit width in 2D): the force on a wall over an interval is the change of
-its impulse over the interval's length.
+its impulse over the interval's length, quiet_since the time since which every particle has been
+slower than the configuration's rest speed (inf while any is faster, or without a rest speed).
 """
 
 from __future__ import annotations
@@ -72,6 +73,7 @@ class State:
     steps: Any
     status: Any
     impulse: Any
+    quiet_since: Any
 
     @property
     def n_particles(self) -> int:
@@ -124,4 +126,5 @@ def init_state(config: Config, x, vol0, v=None, dtype=None) -> State:
         steps=jnp.zeros((), jnp.int32),
         status=jnp.zeros((), jnp.int32),
         impulse=jnp.zeros((len(config.walls), dim), dtype),
+        quiet_since=jnp.full((), jnp.inf, dtype),
     )

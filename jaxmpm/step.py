@@ -3,7 +3,8 @@
 ``make_step(config)`` returns ``step(state, params) -> state``:
 
 1. dt = min(cfl·dx/max|v_p|, cfl_e·dx/c), clipped so the step lands exactly on the next frame
-   time or the end time; after t_end the step returns the state unchanged;
+   time or the end time; after t_end the step returns the state unchanged, and once the
+   material is at rest (``Config.rest_speed``) it only moves the time on to the next stop;
 2. APIC P2G of mass, momentum and internal force (stress from the previous step: USL);
 3. grid update with gravity, then the walls (each one's impulse from the material accumulates
    in ``state.impulse``);
@@ -17,22 +18,25 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.custom_batching import custom_vmap
 
 from . import sparse
 from . import state as st
 from .boundary import apply_walls
 from .config import Config
 from .kernels import make_stencil
-from .linalg import det, mm
-from .transfer import g2p, grid_velocities, p2g, xpic_velocity
+from .linalg import det_planes, planes, unplanes
+from .transfer import g2p_planes, grid_velocities, p2g, xpic_velocity
 
 __all__ = ["make_step", "time_step", "step_budget"]
 
 
-def time_step(config: Config, state, params):
-    """The adaptive step size before clipping to output times (docs/model.md §5)."""
+def time_step(config: Config, state, params, speed2=None):
+    """The adaptive step size before clipping to output times (docs/model.md §5). ``speed2``:
+    the largest squared particle speed, if the caller has it."""
     dx = config.grid.dx
-    speed2 = jnp.max(jnp.sum(state.v * state.v, axis=-1))
+    if speed2 is None:
+        speed2 = jnp.max(jnp.sum(state.v * state.v, axis=-1))
     dt_e = config.cfl_elastic * dx / config.material.wave_speed(params)
     binds = (config.cfl * dx / dt_e) ** 2
     dt_v = config.cfl * dx * jax.lax.rsqrt(jnp.maximum(speed2, binds))
@@ -48,6 +52,33 @@ def step_budget(material, params, dx: float, t_end: float, cfl_elastic: float = 
     return int(margin * t_end / dt) + int(extra)
 
 
+def _materialize(tree, token):
+    """``tree`` unchanged, computed once. XLA's CPU compiler drops ``optimization_barrier``
+    before it fuses, and it fuses a cheap producer into every consumer, recomputing it there (the
+    stencil's weights in each of the five P2G channels and the gathers, the grid velocities in
+    each gathered element, the whole material update in each component of the stacked stress).
+    A conditional on ``token`` (``_always_true``), which XLA cannot know to be true, forces its
+    operand to be computed once and stored: measured on the S4 step, the materialisation points
+    below save about a third of a step (docs/performance.md)."""
+    return jax.lax.cond(token, lambda t: t, lambda t: jax.tree.map(jnp.zeros_like, t), tree)
+
+
+@custom_vmap
+def _always_true(steps):
+    """``steps >= 0``: true, but not a constant XLA could fold. Under ``vmap`` it stays one
+    unbatched boolean (the rule below): a batched token would turn every ``_materialize`` into a
+    select (and the step's ``cond`` on t < t_end batches its operands whenever its predicate is
+    batched), and then XLA recomputes the whole material update in each component of the stacked
+    state; a vmapped S4 Jacobian took 85 s instead of 0.9 s. It takes an integer, so no
+    derivative ever passes through it."""
+    return steps >= 0
+
+
+@_always_true.def_vmap
+def _always_true_batched(axis_size, in_batched, steps):
+    return jnp.all(steps >= 0), False
+
+
 def make_step(config: Config):
     """Build ``step(state, params) -> state`` for this static configuration."""
     grid = config.grid
@@ -56,12 +87,14 @@ def make_step(config: Config):
     sparse_grid = config.active_nodes is not None
     node_x_np = None if sparse_grid else grid.node_positions().T
     stops_np = np.asarray(config.stop_times)
-    lower_np, upper_np = grid.lower, grid.upper
-    edge_lo_np, edge_hi_np = grid.edge_band
-    periodic = np.asarray(grid.periodic)
+    # Python floats (weakly typed): the bounds take the particles' dtype.
+    lower, upper = grid.lower.tolist(), grid.upper.tolist()
+    edge_lo, edge_hi = (b.tolist() for b in grid.edge_band)
+    origin, length, periodic = grid.origin, grid.length.tolist(), grid.periodic
 
     def advance(state, params, dt, t_new):
         dtype = state.x.dtype
+        token = _always_true(state.steps)
         stencil = make_stencil(state.x, grid)
         if sparse_grid:
             slots, keys, touched = sparse.activate(stencil.index, config.active_nodes, grid.n_nodes,
@@ -71,47 +104,70 @@ def make_step(config: Config):
             n_grid = config.active_nodes
         else:
             node_x, n_grid, touched = jnp.asarray(node_x_np, dtype), grid.n_nodes, 0
-        stencil = jax.lax.optimization_barrier(stencil)
+        stencil = _materialize(stencil, token)
         mass = params.rho * state.vol0
-        fields = p2g(stencil, mass, state.v, state.C, state.vol0, state.tau, n_grid)
+        v = [state.v[:, a] for a in range(dim)]
+        F = planes(state.F)
+        fields = p2g(stencil, mass, v, planes(state.C), state.vol0, planes(state.tau), n_grid)
         v_old, v_new = grid_velocities(fields, dt, jnp.asarray(config.gravity, dtype))
         v_new, impulse = apply_walls(config.walls, v_new, node_x, state.t, dt, params, mass=fields.mass)
-        v_flip = state.v
+        v_flip = v
         if config.xpic and config.transfer == "aflip" and alpha != 0.0:
-            v_flip = xpic_velocity(stencil, mass, fields.mass, state.v, config.xpic)
-        moved = g2p(stencil, v_old, v_new, v_flip, dx, config.transfer, alpha)
-        x = state.x + dt * moved.v_pic
-        if periodic.any():  # wrap positions on periodic axes
-            origin, length = jnp.asarray(grid.origin, dtype), jnp.asarray(grid.length, dtype)
-            x = jnp.where(periodic, origin + jnp.mod(x - origin, length), x)
-        F_trial = mm(jnp.eye(dim, dtype=dtype) + dt * moved.grad_v, state.F)
-        F, tau, internal = config.material.update(F_trial, state.internal, params, dt)
+            v_flip = [u for u in xpic_velocity(stencil, mass, fields.mass, state.v, config.xpic).T]
+        v_old, v_new = _materialize((v_old, v_new), token)
+        moved = _materialize(g2p_planes(stencil, v_old, v_new, v_flip, dx, config.transfer, alpha), token)
+        x = [state.x[:, a] + dt * moved.v_pic[a] for a in range(dim)]
+        for a in range(dim):
+            if periodic[a]:  # wrap positions on periodic axes
+                x[a] = origin[a] + jnp.mod(x[a] - origin[a], length[a])
+        F_trial = [[F[a][b] + dt * sum(moved.grad_v[a][c] * F[c][b] for c in range(dim)) for b in range(dim)]
+                   for a in range(dim)]
+        F, tau, internal = config.material.update_planes(F_trial, state.internal, params, dt)
+        F, tau = _materialize((F, tau), token)
 
-        left = jnp.any((x < jnp.asarray(lower_np, dtype)) | (x >= jnp.asarray(upper_np, dtype)))
-        edge = jnp.any((x < jnp.asarray(edge_lo_np, dtype)) | (x >= jnp.asarray(edge_hi_np, dtype)))
-        finite = jnp.all(jnp.isfinite(x)) & jnp.all(jnp.isfinite(moved.v)) & jnp.all(jnp.isfinite(tau))
-        inverted = jnp.any(det(F_trial) <= 0)
+        left = edge = finite = None
+        for a in range(dim):
+            out_a = (x[a] < lower[a]) | (x[a] >= upper[a])
+            edge_a = (x[a] < edge_lo[a]) | (x[a] >= edge_hi[a])
+            finite_a = jnp.isfinite(x[a]) & jnp.isfinite(moved.v[a])
+            left, edge = (out_a, edge_a) if left is None else (left | out_a, edge | edge_a)
+            finite = finite_a if finite is None else finite & finite_a
+        for row in tau:
+            for t in row:
+                finite = finite & jnp.isfinite(t)
         flags = (
-            jnp.where(left, st.LEFT_GRID, 0)
-            | jnp.where(edge, st.EDGE, 0)
-            | jnp.where(finite, 0, st.NONFINITE)
-            | jnp.where(inverted, st.J_NONPOSITIVE, 0)
+            jnp.where(jnp.any(left), st.LEFT_GRID, 0)
+            | jnp.where(jnp.any(edge), st.EDGE, 0)
+            | jnp.where(jnp.all(finite), 0, st.NONFINITE)
+            | jnp.where(jnp.any(det_planes(F_trial) <= 0), st.J_NONPOSITIVE, 0)
             | jnp.where(touched > n_grid, st.GRID_FULL, 0)
         )
         return state.replace(
-            x=x, v=moved.v, C=moved.C, F=F, tau=tau, internal=internal,
-            t=t_new, dt=dt, steps=state.steps + 1, status=state.status | flags, impulse=state.impulse + impulse,
+            x=jnp.stack(x, -1), v=jnp.stack(moved.v, -1), C=unplanes(moved.C), F=unplanes(F), tau=unplanes(tau),
+            internal=internal, t=t_new, dt=dt, steps=state.steps + 1, status=state.status | flags,
+            impulse=state.impulse + impulse,
         )
 
     def step(state, params):
         t = state.t
         stops = jnp.asarray(stops_np, t.dtype)
         next_stop = jnp.min(jnp.where(stops > t, stops, jnp.inf))
-        dt = time_step(config, state, params)
+        speed2 = jnp.max(jnp.sum(state.v * state.v, axis=-1))
+        dt = time_step(config, state, params, speed2)
         lands = t + dt >= next_stop
         dt = jnp.where(lands, next_stop - t, dt)
         t_new = jnp.where(lands, next_stop, t + dt)
         active = t < config.t_end
-        return jax.lax.cond(active, lambda s: advance(s, params, dt, t_new), lambda s: s, state)
+        if config.rest_speed is not None:
+            # The material is at rest once every particle has stayed slower than rest_speed for
+            # rest_duration; from then on a step only carries the state to the next stop time.
+            quiet = speed2 < config.rest_speed**2
+            state = state.replace(quiet_since=jnp.where(quiet, jnp.minimum(state.quiet_since, t), jnp.inf))
+            active &= t - state.quiet_since < config.rest_duration
+
+        def idle(s):  # at rest before t_end: jump to the next stop (a frame or t_end); else nothing
+            return s.replace(t=jnp.where(t < config.t_end, next_stop, t))
+
+        return jax.lax.cond(active, lambda s: advance(s, params, dt, t_new), idle, state)
 
     return step

@@ -6,23 +6,23 @@ al. 2021): v_p <- α (v_p + sum_i w_ip (v_i^new - v_i^old)) + (1 - α) v_PIC, ke
 matrix C_p = (4/dx²) sum_i w_ip v_i^new (x_i - x_p)ᵀ (zero for plain PIC), and reports the PIC
 velocity (which moves the particles) and the velocity gradient sum_i v_i^new ⊗ ∇w_ip.
 
-Layout, chosen by measurement on the CPU: grid fields are channel-major (channels, n_nodes);
-stencil data is (S, N) planes (see ``kernels``); small-matrix algebra is unrolled over the
-dimension. The gathered node values pass an ``optimization_barrier``: fusing the gather into
-the reductions that consume it made XLA's CPU backend 3-4 times slower.
+Layout, chosen by measurement on the CPU (docs/performance.md): grid fields are channel-major
+(channels, n_nodes); per-particle values are planes (lists of (N,) arrays, ``jaxmpm.linalg``);
+each P2G channel is one (S, N) array built plane by plane and scattered on its own (a
+multi-channel scatter makes XLA interleave the channels into rows first, which costs more than
+the scatters), and G2P gathers each grid channel on its own.
 """
 
 from __future__ import annotations
 
 from typing import NamedTuple
 
-import jax
 import jax.numpy as jnp
 
 from .kernels import APIC_INERTIA, Stencil
-from .linalg import safe_div
+from .linalg import safe_div, unplanes
 
-__all__ = ["GridFields", "Transferred", "p2g", "grid_velocities", "g2p", "xpic_velocity"]
+__all__ = ["GridFields", "Transferred", "p2g", "grid_velocities", "g2p", "g2p_planes", "xpic_velocity"]
 
 
 class GridFields(NamedTuple):
@@ -32,28 +32,47 @@ class GridFields(NamedTuple):
 
 
 class Transferred(NamedTuple):
+    """G2P's results: arrays from ``g2p``, planes (lists of (N,) arrays) from ``g2p_planes``."""
+
     v: jnp.ndarray  # (N, dim) new particle velocity (AFLIP blend)
     v_pic: jnp.ndarray  # (N, dim) PIC velocity: moves the particles
     C: jnp.ndarray  # (N, dim, dim) affine matrix
     grad_v: jnp.ndarray  # (N, dim, dim) velocity gradient
 
 
+def _vector_planes(a):
+    return [a[:, i] for i in range(a.shape[-1])]
+
+
+def _matrix_planes(a):
+    return [[a[:, i, j] for j in range(a.shape[-1])] for i in range(a.shape[-2])]
+
+
 def p2g(stencil: Stencil, mass, v, C, vol0, tau, n_nodes: int) -> GridFields:
-    """Scatter mass, APIC momentum and internal force to the grid in one pass."""
-    dim = v.shape[-1]
-    mw = mass * stencil.weight  # (S, N)
-    channels = [mw]
-    for a in range(dim):
-        affine = sum(C[:, a, b] * stencil.offset[b] for b in range(dim))
-        channels.append(mw * (v[:, a] + affine))
-    for a in range(dim):
-        channels.append(-vol0 * sum(tau[:, a, b] * stencil.grad[b] for b in range(dim)))
-    # One scalar scatter per channel: a multi-channel scatter makes XLA interleave the channels
-    # into rows first, which costs more than the scatters themselves.
+    """Scatter mass, APIC momentum and internal force to the grid. ``v`` (N, dim) and ``C``,
+    ``tau`` (N, dim, dim) are arrays or planes."""
+    v = _vector_planes(v) if hasattr(v, "shape") else v
+    C = _matrix_planes(C) if hasattr(C, "shape") else C
+    tau = _matrix_planes(tau) if hasattr(tau, "shape") else tau
+    dim = len(v)
+    n_stencil = stencil.index.shape[0]
+    mass_ch, momentum_ch, force_ch = [], [[] for _ in range(dim)], [[] for _ in range(dim)]
+    for s in range(n_stencil):
+        mw = mass * stencil.weight_plane(s)
+        mass_ch.append(mw)
+        for a in range(dim):
+            affine = sum(C[a][b] * stencil.offset_plane(s, b) for b in range(dim))
+            momentum_ch[a].append(mw * (v[a] + affine))
+            force_ch[a].append(-vol0 * sum(tau[a][b] * stencil.grad_plane(s, b) for b in range(dim)))
+    # One scalar scatter per channel, all through the same flat index.
     index = stencil.index.reshape(-1)
-    empty = jnp.zeros((n_nodes,), v.dtype)
-    grid = [empty.at[index].add(c.reshape(-1)) for c in jax.lax.optimization_barrier(channels)]
-    return GridFields(grid[0], jnp.stack(grid[1 : 1 + dim]), jnp.stack(grid[1 + dim :]))
+    empty = jnp.zeros((n_nodes,), mass.dtype)
+
+    def scatter(planes):
+        return empty.at[index].add(jnp.stack(planes).reshape(-1))
+
+    return GridFields(scatter(mass_ch), jnp.stack([scatter(c) for c in momentum_ch]),
+                      jnp.stack([scatter(c) for c in force_ch]))
 
 
 def grid_velocities(fields: GridFields, dt, gravity):
@@ -66,31 +85,41 @@ def grid_velocities(fields: GridFields, dt, gravity):
     return v_old, v_new
 
 
-def g2p(stencil: Stencil, v_old, v_new, v_p, dx, transfer: str, alpha: float) -> Transferred:
-    """Gather node velocities back to particles with the chosen transfer. ``v_p`` is the
-    particle velocity the FLIP part starts from (the particles' own, or its XPIC filter)."""
-    dim = v_p.shape[-1]
+def g2p_planes(stencil: Stencil, v_old, v_new, v_p, dx, transfer: str, alpha: float) -> Transferred:
+    """G2P with the chosen transfer, every result as planes. ``v_p`` (planes) is the particle
+    velocity the FLIP part starts from (the particles' own, or its XPIC filter)."""
+    dim = v_new.shape[0]
+    n_stencil = stencil.index.shape[0]
     flip = transfer != "pic" and alpha != 0.0
-    grid = jnp.concatenate([v_new, v_old]) if flip else v_new
-    nodes = jax.lax.optimization_barrier(grid[:, stencil.index])  # (channels, S, N)
-    vn = nodes[:dim]
-    w = stencil.weight
-    v_pic = jnp.sum(w * vn, axis=1).T
-    grad_v = _outer_sum(vn, stencil.grad)
+    new = [v_new[a][stencil.index] for a in range(dim)]  # (S, N) each
+    old = [v_old[a][stencil.index] for a in range(dim)] if flip else None
+    weights = [stencil.weight_plane(s) for s in range(n_stencil)]
+
+    def over_stencil(term):
+        return sum(term(s) for s in range(n_stencil))
+
+    v_pic = [over_stencil(lambda s, a=a: weights[s] * new[a][s]) for a in range(dim)]
+    grad_v = [[over_stencil(lambda s, a=a, b=b: new[a][s] * stencil.grad_plane(s, b)) for b in range(dim)]
+              for a in range(dim)]
     if transfer == "pic":
-        return Transferred(v_pic, v_pic, jnp.zeros_like(grad_v), grad_v)
-    C = (APIC_INERTIA / dx**2) * _outer_sum(w * vn, stencil.offset)
+        zero = jnp.zeros_like(v_pic[0])
+        return Transferred(v_pic, v_pic, [[zero] * dim for _ in range(dim)], grad_v)
+    scale = APIC_INERTIA / dx**2
+    C = [[scale * over_stencil(lambda s, a=a, b=b: weights[s] * new[a][s] * stencil.offset_plane(s, b))
+          for b in range(dim)] for a in range(dim)]
     if not flip:
         return Transferred(v_pic, v_pic, C, grad_v)
-    dv = jnp.sum(w * (vn - nodes[dim:]), axis=1).T
-    return Transferred(alpha * (v_p + dv) + (1.0 - alpha) * v_pic, v_pic, C, grad_v)
+    dv = [over_stencil(lambda s, a=a: weights[s] * (new[a][s] - old[a][s])) for a in range(dim)]
+    v = [alpha * (v_p[a] + dv[a]) + (1.0 - alpha) * v_pic[a] for a in range(dim)]
+    return Transferred(v, v_pic, C, grad_v)
 
 
-def _outer_sum(a, b):
-    """(N, d, d) matrices sum_s a[i, s] b[j, s] from component-first (d, S, N) arrays."""
-    dim = a.shape[0]
-    rows = [jnp.stack([jnp.sum(a[i] * b[j], axis=0) for j in range(dim)], -1) for i in range(dim)]
-    return jnp.stack(rows, axis=-2)
+def g2p(stencil: Stencil, v_old, v_new, v_p, dx, transfer: str, alpha: float) -> Transferred:
+    """Gather node velocities back to particles with the chosen transfer (``g2p_planes`` with
+    array results: v, v_pic (N, dim), C, grad_v (N, dim, dim)). ``v_p`` (N, dim) is the particle
+    velocity the FLIP part starts from (the particles' own, or its XPIC filter)."""
+    out = g2p_planes(stencil, v_old, v_new, _vector_planes(v_p), dx, transfer, alpha)
+    return Transferred(jnp.stack(out.v, -1), jnp.stack(out.v_pic, -1), unplanes(out.C), unplanes(out.grad_v))
 
 
 def xpic_velocity(stencil: Stencil, mass, grid_mass, v_p, order: int):
@@ -104,15 +133,16 @@ def xpic_velocity(stencil: Stencil, mass, grid_mass, v_p, order: int):
 
     dim = v_p.shape[-1]
     index = stencil.index.reshape(-1)
+    weight = stencil.weight
     inv_mass = safe_div(1.0, grid_mass)
-    mw = mass * stencil.weight  # (S, N)
+    mw = mass * weight  # (S, N)
     empty = jnp.zeros_like(grid_mass)
 
     def project(vp):  # (dim, N) particle values -> (dim, nodes): T
         return jnp.stack([empty.at[index].add((mw * vp[a]).reshape(-1)) for a in range(dim)]) * inv_mass
 
     def interpolate(vg):  # (dim, nodes) -> (dim, N): S
-        return jnp.sum(stencil.weight * vg[:, stencil.index], axis=1)
+        return jnp.sum(weight * vg[:, stencil.index], axis=1)
 
     v_k = project(v_p.T)
     total = order * v_k

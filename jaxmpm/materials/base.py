@@ -11,7 +11,7 @@ from typing import Any
 
 import jax.numpy as jnp
 
-from ..linalg import safe_sqrt, trace
+from ..linalg import planes, safe_sqrt, trace, unplanes
 
 __all__ = ["Material", "invariants", "lame", "P_WAVE_RATIO_MAX"]
 
@@ -37,15 +37,24 @@ def invariants(tau):
 
 
 class Material(abc.ABC):
-    """Constitutive update of the elastic deformation gradient and Kirchhoff stress."""
+    """Constitutive update of the elastic deformation gradient and Kirchhoff stress.
+
+    A material implements ``update_planes``, on matrices held as planes (lists of (N,) arrays,
+    ``jaxmpm.linalg``), which the time step calls; ``update`` is the same on (N, d, d) arrays."""
 
     @abc.abstractmethod
     def init_internal(self, n: int, dtype) -> dict[str, Any]:
         """Internal variables of ``n`` stress-free particles, as a dict of (n,) arrays."""
 
     @abc.abstractmethod
+    def update_planes(self, F_trial, internal, params, dt):
+        """(F_e, τ, internal) after the step, from the trial elastic deformation gradient; F and τ
+        as planes [[(N,) arrays]]."""
+
     def update(self, F_trial, internal, params, dt):
-        """(F_e, τ, internal) after the step, from the trial elastic deformation gradient."""
+        """(F_e, τ, internal) after the step, from the trial elastic deformation gradient (N, d, d)."""
+        F, tau, internal = self.update_planes(planes(F_trial), internal, params, dt)
+        return unplanes(F), unplanes(tau), internal
 
     def wave_speed(self, params):
         """Elastic wave speed c of the time-step bound cfl_e·dx/c.

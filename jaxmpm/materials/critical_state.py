@@ -32,11 +32,16 @@ import dataclasses
 import jax
 import jax.numpy as jnp
 
-from ..linalg import mm, safe_div, safe_sqrt, sym_exp, trace
+from ..linalg import mm_planes, planes, safe_div, safe_sqrt, sym_exp_planes, unplanes
 from .base import Material, lame
-from .hencky import hencky_strain
+from .hencky import hencky_strain_planes
 
-__all__ = ["CriticalState", "return_map", "return_invariants", "yield_function", "mu_of_I", "INTERNAL_KEYS"]
+__all__ = ["CriticalState", "return_map", "return_map_planes", "return_invariants", "yield_function", "mu_of_I",
+           "INTERNAL_KEYS"]
+
+#: A solve stops once no lane moves by more than STEP_TOL machine epsilons of its scale in one
+#: step: at that point a Newton step only moves the root by round-off.
+STEP_TOL = 4
 
 #: Internal variables carried per particle: the plastic volumetric strain and the diagnostics of
 #: the last update (shear rate γ̇, inertial number I, friction μ(I), plastic flag 0/1, p_c).
@@ -62,7 +67,28 @@ def bulk_modulus(params, dim):
 # Scalar solves (elementwise over particles)
 
 
-def _apex_increment(p_tr, pc_n, params, K, iterations):
+def _iterate(update, carry, iterations, value, scale):
+    """Apply ``update`` to ``carry`` until no lane's ``value(carry)`` moves by more than
+    ``STEP_TOL`` · ``scale`` in one application, or ``iterations`` times (a ``while_loop``: the
+    quadratically converging solves below take 2-4 steps where a fixed count ran 12, and the
+    iteration count never affects a derivative, which the final implicit step provides).
+    ``scale`` is the lane's natural size; a lane of scale 0 (one whose value is not used, an
+    elastic one) never holds the loop."""
+    tol = STEP_TOL * jnp.finfo(jnp.result_type(value(carry))).eps * scale
+
+    def cond(state):
+        k, moved, _ = state
+        return (k < iterations) & moved
+
+    def body(state):
+        k, _, c = state
+        new = update(c)
+        return k + 1, jnp.any((jnp.abs(value(new) - value(c)) > tol) & (scale > 0)), new
+
+    return jax.lax.while_loop(cond, body, (jnp.zeros((), jnp.int32), jnp.asarray(True), carry))[2]
+
+
+def _apex_increment(p_tr, pc_n, params, K, iterations, scale):
     """ε at the apex of the updated ellipse: h(ε) = 2(p_tr + Kε) - (1-β) p_c,n e^{-ξε} = 0.
 
     h is increasing and concave in ε, so Newton from the linearised root approaches from the
@@ -76,14 +102,14 @@ def _apex_increment(p_tr, pc_n, params, K, iterations):
     h0, s0 = h_and_slope(jnp.zeros_like(p_tr))
     eps = -h0 / s0
 
-    def body(_, eps):
+    def update(eps):
         h, s = h_and_slope(eps)
         return eps - h / s
 
-    return jax.lax.fori_loop(0, iterations, body, eps)
+    return _iterate(update, eps, iterations, lambda e: e, scale)
 
 
-def _tip_increments(p_tr, pc_n, params, K, iterations):
+def _tip_increments(p_tr, pc_n, params, K, iterations, scale):
     """ε at the compression tip p = p_c and at the tension tip p = -β p_c of the updated ellipse,
     t(ε) = p_tr + Kε ∓ s p_c,n e^{-ξε} = 0 (s = 1, β), by Newton from the root with p_c frozen.
 
@@ -93,16 +119,27 @@ def _tip_increments(p_tr, pc_n, params, K, iterations):
     wherever a step is stable) and convex or concave, so Newton converges from one side."""
 
     def solve(factor, sign):  # the tip p = sign · factor · p_c
-        scale = factor * pc_n
+        tip = factor * pc_n
 
-        def body(_, eps):
-            pc = scale * jnp.exp(-params.xi * eps)
+        def update(eps):
+            pc = tip * jnp.exp(-params.xi * eps)
             t, slope = p_tr + K * eps - sign * pc, K + sign * params.xi * pc
             return eps - safe_div(t, slope, fill=0.0)
 
-        return jax.lax.fori_loop(0, iterations, body, (sign * scale - p_tr) / K)
+        return _iterate(update, (sign * tip - p_tr) / K, iterations, lambda e: e, scale)
 
     return solve(1.0, 1.0), solve(params.beta, -1.0)
+
+
+def _near_apex(eps_apex, q_tr, pc_n, params, K, G):
+    """A start for a large overstress, whose return ends just short of the apex (the top of the
+    updated ellipse, h = 0): there q(ε) = q_tr μ1²h/(μ1²h − 2Gε) is nearly linear in ε − ε_apex
+    while the surface's q_s = μ1 (1+β) p_c/2 barely moves, so the root lies about
+    (1+β) p_c (−G ε_apex)/(q_tr μ1 h') from the apex (h' = dh/dε). Newton on g (quadratic in q)
+    from the trial state would only halve its distance to this root per step."""
+    pc = pc_n * jnp.exp(-params.xi * eps_apex)
+    slope = 2.0 * K + (1.0 - params.beta) * params.xi * pc
+    return eps_apex + safe_div((1.0 + params.beta) * pc * (-G * eps_apex), q_tr * params.mu1 * slope)
 
 
 def _surface_residual(eps, p_tr, q_tr, pc_n, params, K, G):
@@ -119,22 +156,46 @@ def _newton_value_and_slope(fn, eps):
     return jax.jvp(fn, (eps,), (jnp.ones_like(eps),))
 
 
-def _safeguarded_newton(fn, lo, hi, eps0, iterations):
-    """Root of ``fn`` in [lo, hi] with fn(lo) < 0 < fn(hi) (either order of lo, hi in value):
-    Newton steps, replaced by bisection when they leave the current bracket."""
+def _cleared_residual(eps, p_tr, q_tr, pc_n, params, K, G):
+    """F(ε) = (μ1²h − 2Gε) q_s − q_tr μ1²h: zero where q(ε) = q_s(ε), the surface's q at p(ε),
+    like g, but with the hyperbola q(ε) cleared, so that it is nearly linear in ε wherever q_s
+    is smooth (away from the tips). Newton on g from the trial state takes many short steps
+    there: q falls as 1/(μ1²h − 2Gε) with 2G far above the pressures. Returns (F, inside):
+    ``inside`` where p(ε) lies strictly between the tips, the only place F is a residual."""
+    p = p_tr + K * eps
+    pc = pc_n * jnp.exp(-params.xi * eps)
+    mu2h = params.mu1**2 * (2.0 * p + (params.beta - 1.0) * pc)
+    spread = (pc - p) * (p + params.beta * pc)
+    inside = spread > 0
+    q_surface = params.mu1 * jnp.sqrt(jnp.where(inside, spread, 1.0))
+    return (mu2h - 2.0 * G * eps) * q_surface - q_tr * mu2h, inside
 
-    def body(_, carry):
+
+def _safeguarded_newton(fn, lo, hi, eps0, iterations, scale, cleared=None):
+    """Root of ``fn`` in [lo, hi] with fn(lo) < 0 < fn(hi) (either order of lo, hi in value):
+    Newton steps, replaced by bisection when they leave the current bracket, until no lane's
+    step exceeds round-off of its ``scale`` plus the bracket's width (at most ``iterations``).
+    ``cleared``: a function with the same root, ε -> (F, valid), whose Newton step is taken
+    instead where it is valid and stays in the bracket (which follows the sign of ``fn``)."""
+
+    def update(carry):
         eps, neg, pos = carry  # current iterate; bracket ends where fn < 0 and fn > 0
         g, slope = _newton_value_and_slope(fn, eps)
         neg = jnp.where(g < 0, eps, neg)
         pos = jnp.where(g > 0, eps, pos)
-        step = eps - safe_div(g, slope, fill=0.0)
         lower, upper = jnp.minimum(neg, pos), jnp.maximum(neg, pos)
+        step = eps - safe_div(g, slope, fill=0.0)
         inside = (step >= lower) & (step <= upper) & (slope != 0)
+        if cleared is not None:
+            (f, valid), (f_slope, _) = jax.jvp(cleared, (eps,), (jnp.ones_like(eps),))
+            f_step = eps - safe_div(f, f_slope, fill=0.0)
+            f_inside = valid & (f_slope != 0) & (f_step >= lower) & (f_step <= upper)
+            step, inside = jnp.where(f_inside, f_step, step), inside | f_inside
         eps = jnp.where(g == 0, eps, jnp.where(inside, step, 0.5 * (neg + pos)))
         return eps, neg, pos
 
-    eps, _, _ = jax.lax.fori_loop(0, iterations, body, (eps0, lo, hi))
+    scale = jnp.where(scale > 0, scale + jnp.abs(hi - lo), 0.0)
+    eps, _, _ = _iterate(update, (eps0, lo, hi), iterations, lambda c: c[0], scale)
     return eps
 
 
@@ -178,16 +239,22 @@ def return_invariants(p_tr, q_tr, eps_v_p, params, dt, dim, iterations=12):
     # beyond a tip at the tip); bisection takes over when a step leaves the bracket.
     # The apex solve is a monotone Newton iteration (quadratic convergence from the first step):
     # half the iterations suffice.
-    eps_apex = _apex_increment(p_s, pc_s, params_s, K_s, max(3, iterations // 2))
+    # Each solve stops at round-off of its scale: ε's own size and that of p_tr/K and p_c/K,
+    # whose cancellation in p = p_tr + Kε limits how well any ε can be resolved.
+    scale = jnp.where(plastic, (jnp.abs(p_s) + pc_s) / K_s, 0.0)
+    eps_apex = _apex_increment(p_s, pc_s, params_s, K_s, max(3, iterations // 2), scale)
     residual_s = lambda e: _surface_residual(e, p_s, q_s, pc_s, params_s, K_s, G_s)  # noqa: E731
     lo, hi = jnp.minimum(eps_apex, zero), jnp.maximum(eps_apex, zero)
     start, best = zero, jnp.abs(residual_s(zero))
-    for candidate in (0.5 * eps_apex, *_tip_increments(p_s, pc_s, params_s, K_s, 3)):
+    candidates = (0.5 * eps_apex, _near_apex(eps_apex, q_s, pc_s, params_s, K_s, G_s),
+                  *_tip_increments(p_s, pc_s, params_s, K_s, 3, scale))
+    for candidate in candidates:
         candidate = jnp.clip(candidate, lo, hi)  # a start inside the bracket (NaN-free: t's slope is > 0)
         g = jnp.abs(residual_s(candidate))
         better = g < best  # False for NaN: a candidate that failed is never taken
         start, best = jnp.where(better, candidate, start), jnp.where(better, g, best)
-    eps_root = _safeguarded_newton(residual_s, eps_apex, zero, start, iterations)
+    cleared_s = lambda e: _cleared_residual(e, p_s, q_s, pc_s, params_s, K_s, G_s)  # noqa: E731
+    eps_root = _safeguarded_newton(residual_s, eps_apex, zero, start, iterations, scale, cleared_s)
     eps_reg = _implicit_step(
         lambda e: _surface_residual(e, p_tr, q_tr, pc_n, params, K, G), eps_root, jnp.abs(eps_apex)
     )
@@ -226,30 +293,39 @@ def return_invariants(p_tr, q_tr, eps_v_p, params, dt, dim, iterations=12):
     }
 
 
+def return_map_planes(strain_trial, eps_v_p, params, dt, iterations=12):
+    """``return_map`` on a symmetric trial strain held as planes (``jaxmpm.linalg``)."""
+    dim = len(strain_trial)
+    G, K = bulk_modulus(params, dim)
+    e_v = sum(strain_trial[i][i] for i in range(dim))
+    mean = e_v / dim
+    dev = [[e - mean if i == j else e for j, e in enumerate(row)] for i, row in enumerate(strain_trial)]
+    q_tr = 2.0 * G * safe_sqrt(0.5 * sum(d * d for row in dev for d in row))
+    p_tr = -K * e_v
+    out = return_invariants(p_tr, q_tr, eps_v_p, params, dt, dim, iterations)
+    # Elastic lanes keep their deviator exactly (ratio 1, so dτ/de = 2G even at e = 0).
+    ratio = jnp.where(out["plastic"] > 0, safe_div(out["q"], q_tr), 1.0)
+    p = out["p"]
+    iso_strain, shear = -p / (K * dim), 2.0 * G * ratio
+    strain = [[(iso_strain if i == j else 0.0) + ratio * d for j, d in enumerate(row)] for i, row in enumerate(dev)]
+    tau = [[(-p if i == j else 0.0) + shear * d for j, d in enumerate(row)] for i, row in enumerate(dev)]
+    return strain, tau, out
+
+
 def return_map(strain_trial, eps_v_p, params, dt, iterations=12):
     """The constitutive update for trial Hencky strains (..., d, d).
 
     Returns ``(strain, tau, out)``: the new Hencky strain, the Kirchhoff stress
     τ = -p I + 2G (q/q_tr) dev e_tr, and the invariant results of ``return_invariants``.
     """
-    dim = strain_trial.shape[-1]
-    G, K = bulk_modulus(params, dim)
-    eye = jnp.eye(dim, dtype=strain_trial.dtype)
-    e_v = trace(strain_trial)
-    dev = strain_trial - (e_v / dim)[..., None, None] * eye
-    q_tr = 2.0 * G * safe_sqrt(0.5 * jnp.sum(dev * dev, axis=(-2, -1)))
-    p_tr = -K * e_v
-    out = return_invariants(p_tr, q_tr, eps_v_p, params, dt, dim, iterations)
-    # Elastic lanes keep their deviator exactly (ratio 1, so dτ/de = 2G even at e = 0).
-    ratio = jnp.where(out["plastic"] > 0, safe_div(out["q"], q_tr), 1.0)[..., None, None]
-    strain = (-out["p"] / (K * dim))[..., None, None] * eye + ratio * dev
-    tau = -out["p"][..., None, None] * eye + 2.0 * G * ratio * dev
-    return strain, tau, out
+    strain, tau, out = return_map_planes(planes(strain_trial), eps_v_p, params, dt, iterations)
+    return unplanes(strain), unplanes(tau), out
 
 
 @dataclasses.dataclass(frozen=True)
 class CriticalState(Material):
-    """The critical-state μ(I) material. ``iterations``: Newton steps of each scalar solve."""
+    """The critical-state μ(I) material. ``iterations``: the most Newton steps of each scalar
+    solve (each stops earlier once its step is at round-off)."""
 
     iterations: int = 12
 
@@ -261,9 +337,10 @@ class CriticalState(Material):
         zeros = jnp.zeros((n,), dtype)
         return {key: zeros for key in INTERNAL_KEYS}
 
-    def update(self, F_trial, internal, params, dt):
-        strain_trial = hencky_strain(F_trial)
-        strain, tau, out = return_map(strain_trial, internal["eps_v_p"], params, dt, self.iterations)
+    def update_planes(self, F_trial, internal, params, dt):
+        strain_trial = hencky_strain_planes(F_trial)
+        strain, tau, out = return_map_planes(strain_trial, internal["eps_v_p"], params, dt, self.iterations)
         # e_new and e_trial are coaxial, so F_e = exp(e_new - e_trial) F_trial keeps the rotation.
-        F = mm(sym_exp(strain - strain_trial), F_trial)
+        change = [[a - b for a, b in zip(r1, r2)] for r1, r2 in zip(strain, strain_trial)]
+        F = mm_planes(sym_exp_planes(change), F_trial)
         return F, tau, {key: out[key] for key in INTERNAL_KEYS}

@@ -9,25 +9,37 @@ from __future__ import annotations
 
 import dataclasses
 
-import jax.numpy as jnp
-
-from ..linalg import mm, mt, sym_log, trace
+from ..linalg import planes, sym_log_planes, unplanes
 from .base import Material, lame
 
-__all__ = ["Hencky", "hencky_strain", "hencky_stress"]
+__all__ = ["Hencky", "hencky_strain", "hencky_stress", "hencky_strain_planes"]
+
+
+def hencky_strain_planes(F):
+    """½ log(F Fᵀ) of a deformation gradient held as planes (``jaxmpm.linalg``)."""
+    dim = len(F)
+    b = [[sum(F[i][k] * F[j][k] for k in range(dim)) for j in range(dim)] for i in range(dim)]
+    for i in range(dim):  # F Fᵀ is symmetric: share the planes
+        for j in range(i):
+            b[i][j] = b[j][i]
+    return [[0.5 * c for c in row] for row in sym_log_planes(b)]
+
+
+def _stress_planes(F, params):
+    G, lam = lame(params)
+    eps = hencky_strain_planes(F)
+    trace = sum(eps[i][i] for i in range(len(F)))
+    return [[(lam * trace if i == j else 0.0) + 2.0 * G * e for j, e in enumerate(row)] for i, row in enumerate(eps)]
 
 
 def hencky_strain(F):
     """Spatial Hencky strain ½ log(F Fᵀ) of deformation gradients (..., d, d)."""
-    return 0.5 * sym_log(mm(F, mt(F)))
+    return unplanes(hencky_strain_planes(planes(F)))
 
 
 def hencky_stress(F, params):
     """Kirchhoff stress τ of Hencky elasticity for deformation gradients (..., d, d)."""
-    G, lam = lame(params)
-    eps = hencky_strain(F)
-    eye = jnp.eye(F.shape[-1], dtype=F.dtype)
-    return lam * trace(eps)[..., None, None] * eye + 2.0 * G * eps
+    return unplanes(_stress_planes(planes(F), params))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -37,5 +49,5 @@ class Hencky(Material):
     def init_internal(self, n, dtype):
         return {}
 
-    def update(self, F_trial, internal, params, dt):
-        return F_trial, hencky_stress(F_trial, params), internal
+    def update_planes(self, F_trial, internal, params, dt):
+        return F_trial, _stress_planes(F_trial, params), internal
