@@ -28,8 +28,13 @@ import copy
 import dataclasses
 import json
 import math
+import os
 import pathlib
 import sys
+
+from jaxmpm.threads import add_threads_argument, apply_threads
+
+from .workers import Workers, available_cores
 
 __all__ = ["main", "build_parser"]
 
@@ -154,6 +159,20 @@ def _starts(args) -> int:
     return args.starts
 
 
+def _workers(args) -> int:
+    """--workers, else $JAXMPM_WORKERS, else every core this process may use."""
+    if args.workers is not None:
+        if args.workers < 1:
+            raise ValueError(f"--workers must be >= 1, got {args.workers}")
+        return args.workers
+    env = os.environ.get("JAXMPM_WORKERS")
+    if env:
+        if not env.isdigit() or int(env) < 1:
+            raise ValueError(f"$JAXMPM_WORKERS must be an integer >= 1, got {env!r}")
+        return int(env)
+    return available_cores()
+
+
 def _fit(args) -> int:
     import numpy as np
 
@@ -169,27 +188,29 @@ def _fit(args) -> int:
                "reference_noise": args.reference_noise,
                "threshold": args.threshold}
     found = None
-    if starts > 1:
-        from .search import search
+    with Workers(_workers(args)) as workers:
+        if starts > 1:
+            from .search import search
 
-        if args.coarse is not None:
-            from .search import coarse_to_fine
+            if args.coarse is not None:
+                from .search import coarse_to_fine
 
-            coarse_args = copy.copy(args)
-            coarse_args.dx = scene.config.grid.dx * args.coarse
-            _, coarse = _scene_and_objective(coarse_args, keys)
-            found = coarse_to_fine(objective, coarse, starts, refine=args.refine, seed=args.search_seed,
-                                   init=init or None, steps=steps, noise=noise, progress=not args.no_progress,
-                                   **judging)
+                coarse_args = copy.copy(args)
+                coarse_args.dx = scene.config.grid.dx * args.coarse
+                _, coarse = _scene_and_objective(coarse_args, keys)
+                found = coarse_to_fine(objective, coarse, starts, refine=args.refine, seed=args.search_seed,
+                                       init=init or None, steps=steps, noise=noise, progress=not args.no_progress,
+                                       workers=workers, **judging)
+            else:
+                found = search(objective, starts, seed=args.search_seed, init=init or None, steps=steps,
+                               noise=noise, progress=not args.no_progress, workers=workers, **judging)
+            result = found.best
         else:
-            found = search(objective, starts, seed=args.search_seed, init=init or None, steps=steps, noise=noise,
-                           progress=not args.no_progress, **judging)
-        result = found.best
-    else:
-        result = fit(objective, init, method=args.method, steps=steps, out=args.out, resume=args.resume,
-                     overwrite=args.overwrite, learning_rate=args.lr, progress=not args.no_progress, noise=noise,
-                     meta={"command": "python -m calibration " + " ".join(sys.argv[1:]), "data": args.data,
-                           "front": args.front}, **judging)
+            result = fit(objective, init, method=args.method, steps=steps, out=args.out, resume=args.resume,
+                         overwrite=args.overwrite, learning_rate=args.lr, progress=not args.no_progress,
+                         noise=noise, meta={"command": "python -m calibration " + " ".join(sys.argv[1:]),
+                                            "data": args.data, "front": args.front},
+                         workers=workers, **judging)
     out = found.to_json() if found is not None else result.to_json()
     metres = objective.in_metres(result.residuals)
     profile = [v for name, v in metres.items() if "profile" in name]
@@ -532,6 +553,10 @@ def _fit_options(p, default_keys: str | None) -> None:
                    help="noise (fraction of the data scale) at which identifiability is judged (default 0.01)")
     p.add_argument("--threshold", type=float, default=0.1,
                    help="a parameter is constrained if its 95%% half-width is below this fraction (default 0.1)")
+    p.add_argument("--workers", type=int, default=None, metavar="N",
+                   help="single-threaded worker processes for the independent runs (the Jacobian's columns, the "
+                        "starts, the extra runs of the verdict); default: the number of cores, or $JAXMPM_WORKERS; "
+                        "1: everything in this process")
     p.add_argument("--roundoff-samples", type=int, default=8, metavar="N",
                    help="perturbed runs at the end point that measure the run's own round-off scatter, for the "
                         "verdict and the interval (default 8, one forward run each; 0: not measured)")
@@ -644,6 +669,8 @@ def build_parser() -> argparse.ArgumentParser:
     tw.add_argument("--noise-seed", type=int, default=0, help="seed of the noise")
     tw.add_argument("--landscape", type=int, default=None, metavar="N",
                     help="also sweep the loss on an N × N grid over the first two keys (figure with --plot)")
+    for command in sub.choices.values():
+        add_threads_argument(command)
     return parser
 
 
@@ -729,6 +756,7 @@ def main(argv=None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     try:
+        apply_threads(args.threads)
         for name in ("steps", "chunk", "lhs", "starts"):
             value = getattr(args, name, None)
             if value is not None and value < 1:

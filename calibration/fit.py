@@ -49,7 +49,9 @@ from .adam import adam
 from .history import History, check_out, read_history
 from .lm import LMOptions, LMState, levenberg_marquardt
 from .loop import Evaluation, run, status_text
+from .objective import jacobians_z
 from .uncertainty import ROUNDOFF_SAMPLES, Uncertainty, Verdict, judge_point
+from .workers import using
 
 __all__ = ["METHODS", "FitResult", "fit", "read_history", "start_theta"]
 
@@ -128,11 +130,15 @@ def start_theta(objective, init: Mapping[str, float] | None) -> tuple[np.ndarray
     return theta, note
 
 
-def _evaluator(objective, rev: bool) -> Callable[[np.ndarray], Evaluation]:
+def _evaluator(objective, rev: bool, workers=None) -> Callable[[np.ndarray], Evaluation]:
     """The model at the rows of z (k, n), one run each: residuals and their Jacobian from the
-    objective (forward mode, or its differences), or with ``rev`` the reverse-mode gradient alone."""
+    objective (forward mode, or its differences), or with ``rev`` the reverse-mode gradient alone.
+    With parallel ``workers`` (``calibration.workers``) the forward-mode passes, one per key and
+    row, run in the worker processes."""
     bounds = objective.bounds
     z_space = hasattr(objective, "residuals_and_jacobian_z") and getattr(objective, "jacobian", "ad") == "ad"
+    if z_space and not rev and workers is not None and workers.parallel and hasattr(objective, "column_tasks_z"):
+        return _parallel_evaluator(objective, workers)
 
     def one(z):
         theta = np.asarray(bounds.to_physical(jnp.asarray(z)))
@@ -162,6 +168,25 @@ def _evaluator(objective, rev: bool) -> Callable[[np.ndarray], Evaluation]:
         return Evaluation(theta=np.stack(theta), loss=np.array(loss), status=np.array(status), grad=np.stack(g),
                           residuals=r, jacobian=J, jacobian_z=Jz, grad_z=np.stack(g_z),
                           prediction=jax.tree.map(lambda *leaves: np.stack([np.asarray(a) for a in leaves]), *pred))
+
+    return evaluate
+
+
+def _parallel_evaluator(objective, workers) -> Callable[[np.ndarray], Evaluation]:
+    """``_evaluator`` for forward-mode LM with the passes in ``workers``: the same Evaluation."""
+    bounds = objective.bounds
+
+    def evaluate(Z):
+        r, Jz, pred = jacobians_z(objective, Z, workers)
+        r, Jz = np.asarray(r, float), np.asarray(Jz, float)
+        dtheta_dz = np.stack([np.asarray(bounds.jacobian_diag(jnp.asarray(z)), float) for z in Z])
+        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):  # dθ/dz = 0 at a bound: J, |g| inf
+            J = Jz / dtheta_dz[:, None, :]
+            g = np.einsum("kmn,km->kn", 2.0 * J, r)
+        g_z = np.einsum("kmn,km->kn", 2.0 * Jz, r)
+        return Evaluation(theta=np.asarray(bounds.to_physical(jnp.asarray(Z)), float), loss=np.sum(r * r, axis=1),
+                          status=np.asarray(pred["status"], int).reshape(-1), grad=g, residuals=r, jacobian=J,
+                          jacobian_z=Jz, grad_z=g_z, prediction=pred)
 
     return evaluate
 
@@ -198,7 +223,7 @@ def fit(objective, init: Mapping[str, float] | None = None, *, method: str = "lm
         noise: Mapping[str, float] | float | None = None, uncertainty: bool = True,
         roundoff_samples: int = ROUNDOFF_SAMPLES, sampling_seeds: int = 0, reference_noise: float = 0.01,
         threshold: float = 0.1,
-        meta: Mapping[str, Any] | None = None) -> FitResult:
+        meta: Mapping[str, Any] | None = None, workers=None) -> FitResult:
     """Fit ``objective.keys`` from ``init`` (physical values by key; missing keys start at the
     scene's values). ``steps``: the maximum number of iterations (model evaluations), counted
     over resumes. ``out``: the HDF5 history file; ``resume``: continue from it (it must exist
@@ -217,7 +242,10 @@ def fit(objective, init: Mapping[str, float] | None = None, *, method: str = "lm
     for the verdict and the interval (``uncertainty.model_scatter``; 0: not measured);
     ``sampling_seeds`` other draws of the particles add the sampling's share to the interval
     (``uncertainty.sampling_scatter``; 0, the default: not measured); ``reference_noise`` and
-    ``threshold`` decide which parameters count as constrained."""
+    ``threshold`` decide which parameters count as constrained. ``workers``: an integer or a
+    ``calibration.workers.Workers``; with more than one, each iteration's forward-mode passes
+    (one per key) and the verdict's extra runs go to that many single-threaded processes (the
+    same numbers as one process; None or 1: everything in this process)."""
     if method not in METHODS:
         raise ValueError(f"method must be one of {METHODS}, got {method!r}")
     if grad_mode not in ("fwd", "rev"):
@@ -249,62 +277,64 @@ def fit(objective, init: Mapping[str, float] | None = None, *, method: str = "lm
         theta0, start_note = start_theta(objective, init)
         history = History(path=path, header=header, snapshot=_snapshot)
         state = optimiser.init(bounds.to_unconstrained(theta0)[None])
-    evaluate = _evaluator(objective, rev=method == "adam" and grad_mode == "rev")
-    if method == "lm" and history.iterations:  # resumed: run the accepted point again (not an iteration)
-        state = optimiser.update(evaluate(state.z_next), state)
+    with using(workers) as workers:
+        evaluate = _evaluator(objective, rev=method == "adam" and grad_mode == "rev", workers=workers)
+        if method == "lm" and history.iterations:  # resumed: run the accepted point again (not an iteration)
+            state = optimiser.update(evaluate(state.z_next), state)
 
-    def check_start(evaluation):
-        status, loss = int(evaluation.status[0]), float(evaluation.loss[0])
-        if status or not math.isfinite(loss):
-            raise ValueError(f"init: the run at the initial parameters fails ({status_text(status)}; "
-                             f"loss {loss}); choose another start")
+        def check_start(evaluation):
+            status, loss = int(evaluation.status[0]), float(evaluation.loss[0])
+            if status or not math.isfinite(loss):
+                raise ValueError(f"init: the run at the initial parameters fails ({status_text(status)}; "
+                                 f"loss {loss}); choose another start")
 
-    bar = None
-    if progress:
-        try:
-            from tqdm import tqdm
+        bar = None
+        if progress:
+            try:
+                from tqdm import tqdm
 
-            bar = tqdm(total=steps, initial=history.iterations, desc=f"fit ({method})", unit="it")
-        except ImportError:
-            bar = None
+                bar = tqdm(total=steps, initial=history.iterations, desc=f"fit ({method})", unit="it")
+            except ImportError:
+                bar = None
 
-    def report(state, rows):
-        last = history.last()
+        def report(state, rows):
+            last = history.last()
+            if bar is not None:
+                bar.set_postfix_str(f"loss {last['loss']:.3e} " +
+                                    " ".join(f"{key}={v:.4g}" for key, v in zip(keys, last["theta"])))
+                bar.update(1)
+            if callback is not None:
+                callback(history.iterations - 1, last)
+
+        state = run(optimiser, state, evaluate, history, steps=steps,
+                    check_start=check_start if method == "lm" else None, report=report)
         if bar is not None:
-            bar.set_postfix_str(f"loss {last['loss']:.3e} " +
-                                " ".join(f"{key}={v:.4g}" for key, v in zip(keys, last["theta"])))
-            bar.update(1)
-        if callback is not None:
-            callback(history.iterations - 1, last)
+            bar.close()
+        done, message = bool(state.done[0]), str(state.message[0])
 
-    state = run(optimiser, state, evaluate, history, steps=steps,
-                check_start=check_start if method == "lm" else None, report=report)
-    if bar is not None:
-        bar.close()
-    done, message = bool(state.done[0]), str(state.message[0])
-
-    hist = history.arrays()
-    ok_rows = np.flatnonzero((hist["status"] == 0) & np.isfinite(hist["loss"]))
-    if ok_rows.size == 0:
-        raise ValueError("fit: no iteration produced a valid run")
-    i_best = ok_rows[np.argmin(hist["loss"][ok_rows])]
-    theta_best = hist["theta"][i_best]
-    current = state.current if method == "lm" else None  # LM's accepted point, with its run
-    if current is not None and np.array_equal(current.theta[0], theta_best):
-        loss_b, r_b, J_b = float(current.loss[0]), current.residuals[0], current.jacobian[0]
-        pred_b = jax.tree.map(lambda a: a[0], current.prediction)
-    else:
-        r_b, J_b, pred_b = objective.residuals_and_jacobian(theta_best)
-        r_b, J_b = np.asarray(r_b, float), np.asarray(J_b, float)
-        loss_b = float(np.sum(r_b * r_b))
-    converged = done and message.startswith("converged")
-    verdict, unc = judge_point(objective, r_b, J_b, theta_best, converged=converged, message=message, noise=noise,
-                               uncertainty=uncertainty, roundoff_samples=roundoff_samples,
-                               sampling_seeds=sampling_seeds, reference_noise=reference_noise, threshold=threshold)
-    return FitResult(keys=keys, theta={k: float(v) for k, v in zip(keys, theta_best)}, loss=float(loss_b),
-                     iterations=len(hist["loss"]), wall_s=float(hist["wall_s"][-1]) if len(hist["wall_s"]) else 0.0,
-                     method=method, converged=converged, message=message,
-                     history=hist, residuals=r_b, jacobian=J_b,
-                     prediction=jax.tree.map(np.asarray, pred_b), uncertainty=unc,
-                     start={k: float(v) for k, v in zip(keys, hist["theta"][0])}, start_note=start_note,
-                     verdict=verdict)
+        hist = history.arrays()
+        ok_rows = np.flatnonzero((hist["status"] == 0) & np.isfinite(hist["loss"]))
+        if ok_rows.size == 0:
+            raise ValueError("fit: no iteration produced a valid run")
+        i_best = ok_rows[np.argmin(hist["loss"][ok_rows])]
+        theta_best = hist["theta"][i_best]
+        current = state.current if method == "lm" else None  # LM's accepted point, with its run
+        if current is not None and np.array_equal(current.theta[0], theta_best):
+            loss_b, r_b, J_b = float(current.loss[0]), current.residuals[0], current.jacobian[0]
+            pred_b = jax.tree.map(lambda a: a[0], current.prediction)
+        else:
+            r_b, J_b, pred_b = objective.residuals_and_jacobian(theta_best)
+            r_b, J_b = np.asarray(r_b, float), np.asarray(J_b, float)
+            loss_b = float(np.sum(r_b * r_b))
+        converged = done and message.startswith("converged")
+        verdict, unc = judge_point(objective, r_b, J_b, theta_best, converged=converged, message=message, noise=noise,
+                                   uncertainty=uncertainty, roundoff_samples=roundoff_samples,
+                                   sampling_seeds=sampling_seeds, reference_noise=reference_noise, threshold=threshold,
+                                   workers=workers)
+        return FitResult(keys=keys, theta={k: float(v) for k, v in zip(keys, theta_best)}, loss=float(loss_b),
+                         iterations=len(hist["loss"]), wall_s=float(hist["wall_s"][-1]) if len(hist["wall_s"]) else 0.0,
+                         method=method, converged=converged, message=message,
+                         history=hist, residuals=r_b, jacobian=J_b,
+                         prediction=jax.tree.map(np.asarray, pred_b), uncertainty=unc,
+                         start={k: float(v) for k, v in zip(keys, hist["theta"][0])}, start_note=start_note,
+                         verdict=verdict)

@@ -47,7 +47,53 @@ from jaxmpm import PARAM_KEYS, validate_params
 from .bounds import Bounds
 from .observe import Observations, jacobian_by_columns, model_functions, unwhiten_front
 
-__all__ = ["jacobian_by_columns", "Objective", "CompositeObjective", "ProfileTarget", "FrontTarget"]
+__all__ = ["jacobian_by_columns", "Objective", "CompositeObjective", "ProfileTarget", "FrontTarget", "run_tasks",
+           "jacobians_z", "residuals_at"]
+
+
+def _column_task(config, observations, keys, z, tangent, lower, upper, state, base, data):
+    """One forward-mode pass of an objective (``Objective.column_tasks_z``), in any process."""
+    r, dr, pred = model_functions(config, observations, keys).column_z(z, tangent, lower, upper, state, base, data)
+    return np.asarray(r), np.asarray(dr), jax.tree.map(np.asarray, pred)
+
+
+def _residual_task(config, observations, keys, theta, state, base, data):
+    """One run of an objective (``Objective.residual_tasks``), in any process."""
+    r, pred = model_functions(config, observations, keys).residuals(theta, state, base, data)
+    return np.asarray(r), jax.tree.map(np.asarray, pred)
+
+
+def run_tasks(workers, tasks) -> list:
+    """The results of ``(fn, args)`` tasks, computed by ``workers`` (``calibration.workers``)."""
+    from .workers import as_workers
+
+    return as_workers(workers).map(_call, tasks)
+
+
+def _call(fn, args):
+    return fn(*args)
+
+
+def jacobians_z(objective, Z, workers) -> tuple:
+    """(r (k, m), dr/dz (k, m, n), predictions stacked over k) at the rows of ``Z`` (k, n):
+    every forward-mode pass of every row, spread over ``workers``."""
+    Z = np.atleast_2d(np.asarray(Z))
+    per_row = [objective.column_tasks_z(z) for z in Z]
+    results = run_tasks(workers, [t for tasks in per_row for t in tasks])
+    rows, start = [], 0
+    for tasks in per_row:
+        rows.append(objective.combine_columns_z(results[start:start + len(tasks)]))
+        start += len(tasks)
+    r, Jz, preds = zip(*rows)
+    return np.stack(r), np.stack(Jz), jax.tree.map(lambda *a: np.stack(a), *preds)
+
+
+def residuals_at(objective, thetas, workers, seeds=None) -> list[tuple]:
+    """[(r, prediction)] at the rows of ``thetas`` (with the particles drawn with ``seeds``,
+    row by row, if given), the runs spread over ``workers``."""
+    thetas = np.atleast_2d(np.asarray(thetas, float))
+    results = run_tasks(workers, objective.residual_tasks(thetas, seeds))
+    return objective.combine_residuals(results, thetas.shape[0])
 
 
 @dataclasses.dataclass(frozen=True)
@@ -360,7 +406,8 @@ class Objective:
             "row_scale": jnp.asarray(self.row_scale, self.dtype),
         }
         self.times = self.observations.times  # the run's frame times
-        self.functions = model_functions(config, self.observations, self.keys)
+        self._model_key = (config, self.observations, self.keys)  # what a worker rebuilds the functions from
+        self.functions = model_functions(*self._model_key)
         self.config = self.functions.config
         self._state = scene.state
         self._base = scene.params
@@ -407,6 +454,37 @@ class Objective:
         lower, upper = (jnp.asarray(b, self.dtype) for b in (bounds.lower, bounds.upper))
         Jz, (r, pred) = self.functions.jacobian_z(self.as_theta(z, "z"), lower, upper, *self.arguments())
         return r, Jz, pred
+
+    def column_tasks_z(self, z, bounds: Bounds | None = None) -> list[tuple]:
+        """The forward-mode passes of dr/dz at z, one per key, as tasks ``(fn, args)`` for
+        ``calibration.workers``; ``combine_columns_z`` assembles their results."""
+        bounds = self.bounds if bounds is None else bounds
+        z = np.asarray(self.as_theta(z, "z"))
+        lower, upper = (np.asarray(b, self.dtype) for b in (bounds.lower, bounds.upper))
+        args = jax.tree.map(np.asarray, self.arguments())
+        eye = np.eye(len(self.keys), dtype=z.dtype)
+        return [(_column_task, (*self._model_key, z, eye[j], lower, upper, *args)) for j in range(len(self.keys))]
+
+    @staticmethod
+    def combine_columns_z(results) -> tuple:
+        """(r, dr/dz, prediction) from the results of ``column_tasks_z`` (the residuals and the
+        prediction of the first pass: every pass computes the same primal)."""
+        return results[0][0], np.stack([col[1] for col in results], axis=-1), results[0][2]
+
+    def residual_tasks(self, thetas, seeds=None) -> list[tuple]:
+        """Runs at the rows of ``thetas`` (each with the scene's particles, or drawn with the
+        matching entry of ``seeds``) as tasks for ``calibration.workers``: (r, prediction) each."""
+        tasks = []
+        for i, theta in enumerate(np.atleast_2d(np.asarray(thetas, float))):
+            state = self._state if seeds is None else self.scene.resampled(int(seeds[i]))
+            args = jax.tree.map(np.asarray, self.arguments(state))
+            tasks.append((_residual_task, (*self._model_key, np.asarray(self.as_theta(theta)), *args)))
+        return tasks
+
+    @staticmethod
+    def combine_residuals(results, rows: int) -> list[tuple]:
+        """Per row, (r, prediction) from the results of ``residual_tasks``."""
+        return list(results)
 
     def residuals_and_jacobian(self, theta, jacobian: str | None = None):
         """(r, J, prediction) at θ, with J = dr/dθ (m × n) from forward-mode autodiff
@@ -599,6 +677,29 @@ class CompositeObjective:
         status = jnp.bitwise_or.reduce(jnp.stack([o[2]["status"] for o in outs]))
         return (jnp.concatenate([o[0] for o in outs]), jnp.concatenate([o[1] for o in outs]),
                 {"status": status, "members": [o[2] for o in outs]})
+
+    def column_tasks_z(self, z) -> list[tuple]:
+        """Every member's forward-mode passes at z (the composite's bounds), members in order."""
+        return [task for m in self.members for task in m.column_tasks_z(z, self.bounds)]
+
+    def combine_columns_z(self, results) -> tuple:
+        n = len(self.keys)
+        outs = [Objective.combine_columns_z(results[i * n:(i + 1) * n]) for i in range(len(self.members))]
+        status = np.bitwise_or.reduce(np.stack([np.asarray(o[2]["status"]) for o in outs]))
+        return (np.concatenate([o[0] for o in outs]), np.concatenate([o[1] for o in outs]),
+                {"status": status, "members": [o[2] for o in outs]})
+
+    def residual_tasks(self, thetas, seeds=None) -> list[tuple]:
+        return [task for m in self.members for task in m.residual_tasks(thetas, seeds)]
+
+    def combine_residuals(self, results, rows: int) -> list[tuple]:
+        """Per row, the members' (r, prediction) of ``residual_tasks`` combined."""
+        out = []
+        for i in range(rows):
+            parts = [results[j * rows + i] for j in range(len(self.members))]
+            status = np.bitwise_or.reduce(np.stack([np.asarray(p[1]["status"]) for p in parts]))
+            out.append((np.concatenate([p[0] for p in parts]), {"status": status, "members": [p[1] for p in parts]}))
+        return out
 
     def residuals_and_jacobian(self, theta):
         outs = [m.residuals_and_jacobian(theta) for m in self.members]

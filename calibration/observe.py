@@ -167,7 +167,10 @@ class ModelFunctions(NamedTuple):
     - ``residuals``: jit(residual); ``jacobian``: jit, (dr/dθ, (r, prediction));
     - ``jacobian_z(z, lower, upper, state, base, data)``: jit, (dr/dz, (r, prediction));
     - ``value_and_grad``: jit, ((Σ r², prediction), dΣr²/dθ);
-    - ``batched``: jit(vmap(residual)) over rows of θ; ``batched_jacobian_z``: over rows of z."""
+    - ``batched``: jit(vmap(residual)) over rows of θ; ``batched_jacobian_z``: over rows of z;
+    - ``column_z(z, tangent, lower, upper, state, base, data)``: jit, (r, dr/dz · tangent,
+      prediction): one forward-mode pass, the unit of work that ``calibration.workers`` spreads
+      over processes (a Jacobian column, a start's column in a search)."""
 
     config: Config
     predict: Callable
@@ -179,6 +182,7 @@ class ModelFunctions(NamedTuple):
     value_and_grad: Callable
     batched: Callable
     batched_jacobian_z: Callable
+    column_z: Callable
 
 
 def model_functions(config: Config, observations: Observations, keys: tuple[str, ...]) -> ModelFunctions:
@@ -230,9 +234,15 @@ def _model_functions(config: Config, observations: Observations, keys: tuple[str
     def jac_z(z, lower, upper, state, base, data):
         return jacobian_by_columns(lambda z_: residual_z(z_, lower, upper, state, base, data), z)
 
+    def column_z(z, tangent, lower, upper, state, base, data):
+        r, dr, pred = jax.jvp(lambda z_: residual_z(z_, lower, upper, state, base, data), (z,), (tangent,),
+                              has_aux=True)
+        return r, dr, pred
+
     return ModelFunctions(
         config=config, predict=predict, predictions=jax.jit(predict), residual=residual, residuals=jax.jit(residual),
         jacobian=jax.jit(jac),
         jacobian_z=jax.jit(jac_z), value_and_grad=jax.jit(jax.value_and_grad(loss, has_aux=True)),
         batched=jax.jit(jax.vmap(residual, in_axes=(0, None, None, None))),
-        batched_jacobian_z=jax.jit(jax.vmap(jac_z, in_axes=(0, None, None, None, None, None))))
+        batched_jacobian_z=jax.jit(jax.vmap(jac_z, in_axes=(0, None, None, None, None, None))),
+        column_z=jax.jit(column_z))

@@ -40,8 +40,9 @@ from .fit import FitResult, start_theta
 from .history import History
 from .lm import LMOptions, levenberg_marquardt
 from .loop import Evaluation, run
-from .objective import jacobian_by_columns
+from .objective import jacobian_by_columns, jacobians_z
 from .uncertainty import ROUNDOFF_SAMPLES, block_noise, chi2_of, chi2_quantile, judge_point
+from .workers import using
 
 __all__ = ["COARSE_OPTIONS", "DEFAULT_STARTS", "DESIGNS", "WITHIN_NOISE_P", "Minimum", "SearchResult",
            "coarse_to_fine", "design_starts", "search"]
@@ -222,7 +223,7 @@ def search(objective, starts: int | np.ndarray = DEFAULT_STARTS, *, seed: int = 
            stat_tol: float = 0.1, max_rejections: int = 6, cluster_tol: float = 0.01,
            noise: Mapping[str, float] | float | None = None, uncertainty: bool = True, shrink: bool = True,
            roundoff_samples: int = ROUNDOFF_SAMPLES, sampling_seeds: int = 0, reference_noise: float = 0.01,
-           threshold: float = 0.1, progress: bool = False) -> SearchResult:
+           threshold: float = 0.1, progress: bool = False, workers=None) -> SearchResult:
     """Multi-start LM from ``starts`` design points (an int k) or from given physical starts
     ((k, n) array). ``init`` (physical values by key, as for ``fit``): one more start, placed
     first. ``steps``: the maximum number of model evaluations per start, as in ``fit``.
@@ -230,124 +231,137 @@ def search(objective, starts: int | np.ndarray = DEFAULT_STARTS, *, seed: int = 
     ``noise``: the known noise per block (None: estimated from the best point's residual
     structure). ``shrink``: evaluate only the active starts (padded to a power of two).
     ``roundoff_samples``, ``sampling_seeds``, ``reference_noise``, ``threshold``: for the best
-    point's verdict and uncertainty, as in ``fit``."""
-    clock0 = time.perf_counter()
-    steps = _check_int("steps", steps, 1)
-    if not (math.isfinite(cluster_tol) and 0 < cluster_tol < 1):
-        raise ValueError(f"cluster_tol must be in (0, 1), got {cluster_tol!r}")
-    keys, bounds = objective.keys, objective.bounds
-    start_note = ""
-    if isinstance(starts, (int, np.integer)) and not isinstance(starts, (bool, np.bool_)):
-        k_design = _check_int("starts", starts, 1) - (1 if init else 0)
-        thetas = design_starts(objective, k_design, seed=seed, design=design) if k_design else np.zeros((0, len(keys)))
-    else:
-        thetas = np.asarray(starts, float)
-        if thetas.ndim != 2 or thetas.shape[1] != len(keys) or thetas.shape[0] < 1:
-            raise ValueError(f"starts must be an integer or an array (k, {len(keys)}), got shape {thetas.shape}")
-        for i, theta in enumerate(thetas):
-            bounds.check(theta, f"starts[{i}]")
-        if getattr(objective, "check_thetas", None) is not None:
-            objective.check_thetas(thetas, "starts")
-    if init:
-        theta0, start_note = start_theta(objective, init)
-        thetas = np.concatenate([theta0[None], thetas])
-    k, n = thetas.shape
-    optimiser = levenberg_marquardt(LMOptions(xtol=xtol, ftol=ftol, stat_tol=stat_tol, max_rejections=max_rejections))
-    batch = _batch_fn(objective)
-    dtype = objective.dtype
-    compile_s = 0.0
-    compiled_sizes: set[int] = set()
-    evaluations = 0
-
-    def evaluate(Z):
-        """The rows of Z in one batched call, padded to a compiled size."""
-        nonlocal compile_s, evaluations
-        b = Z.shape[0]
-        size = min(k, 1 << (b - 1).bit_length()) if shrink else k
-        padded = np.concatenate([Z, np.repeat(Z[:1], size - b, axis=0)]) if size > b else Z
-        clock = time.perf_counter()
-        r, Jz, pred = jax.tree.map(np.asarray, batch(jnp.asarray(padded, dtype)))
-        if size not in compiled_sizes:
-            compiled_sizes.add(size)
-            compile_s += time.perf_counter() - clock  # the first call of a shape: compile + one run
-        evaluations += size
-        r, Jz, pred = np.array(r[:b], float), np.array(Jz[:b], float), jax.tree.map(lambda a: a[:b], pred)
-        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):  # dθ/dz = 0 at a bound: J, |g| inf
-            J = np.stack([Jz_ / np.asarray(bounds.jacobian_diag(jnp.asarray(z)), float)[None, :]
-                          for z, Jz_ in zip(Z, Jz)])
-            g = np.stack([2.0 * J_.T @ r_ for J_, r_ in zip(J, r)])
-        return Evaluation(theta=np.asarray(bounds.to_physical(jnp.asarray(Z)), float), loss=np.sum(r * r, axis=1),
-                          status=np.asarray(pred["status"], int).reshape(-1), grad=g, residuals=r, jacobian=J,
-                          jacobian_z=Jz, grad_z=None, prediction=pred)
-
-    def check_start(evaluation):
-        if not np.any((evaluation.status == 0) & np.isfinite(evaluation.loss)):
-            raise ValueError(f"search: the runs at all {k} starts fail (statuses "
-                             f"{sorted(set(evaluation.status.tolist()))})")
-
-    def report(state, rows):
-        if progress and history.iterations > 1:  # from the first step on (not the runs at the starts)
-            print(f"search: iteration {history.iterations}/{steps}, {len(rows)} active of {k}, best loss "
-                  f"{np.nanmin(state.current.loss):.3e}", file=sys.stderr, flush=True)
-
-    history = History(k, t0=clock0)
-    Z = np.stack([bounds.to_unconstrained(t) for t in thetas])
-    state = run(optimiser, optimiser.init(Z), evaluate, history, steps=steps, check_start=check_start,
-                report=report)
-    cur, messages = state.current, list(state.message)
-    iterations = history.iterations
-
-    # ---- the best start, judged; its noise sets the scale of Δχ² ----------------------------------
-    valid = np.flatnonzero(np.isfinite(cur.loss))
-    order = valid[np.argsort(cur.loss[valid], kind="stable")]
-    i_best = int(order[0])
-    converged = [msg.startswith("converged") for msg in messages]
-    theta_b, r_b, J_b = cur.theta[i_best], cur.residuals[i_best], cur.jacobian[i_best]
-    verdict, unc = judge_point(objective, r_b, J_b, theta_b, converged=converged[i_best], message=messages[i_best],
-                               noise=noise, uncertainty=uncertainty and bool(np.all(np.isfinite(J_b))),
-                               roundoff_samples=roundoff_samples if uncertainty else 0, sampling_seeds=sampling_seeds,
-                               reference_noise=reference_noise, threshold=threshold)
-    wall = time.perf_counter() - clock0
-    histories = [history.arrays(i) for i in range(k)]
-    hist = histories[i_best]
-    best = FitResult(keys=keys, theta=dict(zip(keys, map(float, theta_b))), loss=float(cur.loss[i_best]),
-                     iterations=len(hist["loss"]), wall_s=wall, method="lm", converged=converged[i_best],
-                     message=messages[i_best], history=hist, residuals=r_b, jacobian=J_b,
-                     prediction=jax.tree.map(lambda a: a[i_best], cur.prediction), uncertainty=unc,
-                     start=dict(zip(keys, map(float, thetas[i_best]))),
-                     start_note=start_note if i_best == 0 and init else "", verdict=verdict)
-
-    # ---- distinct minima, and which lie within the noise of the best -------------------------------
-    sigma, _, _ = block_noise(r_b, objective.row_scale, objective.blocks, noise)
-    chi2 = {int(i): chi2_of(cur.residuals[i], objective.row_scale, objective.blocks, sigma) for i in valid}
-    limit = chi2_quantile(WITHIN_NOISE_P, n)
-    span = np.asarray(bounds.upper) - np.asarray(bounds.lower)
-    clusters: list[list[int]] = []
-    for i in order:
-        for members in clusters:
-            if np.max(np.abs(cur.theta[i] - cur.theta[members[0]]) / span) <= cluster_tol:
-                members.append(int(i))
-                break
+    point's verdict and uncertainty, as in ``fit``. ``workers`` (an integer or a
+    ``calibration.workers.Workers``): with more than one, every iteration's forward-mode passes
+    (each active start's, one per key) run in that many single-threaded processes instead of
+    one vmapped batch, and so do the verdict's extra runs."""
+    with using(workers) as workers:
+        clock0 = time.perf_counter()
+        steps = _check_int("steps", steps, 1)
+        if not (math.isfinite(cluster_tol) and 0 < cluster_tol < 1):
+            raise ValueError(f"cluster_tol must be in (0, 1), got {cluster_tol!r}")
+        keys, bounds = objective.keys, objective.bounds
+        start_note = ""
+        if isinstance(starts, (int, np.integer)) and not isinstance(starts, (bool, np.bool_)):
+            k_design = _check_int("starts", starts, 1) - (1 if init else 0)
+            thetas = (design_starts(objective, k_design, seed=seed, design=design) if k_design
+                      else np.zeros((0, len(keys))))
         else:
-            clusters.append([int(i)])
-    minima = []
-    for members in clusters:
-        i = members[0]
-        delta_chi2 = chi2[i] - chi2[i_best]
-        minima.append(Minimum(theta=dict(zip(keys, map(float, cur.theta[i]))), loss=float(cur.loss[i]),
-                              delta_chi2=float(delta_chi2), within_noise=bool(delta_chi2 <= limit),
-                              starts=tuple(members), verified=converged[i],
-                              at_bound=tuple(bounds.near_bound(cur.theta[i])), message=messages[i]))
-    return SearchResult(keys=keys, starts=thetas, design=design, seed=int(seed), minima=minima, best=best,
-                        best_start=i_best, finals=cur.theta.copy(), losses=cur.loss.copy(),
-                        residuals=cur.residuals.copy(), histories=histories,
-                        messages=messages, delta_chi2_limit=limit, iterations=iterations, evaluations=evaluations,
-                        wall_s=wall, compile_s=compile_s, start_note=start_note)
+            thetas = np.asarray(starts, float)
+            if thetas.ndim != 2 or thetas.shape[1] != len(keys) or thetas.shape[0] < 1:
+                raise ValueError(f"starts must be an integer or an array (k, {len(keys)}), got shape {thetas.shape}")
+            for i, theta in enumerate(thetas):
+                bounds.check(theta, f"starts[{i}]")
+            if getattr(objective, "check_thetas", None) is not None:
+                objective.check_thetas(thetas, "starts")
+        if init:
+            theta0, start_note = start_theta(objective, init)
+            thetas = np.concatenate([theta0[None], thetas])
+        k, n = thetas.shape
+        lm_options = LMOptions(xtol=xtol, ftol=ftol, stat_tol=stat_tol, max_rejections=max_rejections)
+        optimiser = levenberg_marquardt(lm_options)
+        parallel = workers.parallel and hasattr(objective, "column_tasks_z")
+        batch = None if parallel else _batch_fn(objective)
+        dtype = objective.dtype
+        compile_s = 0.0
+        compiled_sizes: set[int] = set()
+        evaluations = 0
+
+        def evaluate(Z):
+            """The rows of Z in one batched call, padded to a compiled size (or spread over the
+            workers, row by row and key by key, with no padding)."""
+            nonlocal compile_s, evaluations
+            b = Z.shape[0]
+            size = b if parallel else (min(k, 1 << (b - 1).bit_length()) if shrink else k)
+            padded = np.concatenate([Z, np.repeat(Z[:1], size - b, axis=0)]) if size > b else Z
+            clock = time.perf_counter()
+            if parallel:
+                r, Jz, pred = jacobians_z(objective, np.asarray(padded, dtype), workers)
+            else:
+                r, Jz, pred = jax.tree.map(np.asarray, batch(jnp.asarray(padded, dtype)))
+            if size not in compiled_sizes:
+                compiled_sizes.add(size)
+                compile_s += time.perf_counter() - clock  # the first call of a shape: compile + one run
+            evaluations += size
+            r, Jz, pred = np.array(r[:b], float), np.array(Jz[:b], float), jax.tree.map(lambda a: a[:b], pred)
+            with np.errstate(divide="ignore", invalid="ignore", over="ignore"):  # dθ/dz = 0 at a bound: J, |g| inf
+                J = np.stack([Jz_ / np.asarray(bounds.jacobian_diag(jnp.asarray(z)), float)[None, :]
+                              for z, Jz_ in zip(Z, Jz)])
+                g = np.stack([2.0 * J_.T @ r_ for J_, r_ in zip(J, r)])
+            return Evaluation(theta=np.asarray(bounds.to_physical(jnp.asarray(Z)), float), loss=np.sum(r * r, axis=1),
+                              status=np.asarray(pred["status"], int).reshape(-1), grad=g, residuals=r, jacobian=J,
+                              jacobian_z=Jz, grad_z=None, prediction=pred)
+
+        def check_start(evaluation):
+            if not np.any((evaluation.status == 0) & np.isfinite(evaluation.loss)):
+                raise ValueError(f"search: the runs at all {k} starts fail (statuses "
+                                 f"{sorted(set(evaluation.status.tolist()))})")
+
+        def report(state, rows):
+            if progress and history.iterations > 1:  # from the first step on (not the runs at the starts)
+                print(f"search: iteration {history.iterations}/{steps}, {len(rows)} active of {k}, best loss "
+                      f"{np.nanmin(state.current.loss):.3e}", file=sys.stderr, flush=True)
+
+        history = History(k, t0=clock0)
+        Z = np.stack([bounds.to_unconstrained(t) for t in thetas])
+        state = run(optimiser, optimiser.init(Z), evaluate, history, steps=steps, check_start=check_start,
+                    report=report)
+        cur, messages = state.current, list(state.message)
+        iterations = history.iterations
+
+        # ---- the best start, judged; its noise sets the scale of Δχ² ----------------------------------
+        valid = np.flatnonzero(np.isfinite(cur.loss))
+        order = valid[np.argsort(cur.loss[valid], kind="stable")]
+        i_best = int(order[0])
+        converged = [msg.startswith("converged") for msg in messages]
+        theta_b, r_b, J_b = cur.theta[i_best], cur.residuals[i_best], cur.jacobian[i_best]
+        verdict, unc = judge_point(objective, r_b, J_b, theta_b, converged=converged[i_best],
+                                   message=messages[i_best], noise=noise,
+                                   uncertainty=uncertainty and bool(np.all(np.isfinite(J_b))),
+                                   roundoff_samples=roundoff_samples if uncertainty else 0,
+                                   sampling_seeds=sampling_seeds, reference_noise=reference_noise,
+                                   threshold=threshold, workers=workers)
+        wall = time.perf_counter() - clock0
+        histories = [history.arrays(i) for i in range(k)]
+        hist = histories[i_best]
+        best = FitResult(keys=keys, theta=dict(zip(keys, map(float, theta_b))), loss=float(cur.loss[i_best]),
+                         iterations=len(hist["loss"]), wall_s=wall, method="lm", converged=converged[i_best],
+                         message=messages[i_best], history=hist, residuals=r_b, jacobian=J_b,
+                         prediction=jax.tree.map(lambda a: a[i_best], cur.prediction), uncertainty=unc,
+                         start=dict(zip(keys, map(float, thetas[i_best]))),
+                         start_note=start_note if i_best == 0 and init else "", verdict=verdict)
+
+        # ---- distinct minima, and which lie within the noise of the best -------------------------------
+        sigma, _, _ = block_noise(r_b, objective.row_scale, objective.blocks, noise)
+        chi2 = {int(i): chi2_of(cur.residuals[i], objective.row_scale, objective.blocks, sigma) for i in valid}
+        limit = chi2_quantile(WITHIN_NOISE_P, n)
+        span = np.asarray(bounds.upper) - np.asarray(bounds.lower)
+        clusters: list[list[int]] = []
+        for i in order:
+            for members in clusters:
+                if np.max(np.abs(cur.theta[i] - cur.theta[members[0]]) / span) <= cluster_tol:
+                    members.append(int(i))
+                    break
+            else:
+                clusters.append([int(i)])
+        minima = []
+        for members in clusters:
+            i = members[0]
+            delta_chi2 = chi2[i] - chi2[i_best]
+            minima.append(Minimum(theta=dict(zip(keys, map(float, cur.theta[i]))), loss=float(cur.loss[i]),
+                                  delta_chi2=float(delta_chi2), within_noise=bool(delta_chi2 <= limit),
+                                  starts=tuple(members), verified=converged[i],
+                                  at_bound=tuple(bounds.near_bound(cur.theta[i])), message=messages[i]))
+        return SearchResult(keys=keys, starts=thetas, design=design, seed=int(seed), minima=minima, best=best,
+                            best_start=i_best, finals=cur.theta.copy(), losses=cur.loss.copy(),
+                            residuals=cur.residuals.copy(), histories=histories,
+                            messages=messages, delta_chi2_limit=limit, iterations=iterations, evaluations=evaluations,
+                            wall_s=wall, compile_s=compile_s, start_note=start_note)
 
 
 def coarse_to_fine(objective, coarse, starts: int | np.ndarray = DEFAULT_STARTS, *, refine: int = 2, seed: int = 0,
                    design: str = "sobol", init: Mapping[str, float] | None = None,
-                   coarse_options: Mapping[str, Any] | None = None, progress: bool = False,
+                   coarse_options: Mapping[str, Any] | None = None, progress: bool = False, workers=None,
                    **options) -> SearchResult:
     """A global search in two stages: ``search`` on ``coarse`` (the same keys, bounds and data
     on a cheaper resolution) finds the basins; the best ``refine`` distinct minima it reports
@@ -370,44 +384,45 @@ def coarse_to_fine(objective, coarse, starts: int | np.ndarray = DEFAULT_STARTS,
     if not (np.allclose(b_c.lower, b_f.lower) and np.allclose(b_c.upper, b_f.upper)):
         raise ValueError("coarse: its bounds differ from the objective's; the two stages must search the same box")
     opts = {**COARSE_OPTIONS, **dict(coarse_options or {})}
-    first = search(coarse, starts, seed=seed, design=design, init=init, uncertainty=False,
-                   noise=options.get("noise"), progress=progress, **opts)
-    check = getattr(objective, "check_thetas", None)
+    with using(workers) as workers:  # one pool for both stages
+        first = search(coarse, starts, seed=seed, design=design, init=init, uncertainty=False,
+                       noise=options.get("noise"), progress=progress, workers=workers, **opts)
+        check = getattr(objective, "check_thetas", None)
 
-    def valid(theta):  # an LM endpoint may break a rule of the engine's (μ1 > μ2): not a start
-        try:
-            if check is not None:
-                check(theta[None], "coarse minimum")
-        except ValueError:
-            return False
-        return True
+        def valid(theta):  # an LM endpoint may break a rule of the engine's (μ1 > μ2): not a start
+            try:
+                if check is not None:
+                    check(theta[None], "coarse minimum")
+            except ValueError:
+                return False
+            return True
 
-    def placed(m):
-        """The minimum, moved inside the bounds; if it breaks an engine rule, the last valid point
-        on the straight line from its (valid) start to it (bisection)."""
-        theta = b_f.move_inside([m.theta[k] for k in objective.keys])[0]
-        if valid(theta):
-            return theta, False
-        start = first.starts[m.starts[0]]
-        lo, hi = 0.0, 1.0
-        for _ in range(30):
-            mid = 0.5 * (lo + hi)
-            lo, hi = (mid, hi) if valid(start + mid * (theta - start)) else (lo, mid)
-        return start + lo * (theta - start), True
+        def placed(m):
+            """The minimum, moved inside the bounds; if it breaks an engine rule, the last valid point
+            on the straight line from its (valid) start to it (bisection)."""
+            theta = b_f.move_inside([m.theta[k] for k in objective.keys])[0]
+            if valid(theta):
+                return theta, False
+            start = first.starts[m.starts[0]]
+            lo, hi = 0.0, 1.0
+            for _ in range(30):
+                mid = 0.5 * (lo + hi)
+                lo, hi = (mid, hi) if valid(start + mid * (theta - start)) else (lo, mid)
+            return start + lo * (theta - start), True
 
-    usable = [(m, *placed(m)) for m in first.minima]
-    within = [(t, moved) for m, t, moved in usable if m.within_noise]
-    chosen = within if len(within) > refine else [(t, moved) for _, t, moved in usable[:refine]]
-    thetas = np.stack([t for t, _ in chosen])
-    moved = sum(1 for _, mv in chosen if mv)
-    if progress:
-        print(f"coarse_to_fine: refining {len(thetas)} of {len(first.minima)} coarse minima", file=sys.stderr,
-              flush=True)
-    result = search(objective, thetas, seed=seed, design=design, progress=progress, **options)
-    result.coarse = first
-    if moved:
-        note = (f"{moved} coarse minimum(s) broke a rule of the engine's (such as mu1 <= mu2) and were refined from "
-                "the last valid point on the line from their start")
-        result.start_note = f"{result.start_note}; {note}" if result.start_note else note
-    result.wall_s += first.wall_s
-    return result
+        usable = [(m, *placed(m)) for m in first.minima]
+        within = [(t, moved) for m, t, moved in usable if m.within_noise]
+        chosen = within if len(within) > refine else [(t, moved) for _, t, moved in usable[:refine]]
+        thetas = np.stack([t for t, _ in chosen])
+        moved = sum(1 for _, mv in chosen if mv)
+        if progress:
+            print(f"coarse_to_fine: refining {len(thetas)} of {len(first.minima)} coarse minima", file=sys.stderr,
+                  flush=True)
+        result = search(objective, thetas, seed=seed, design=design, progress=progress, workers=workers, **options)
+        result.coarse = first
+        if moved:
+            note = (f"{moved} coarse minimum(s) broke a rule of the engine's (such as mu1 <= mu2) and were "
+                    "refined from the last valid point on the line from their start")
+            result.start_note = f"{result.start_note}; {note}" if result.start_note else note
+        result.wall_s += first.wall_s
+        return result

@@ -57,6 +57,8 @@ from typing import Any
 
 import numpy as np
 
+from .objective import residuals_at
+
 __all__ = ["NOISE_FLOOR", "ROUNDOFF_SAMPLES", "ModelScatter", "Uncertainty", "Verdict", "assess_fit", "block_noise",
            "chi2_of", "chi2_quantile", "gauss_newton_uncertainty", "judge_point", "model_scatter", "sampling_scatter",
            "structural_noise"]
@@ -187,8 +189,18 @@ def _scatter_of(S, J, blocks, row_scale, kind, step, clock) -> ModelScatter:
     return ModelScatter(len(S) - 1, float(step), noise, cov, time.perf_counter() - clock, kind)
 
 
+def _runs(objective, thetas, workers, seeds=None) -> list:
+    """[(r, prediction)] at ``thetas`` (particles drawn with ``seeds``, if given): in ``workers``
+    when they are parallel and the objective can make tasks, else one after the other here."""
+    if workers is not None and workers.parallel and hasattr(objective, "residual_tasks"):
+        return residuals_at(objective, thetas, workers, seeds)
+    if seeds is None:
+        return [objective.residuals(t) for t in thetas]
+    return [objective.residuals_resampled(t, int(sd)) for t, sd in zip(thetas, seeds)]
+
+
 def model_scatter(objective, theta, r, J, *, samples: int = ROUNDOFF_SAMPLES, step: float = ROUNDOFF_STEP,
-                  seed: int = 0) -> ModelScatter | None:
+                  seed: int = 0, workers=None) -> ModelScatter | None:
     """The run's round-off scatter at θ (residuals ``r``, Jacobian ``J`` there, the objective's
     weighted ones): ``samples`` runs at θ + d_k, d_k of relative size ``step`` in random
     directions (reflected to stay inside the bounds), give s_k = r(θ + d_k) − J d_k, which differ
@@ -205,11 +217,12 @@ def model_scatter(objective, theta, r, J, *, samples: int = ROUNDOFF_SAMPLES, st
     scale = np.maximum(np.abs(theta), 0.01 * (upper - lower))
     rng = np.random.default_rng(seed)
     kept = [r]
+    steps = []
     for _ in range(samples):
         u = rng.standard_normal(theta.size)
         d = step * scale * u / np.linalg.norm(u)
-        d = np.where((theta + d <= lower) | (theta + d >= upper), -d, d)
-        r_k, pred = objective.residuals(theta + d)
+        steps.append(np.where((theta + d <= lower) | (theta + d >= upper), -d, d))
+    for d, (r_k, pred) in zip(steps, _runs(objective, [theta + d for d in steps], workers)):
         r_k = np.asarray(r_k, float)
         if int(np.asarray(pred["status"])) != 0 or not np.all(np.isfinite(r_k)):
             continue
@@ -219,7 +232,7 @@ def model_scatter(objective, theta, r, J, *, samples: int = ROUNDOFF_SAMPLES, st
     return _scatter_of(np.stack(kept), J, objective.blocks, objective.row_scale, "round-off", step, clock)
 
 
-def sampling_scatter(objective, theta, r, J, *, seeds: int = SAMPLING_SEEDS) -> ModelScatter | None:
+def sampling_scatter(objective, theta, r, J, *, seeds: int = SAMPLING_SEEDS, workers=None) -> ModelScatter | None:
     """The scatter that the particle sampling puts into the prediction at θ: the residuals with
     the scene's body drawn with ``seeds`` other seeds (``Objective.residuals_resampled``), beside
     its own ``r``. Their spread gives σ by block and, through J⁺, the covariance of θ that the
@@ -237,8 +250,8 @@ def sampling_scatter(objective, theta, r, J, *, seeds: int = SAMPLING_SEEDS) -> 
     clock = time.perf_counter()
     own = scene.info.seed
     kept = [np.asarray(r, float)]
-    for seed in [s for s in range(seeds + 1) if s != own][:seeds]:
-        r_s, pred = objective.residuals_resampled(theta, seed)
+    draws = [s for s in range(seeds + 1) if s != own][:seeds]
+    for r_s, pred in _runs(objective, [theta] * len(draws), workers, draws):
         r_s = np.asarray(r_s, float)
         if int(np.asarray(pred["status"])) == 0 and np.all(np.isfinite(r_s)):
             kept.append(r_s)
@@ -511,17 +524,18 @@ def gauss_newton_uncertainty(
 def judge_point(objective, r, J, theta, *, converged: bool, message: str,
                 noise: Mapping[str, float] | float | None = None, uncertainty: bool = True,
                 roundoff_samples: int = ROUNDOFF_SAMPLES, sampling_seeds: int = 0, reference_noise: float = 0.01,
-                threshold: float = 0.1):
+                threshold: float = 0.1, workers=None):
     """The verdict on a fit's end point and, when ``uncertainty``, its Gauss–Newton uncertainty
     (intervals withheld unless the verdict is a fit): what ``fit`` and ``search`` report for
     their best point. ``roundoff_samples`` perturbed runs measure the run's own scatter there
     (``model_scatter``; 0: not measured, the verdict and interval then assume a smooth run);
     ``sampling_seeds`` other draws of the particles measure the sampling's share of the interval
-    (``sampling_scatter``; 0, the default: not measured). Returns ``(verdict, uncertainty or None)``."""
+    (``sampling_scatter``; 0, the default: not measured). Both go to ``workers`` (a
+    ``calibration.workers.Workers``) when given. Returns ``(verdict, uncertainty or None)``."""
     J = np.asarray(J, float)
     scatter = None
     if roundoff_samples and np.all(np.isfinite(J)) and hasattr(objective, "residuals"):
-        scatter = model_scatter(objective, theta, r, J, samples=roundoff_samples)
+        scatter = model_scatter(objective, theta, r, J, samples=roundoff_samples, workers=workers)
     verdict = assess_fit(r, objective.row_scale, objective.blocks, theta, converged=converged, message=message,
                          bounds=objective.bounds, noise=noise, J=J if scatter is not None else None,
                          scatter=scatter)
@@ -529,7 +543,7 @@ def judge_point(objective, r, J, theta, *, converged: bool, message: str,
     if uncertainty:
         sampling = None
         if sampling_seeds and np.all(np.isfinite(J)):
-            sampling = sampling_scatter(objective, theta, r, J, seeds=sampling_seeds)
+            sampling = sampling_scatter(objective, theta, r, J, seeds=sampling_seeds, workers=workers)
         unc = gauss_newton_uncertainty(J, r, objective.keys, theta, objective.blocks, objective.row_scale,
                                        noise=noise, bounds=objective.bounds, verdict=verdict, scatter=scatter,
                                        sampling=sampling, reference_noise=reference_noise, threshold=threshold)

@@ -11,6 +11,7 @@ import sys
 import numpy as np
 
 from .scenes import SCENE_NAMES, add_scene_arguments, parse_set, scene_from_args
+from .threads import add_threads_argument, apply_threads
 
 #: Scene options that take a number (``add_scene_arguments``): argparse's float() accepts
 #: "nan" and "inf", which would otherwise surface as some derived quantity's error.
@@ -391,6 +392,8 @@ def build_parser() -> argparse.ArgumentParser:
                        help="the sparse grid with K node slots instead of the dense grid (forward run)")
     bench.add_argument("--steps", type=int, default=None,
                        help="steps: for --grad (default 5000); for the forward run, a cap (default: until t_end)")
+    for command in sub.choices.values():
+        add_threads_argument(command)
     return parser
 
 
@@ -398,6 +401,7 @@ def main(argv=None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     try:
+        apply_threads(args.threads)
         if args.command == "run":
             return _run(args)
         if args.command == "element":

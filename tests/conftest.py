@@ -8,7 +8,12 @@ S7 at H/6 takes 1.7 s on XLA's default thread pool)."""
 
 import os
 
-os.environ.setdefault("XLA_FLAGS", "--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1")
+from jaxmpm.threads import SINGLE_THREAD_FLAGS  # starts no JAX backend
+
+os.environ.setdefault("XLA_FLAGS", SINGLE_THREAD_FLAGS)
+# The command lines' default --workers is every core; the suite already keeps both busy, so its
+# command-line runs stay in one process (tests/test_workers.py covers the worker processes).
+os.environ.setdefault("JAXMPM_WORKERS", "1")
 
 import jax  # noqa: E402  (after XLA_FLAGS, which the backend reads when it starts)
 import pytest

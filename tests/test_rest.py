@@ -75,7 +75,8 @@ def test_gradient_through_a_run_that_rests_matches_finite_differences():
     for key in ("E", "rho"):
         value = getattr(PARAMS, key)
         h = 1e-6 * value
-        (up, steps_up), (down, steps_down) = f(PARAMS.replace(**{key: value + h})), f(PARAMS.replace(**{key: value - h}))
+        up, steps_up = f(PARAMS.replace(**{key: value + h}))
+        down, steps_down = f(PARAMS.replace(**{key: value - h}))
         # The difference is taken across runs that rest at the same step (the stop is a discrete
         # decision; the derivative is that of the run actually taken).
         assert int(steps_up) == int(steps_down) == int(steps)
@@ -95,7 +96,7 @@ def test_vmapped_batch_in_which_one_member_rests_equals_the_members_alone():
 
     together = jax.jit(jax.vmap(run))(batch)
     for i in range(2):
-        alone = jax.jit(run)(jax.tree.map(lambda p: p[i], batch))
+        alone = jax.jit(run)(jax.tree.map(lambda p, i=i: p[i], batch))
         np.testing.assert_allclose(together[0][i], alone[0], rtol=0, atol=1e-12)
         assert int(together[1][i]) == int(alone[1])
     # The heavier block is still moving: the batch holds one member at rest and one not.

@@ -1,0 +1,46 @@
+"""XLA's CPU threads chosen before JAX starts (``jaxmpm.threads``): the flags reach XLA_FLAGS
+with the user's own kept, a choice made too late is an error, not silently ignored."""
+
+import os
+import subprocess
+import sys
+
+import pytest
+
+from jaxmpm.threads import SINGLE_THREAD_FLAGS
+
+
+def _python(code: str, xla_flags: str | None) -> subprocess.CompletedProcess:
+    env = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}
+    if xla_flags is not None:
+        env["XLA_FLAGS"] = xla_flags
+    return subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=120)
+
+
+def test_one_thread_before_the_backend_starts_keeps_the_users_flags():
+    code = ("import os, jax.numpy as jnp; from jaxmpm.threads import apply_threads; apply_threads(None); "
+            "jnp.zeros(1).block_until_ready(); print(os.environ['XLA_FLAGS'])")
+    default = _python(code, None)
+    assert default.returncode == 0, default.stderr
+    assert default.stdout.strip() == SINGLE_THREAD_FLAGS
+    # A user's XLA_FLAGS is their choice: the default leaves it alone, --threads 1 adds to it.
+    own = _python(code, "--xla_cpu_enable_fast_math=false")
+    assert own.stdout.strip() == "--xla_cpu_enable_fast_math=false"
+    forced = _python(code.replace("apply_threads(None)", "apply_threads('1')"), "--xla_cpu_enable_fast_math=false")
+    assert forced.stdout.strip() == f"--xla_cpu_enable_fast_math=false {SINGLE_THREAD_FLAGS}"
+    every = code.replace("apply_threads(None)", "apply_threads('all')")
+    every = _python(every.replace("os.environ['XLA_FLAGS']", "os.environ.get('XLA_FLAGS', 'unset')"), None)
+    assert every.stdout.strip() == "unset"
+
+
+def test_a_choice_after_the_backend_started_is_an_error():
+    late = _python("import jax.numpy as jnp; jnp.zeros(1).block_until_ready(); "
+                   "from jaxmpm.threads import use_one_thread; use_one_thread()", None)
+    assert late.returncode != 0 and "before the first computation" in late.stderr
+
+
+def test_bad_choice_names_the_option():
+    from jaxmpm.threads import apply_threads
+
+    with pytest.raises(ValueError, match="--threads"):
+        apply_threads("2")
