@@ -1,6 +1,7 @@
-"""Worker processes (calibration.workers): the runs they compute are the calling process's, bit for
-bit, whatever the number of workers; a fit and a search that spread their runs over two workers
-follow the single-process path to round-off; bad input and failing tasks are reported."""
+"""Worker processes (calibration.workers): the runs and the Jacobian columns (slow) they compute
+are the calling process's, bit for bit, whatever the number of workers; a fit and a search that
+spread their runs over two workers follow the single-process path to round-off (slow); bad input
+and failing tasks are reported."""
 
 import numpy as np
 import pytest
@@ -34,13 +35,7 @@ def _rows(objective):
     return np.stack([objective.bounds.to_unconstrained(np.array(t)) for t in ([0.1, 0.3], [0.3, 0.45], [0.25, 0.35])])
 
 
-def test_passes_in_workers_equal_the_calling_process_bit_for_bit(objective, pool):
-    Z = _rows(objective)[:2]
-    here = jacobians_z(objective, Z, Workers(1))
-    there = jacobians_z(objective, Z, pool)
-    np.testing.assert_array_equal(there[0], here[0])
-    np.testing.assert_array_equal(there[1], here[1])
-    np.testing.assert_array_equal(there[2]["h"], here[2]["h"])
+def test_runs_in_workers_equal_the_calling_process_bit_for_bit(objective, pool):
     # Runs, with the scene's particles and with other draws of them.
     thetas = np.array([[0.1, 0.3], [0.2, 0.4]])
     a, b = residuals_at(objective, thetas, Workers(1), seeds=[3, 4]), residuals_at(objective, thetas, pool, [3, 4])
@@ -50,7 +45,17 @@ def test_passes_in_workers_equal_the_calling_process_bit_for_bit(objective, pool
                                   np.asarray(objective.residuals(thetas[0])[0]))
 
 
-@pytest.mark.slow  # 45-90 s on two cores; the passes they are made of are checked bit for bit above
+@pytest.mark.slow  # 60 s on two cores, compiling the forward-mode columns in every process
+def test_jacobian_columns_in_workers_equal_the_calling_process_bit_for_bit(objective, pool):
+    Z = _rows(objective)[:2]
+    here = jacobians_z(objective, Z, Workers(1))
+    there = jacobians_z(objective, Z, pool)
+    np.testing.assert_array_equal(there[0], here[0])
+    np.testing.assert_array_equal(there[1], here[1])
+    np.testing.assert_array_equal(there[2]["h"], here[2]["h"])
+
+
+@pytest.mark.slow  # 45-90 s on two cores; the runs they are made of are checked bit for bit above
 def test_a_fit_and_a_search_in_workers_follow_the_single_process(objective, pool):
     # The columns the workers compute are the objective's own Jacobian (all columns in one
     # compiled lax.map), to round-off.
