@@ -25,7 +25,7 @@ from . import state as st
 from .boundary import apply_walls
 from .config import Config
 from .kernels import make_stencil
-from .linalg import det_planes, planes, unplanes
+from .linalg import det_planes, mm_planes, planes, unplanes
 from .transfer import g2p_planes, grid_velocities, p2g, xpic_velocity
 
 __all__ = ["make_step", "time_step", "step_budget"]
@@ -113,15 +113,15 @@ def make_step(config: Config):
         v_new, impulse = apply_walls(config.walls, v_new, node_x, state.t, dt, params, mass=fields.mass)
         v_flip = v
         if config.xpic and config.transfer == "aflip" and alpha != 0.0:
-            v_flip = [u for u in xpic_velocity(stencil, mass, fields.mass, state.v, config.xpic).T]
+            v_flip = list(xpic_velocity(stencil, mass, fields.mass, state.v, config.xpic).T)
         v_old, v_new = _materialize((v_old, v_new), token)
         moved = _materialize(g2p_planes(stencil, v_old, v_new, v_flip, dx, config.transfer, alpha), token)
         x = [state.x[:, a] + dt * moved.v_pic[a] for a in range(dim)]
         for a in range(dim):
             if periodic[a]:  # wrap positions on periodic axes
                 x[a] = origin[a] + jnp.mod(x[a] - origin[a], length[a])
-        F_trial = [[F[a][b] + dt * sum(moved.grad_v[a][c] * F[c][b] for c in range(dim)) for b in range(dim)]
-                   for a in range(dim)]
+        grad_v_F = mm_planes(moved.grad_v, F)
+        F_trial = [[F[a][b] + dt * grad_v_F[a][b] for b in range(dim)] for a in range(dim)]
         F, tau, internal = config.material.update_planes(F_trial, state.internal, params, dt)
         F, tau = _materialize((F, tau), token)
 

@@ -27,6 +27,11 @@ CASES = {
 }
 
 
+def _finite_or_none(value):
+    """JSON has no infinity: a run that never came to rest records null."""
+    return value if np.isfinite(value) else None
+
+
 def run(scene, repeat=2):
     """The final state and the fastest of ``repeat`` timings of the compiled rollout."""
     compiled = jax.jit(jm.make_rollout(scene.config, observer=None)).lower(scene.state, scene.params).compile()
@@ -50,7 +55,8 @@ def main():
             xs = jnp.linspace(0.0, float(scene.config.grid.upper[0]), 400)
             x[key] = np.asarray(final.x, float)
             profile[key] = np.asarray(deposit_profile(final.x, scene.state.vol0, xs, scene.config.grid.dx))
-            out[key] = {"steps": int(final.steps), "run_s": round(seconds, 2), "quiet_since": float(final.quiet_since),
+            quiet = _finite_or_none(float(final.quiet_since))
+            out[key] = {"steps": int(final.steps), "run_s": round(seconds, 2), "quiet_since": quiet,
                         "status": int(final.status), "n": int(final.x.shape[0])}
         out["max_particle_diff_mm"] = float(np.abs(x["rest"] - x["full"]).max() * 1e3)
         out["max_profile_diff_mm"] = float(np.abs(profile["rest"] - profile["full"]).max() * 1e3)
