@@ -46,6 +46,7 @@ def _kill_first_busy_worker(marker_dir: pathlib.Path, killed: list, timeout: flo
         time.sleep(0.05)
 
 
+@pytest.mark.slow  # 15 s; a lost task's exit status stays in the default suite
 def test_a_worker_killed_mid_sweep_loses_no_member(tmp_path):
     thetas = np.stack([np.linspace(0.0, 1.0, 14), np.linspace(0.2, 1.5, 14)], axis=-1)
     thetas[5, 1] = 20.0  # an engine-like failure (status bit 1)

@@ -160,6 +160,7 @@ def _record(objective, result, draws, step_size=1.0):
             "draws": {key: draws[..., j].tolist() for j, key in enumerate(keys)}, "log_density": None}
 
 
+@pytest.mark.slow  # 26 s; the refusal to resume another fit stays in the default suite
 def test_resumed_chains_go_on_from_their_last_draws():
     """``resume=`` extends stored chains: the stored draws are kept bit for bit, the new ones
     follow from each chain's last draw with its step size (no warm-up), every diagnostic is that

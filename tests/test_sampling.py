@@ -55,7 +55,7 @@ def test_jitter_keeps_one_particle_per_sub_cell_and_is_reproducible():
     assert not np.array_equal(x, jm.seed_box(lower, upper, DX, 2, sampling="jitter", seed=12)[0])
 
 
-@pytest.mark.parametrize("dim", [2, 3])
+@pytest.mark.parametrize("dim", [2, pytest.param(3, marks=pytest.mark.slow)])  # 3D: 19 s
 def test_poisson_disk_keeps_its_radius_and_is_reproducible(dim):
     """No two particles closer than the sampling radius r = dx (0.62 / ppc^2)^(1/2) (2D;
     (0.63 / ppc^3)^(1/3) in 3D); the same seed gives the same sample, another seed another."""

@@ -149,7 +149,7 @@ def test_periodic_axis_wraps_stencil_and_positions():
     assert abs(shift.mean() - 0.24) < 2e-3 and np.ptp(shift) < 5e-3
 
 
-@pytest.mark.parametrize("dim", [2, 3])
+@pytest.mark.parametrize("dim", [2, pytest.param(3, marks=pytest.mark.slow)])  # 3D: 15 s
 def test_xpic_filter_orders(dim):
     """XPIC(m) (transfer.xpic_velocity) on a random particle velocity field v_p: m = 1 is the PIC
     velocity S T v_p; the filter is 1 − (1 − A)^m with A = S T, checked against the dense
