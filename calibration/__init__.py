@@ -23,14 +23,22 @@ from .likelihood import GridPosterior, HeldOut, ProfileLikelihood, grid_posterio
 from .objective import CompositeObjective, FrontTarget, Objective, ProfileTarget
 from .observe import ModelFunctions, Observations, model_functions
 from .search import Minimum, SearchResult, coarse_to_fine, design_starts, search
-from .uncertainty import Uncertainty, Verdict, assess_fit, gauss_newton_uncertainty, structural_noise
+from .uncertainty import (
+                          GridCheck,
+                          Uncertainty,
+                          Verdict,
+                          assess_fit,
+                          gauss_newton_uncertainty,
+                          grid_shift,
+                          structural_noise,
+)
 
 __all__ = [
     "DEFAULT_BOUNDS", "FIT_KEYS", "Bounds", "GridPosterior", "HeldOut", "ProfileLikelihood", "grid_posterior",
     "predict_heldout", "profile_likelihood", "CompositeObjective", "FitResult", "FrontHistory", "FrontTarget",
     "Minimum", "ModelFunctions", "Objective", "Observations", "Profile", "ProfileTarget", "RunoutLaw", "SearchResult",
-    "Uncertainty", "Verdict",
+    "GridCheck", "Uncertainty", "Verdict",
     "assess_fit", "design_starts", "fit", "gauss_newton_uncertainty", "list_datasets", "load_front_history",
     "coarse_to_fine", "load_profile", "model_functions", "load_scaling_law", "read_history", "search",
-    "structural_noise",
+    "grid_shift", "structural_noise",
 ]

@@ -185,6 +185,7 @@ def _fit(args) -> int:
     noise = args.noise
     steps = args.steps or (25 if args.method == "lm" else 150)
     judging = {"roundoff_samples": args.roundoff_samples, "sampling_seeds": args.sampling_seeds,
+               "grid_ratio": args.grid_check or None,
                "reference_noise": args.reference_noise,
                "threshold": args.threshold}
     found = None
@@ -453,6 +454,55 @@ def _coverage(args) -> int:
     return _finish(out, args, errors)
 
 
+def _variants(items) -> dict[str, dict[str, float]]:
+    """``--variant LABEL:key=value[,key=value...]`` -> {label: {key: value}}."""
+    out: dict[str, dict[str, float]] = {}
+    for item in items:
+        label, sep, rest = item.partition(":")
+        if not sep or not label.strip() or not rest.strip():
+            raise ValueError(f"--variant expects LABEL:key=value[,key=value...], got {item!r}")
+        if label in out:
+            raise ValueError(f"--variant: the label {label!r} is given twice")
+        out[label.strip()] = _pairs([p for p in rest.split(",") if p], f"--variant {label}")
+    return out
+
+
+def _design(args) -> int:
+    import jax
+
+    from jaxmpm.scenes import scene_from_args
+
+    from .design import design
+
+    if args.dtype == "float64":
+        jax.config.update("jax_enable_x64", True)
+    keys = _keys(args.fit)
+    if args.plot and len(keys) < 2:
+        raise ValueError("--plot draws the first two keys' regions: give at least two keys in --fit")
+    variants = _variants(args.variant)
+    noise = {"profile": args.noise, "front": args.noise_front if args.noise_front is not None else args.noise,
+             "top": args.noise_top if args.noise_top is not None else args.noise}
+    times = _floats(args.times, "--times") if args.times else None
+    scene = scene_from_args(args)
+    with Workers(_workers(args)) as workers:
+        result = design(scene, keys, _pairs(args.at, "--at"), noise=noise, tolerance=args.tolerance, times=times,
+                        variants=variants, sampling_seeds=args.sampling_seeds, grid_ratio=args.grid_check or None,
+                        workers=workers)
+    out = result.to_json()
+    errors: dict[str, str] = {}
+    if args.plot:
+        from .plots import plot_design
+
+        out["figure"] = _guard(errors, "--plot", lambda: str(plot_design(result, args.plot)))
+    if not args.json:
+        for c in result.candidates:
+            widths = ", ".join(f"{k} ±{100 * r:.3g} % (data alone ±{100 * d / max(abs(t), 1e-12):.3g} %)"
+                               for k, r, d, t in zip(result.keys, c.relative, c.halfwidth_data, result.theta))
+            print(f"{'*' if c is result.recommended else ' '} cost {c.cost:g}  {c.name}: {widths}")
+        print(result.statement)
+    return _finish(out, args, errors) if args.json else (1 if errors else 0)
+
+
 def _floats(text: str, option: str) -> list[float]:
     try:
         return [float(v) for v in text.split(",") if v.strip()]
@@ -586,6 +636,10 @@ def build_parser() -> argparse.ArgumentParser:
     fit.add_argument("--sampling-seeds", type=int, default=0, metavar="K",
                      help="K other draws of the particles at the end point: the sampling's share of the interval "
                           "(stderr_sampling; one forward run each; default 0: not measured)")
+    fit.add_argument("--grid-check", type=float, default=1.5, metavar="RHO",
+                     help="the grid's share of the interval: the fit's objective rebuilt at RHO times the grid "
+                          "spacing, two particle draws there at the end point (stderr_grid, grid; about two thirds "
+                          "of one forward run in 2D; default 1.5; 0: not measured)")
     fit.add_argument("--profiles", type=int, default=0, metavar="N",
                      help="profile likelihood of every fitted key at N values over +-4 standard errors, the others "
                           "refitted at each (calibration.likelihood; default 0: off)")
@@ -661,6 +715,36 @@ def build_parser() -> argparse.ArgumentParser:
     cov.add_argument("--no-progress", action="store_true")
     cov.add_argument("--json", action="store_true")
 
+    de = sub.add_parser("design", help="which measurements constrain which keys: expected 95 %% half-widths of "
+                                       "candidate observation sets before the experiment")
+    from jaxmpm.scenes import SCENE_NAMES
+
+    de.add_argument("--scene", required=True, choices=[n for n in SCENE_NAMES if n != "elastic-block"],
+                    help="the experiment's set-up (a collapse)")
+    _common(de, data=False)
+    de.add_argument("--fit", required=True, metavar="KEYS", help="comma-separated keys to calibrate")
+    de.add_argument("--at", action="append", default=[], metavar="KEY=VALUE",
+                    help="the parameter point (default: the scene's values)")
+    de.add_argument("--noise", type=float, default=0.02,
+                    help="expected noise, a fraction of the profile's peak (and of the column's length for the "
+                         "front, of the top's height for the top) (default 0.02)")
+    de.add_argument("--noise-front", type=float, default=None, help="the front's noise, if not --noise")
+    de.add_argument("--noise-top", type=float, default=None, help="the top height's noise, if not --noise")
+    de.add_argument("--tolerance", type=float, default=0.1,
+                    help="the 95 %% half-width every key should reach, a fraction of its value (default 0.1)")
+    de.add_argument("--times", default=None, metavar="T1,T2,...",
+                    help="profile times during the flow, s (default t_end x 0.1, 0.2, 0.4)")
+    de.add_argument("--variant", action="append", default=[], metavar="LABEL:KEY=VALUE[,...]",
+                    help="another experiment on the same material: the scene built with these builder arguments "
+                         "changed (height, length, slope_deg, front_gate_speed, runout, t_end, ...); repeatable")
+    de.add_argument("--sampling-seeds", type=int, default=0, metavar="K",
+                    help="K other particle draws per experiment: the sampling's share (default 0: not measured)")
+    de.add_argument("--grid-check", type=float, default=1.5, metavar="RHO",
+                    help="the grid's share, from each experiment rebuilt at RHO x dx (default 1.5; 0: not measured)")
+    de.add_argument("--workers", type=int, default=None, metavar="N",
+                    help="single-threaded worker processes for the extra runs (default: the number of cores)")
+    de.add_argument("--plot", default=None, metavar="FIG.png", help="the expected 95 %% regions of the first two keys")
+
     tw = sub.add_parser("twin", help="fit synthetic S4 data made with known parameters")
     _common(tw, data=False)
     _fit_options(tw, "beta,mu1,xi")
@@ -700,6 +784,10 @@ def _check_options(args) -> None:
     samples = getattr(args, "roundoff_samples", 0)
     if samples != 0 and samples < 2:
         raise ValueError(f"--roundoff-samples must be 0 (not measured) or >= 2, got {samples}")
+    grid = getattr(args, "grid_check", 0)
+    if grid != 0 and not (math.isfinite(grid) and grid > 1):
+        raise ValueError(f"--grid-check must be 0 (not measured) or a finite factor > 1 of the grid spacing, "
+                         f"got {grid}")
     for option in ("init", "set"):
         if hasattr(args, option):
             _pairs(getattr(args, option), f"--{option}")  # malformed or repeated keys
@@ -784,7 +872,8 @@ def main(argv=None) -> int:
             raise ValueError("--resume needs --out (the history file to continue)")
         _check_options(args)
         _check_outputs(args)
-        commands = {"fit": _fit, "sweep": _sweep, "twin": _twin, "bench": _bench, "law": _law, "coverage": _coverage}
+        commands = {"fit": _fit, "sweep": _sweep, "twin": _twin, "bench": _bench, "law": _law, "coverage": _coverage,
+                    "design": _design}
         return commands[args.command](args)
     except ValueError as err:
         parser.exit(2, f"python -m calibration {args.command}: error: {err}\n")

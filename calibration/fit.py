@@ -50,7 +50,7 @@ from .history import History, check_out, read_history
 from .lm import LMOptions, LMState, levenberg_marquardt
 from .loop import Evaluation, run, status_text
 from .objective import jacobians_z
-from .uncertainty import ROUNDOFF_SAMPLES, Uncertainty, Verdict, judge_point
+from .uncertainty import GRID_DRAWS, ROUNDOFF_SAMPLES, Uncertainty, Verdict, check_grid_options, judge_point
 from .workers import using
 
 __all__ = ["METHODS", "FitResult", "fit", "read_history", "start_theta"]
@@ -222,7 +222,7 @@ def fit(objective, init: Mapping[str, float] | None = None, *, method: str = "lm
         callback: Callable | None = None,
         noise: Mapping[str, float] | float | None = None, uncertainty: bool = True,
         roundoff_samples: int = ROUNDOFF_SAMPLES, sampling_seeds: int = 0, reference_noise: float = 0.01,
-        threshold: float = 0.1,
+        threshold: float = 0.1, grid_ratio: float | None = None, grid_draws: int = GRID_DRAWS,
         meta: Mapping[str, Any] | None = None, workers=None) -> FitResult:
     """Fit ``objective.keys`` from ``init`` (physical values by key; missing keys start at the
     scene's values). ``steps``: the maximum number of iterations (model evaluations), counted
@@ -242,12 +242,16 @@ def fit(objective, init: Mapping[str, float] | None = None, *, method: str = "lm
     for the verdict and the interval (``uncertainty.model_scatter``; 0: not measured);
     ``sampling_seeds`` other draws of the particles add the sampling's share to the interval
     (``uncertainty.sampling_scatter``; 0, the default: not measured); ``reference_noise`` and
-    ``threshold`` decide which parameters count as constrained. ``workers``: an integer or a
+    ``threshold`` decide which parameters count as constrained. ``grid_ratio``: the grid's
+    share of the interval from the objective rebuilt at that multiple of its dx, ``grid_draws``
+    particle draws there (``uncertainty.grid_shift``; None, the default: not measured; the
+    command line's ``--grid-check`` is 1.5). ``workers``: an integer or a
     ``calibration.workers.Workers``; with more than one, each iteration's forward-mode passes
     (one per key) and the verdict's extra runs go to that many single-threaded processes (the
     same numbers as one process; None or 1: everything in this process)."""
     if method not in METHODS:
         raise ValueError(f"method must be one of {METHODS}, got {method!r}")
+    check_grid_options(grid_ratio, grid_draws)
     if grad_mode not in ("fwd", "rev"):
         raise ValueError(f"grad_mode must be 'fwd' or 'rev', got {grad_mode!r}")
     if not (isinstance(steps, int) and steps >= 1):
@@ -330,7 +334,7 @@ def fit(objective, init: Mapping[str, float] | None = None, *, method: str = "lm
         verdict, unc = judge_point(objective, r_b, J_b, theta_best, converged=converged, message=message, noise=noise,
                                    uncertainty=uncertainty, roundoff_samples=roundoff_samples,
                                    sampling_seeds=sampling_seeds, reference_noise=reference_noise, threshold=threshold,
-                                   workers=workers)
+                                   grid_ratio=grid_ratio, grid_draws=grid_draws, workers=workers)
         return FitResult(keys=keys, theta={k: float(v) for k, v in zip(keys, theta_best)}, loss=float(loss_b),
                          iterations=len(hist["loss"]), wall_s=float(hist["wall_s"][-1]) if len(hist["wall_s"]) else 0.0,
                          method=method, converged=converged, message=message,

@@ -236,6 +236,14 @@ def _engine_bounds(bounds: Bounds, params) -> tuple[Bounds, tuple[str, ...]]:
     return Bounds(keys, tuple(lower), tuple(upper)), tuple(notes)
 
 
+def _at_run_precision(t, dtype):
+    """Observation time(s) rounded to the run's float type: the run lands exactly on its frame
+    times in that type, so two times that differ only below its precision are one frame. (The
+    caller caps them at t_end again: rounding may carry a time just past it.)"""
+    rounded = np.asarray(np.asarray(t, float), jnp.dtype(dtype)).astype(float)
+    return float(rounded) if rounded.ndim == 0 else rounded
+
+
 def _check_array(name: str, values, n: int | None = None) -> np.ndarray:
     arr = np.asarray(values, float)
     if arr.ndim != 1 or arr.size == 0:
@@ -286,6 +294,10 @@ class Objective:
                  bounds: Mapping[str, tuple[float, float]] | None = None, jacobian: str = "ad",
                  fd_step: float = 1e-2, check_data: bool = True, mirror: float | str | None = "back-wall"):
         keys = tuple(keys)
+        # What the constructor was given beyond the scene: ``at_dx`` rebuilds from it.
+        self._options = dict(profile=profile, front=front, weights=weights, sigma=sigma,
+                             front_threshold=front_threshold, x_ref=x_ref, bounds=bounds, jacobian=jacobian,
+                             fd_step=fd_step, check_data=check_data, mirror=mirror)
         if jacobian not in ("ad", "fd"):
             raise ValueError(f"jacobian must be 'ad' or 'fd', got {jacobian!r}")
         if not (math.isfinite(fd_step) and 0 < fd_step < 0.5):
@@ -359,7 +371,7 @@ class Objective:
             if not (0 < t_prof <= t_end * (1 + 1e-9)):
                 raise ValueError(f"{name}.time_s = {t_prof} must lie in (0, t_end = {t_end}]: "
                                  "raise the scene's t_end (--t-end)")
-            t_prof = min(t_prof, t_end)
+            t_prof = min(_at_run_precision(t_prof, self.dtype), t_end)
             self._profiles.append((xp, hp, float(hp.max()), t_prof))
             blocks[name] = slice(m, m + xp.size)
             scales.append(np.full(xp.size, math.sqrt(weights["profile"] / xp.size)))
@@ -373,7 +385,10 @@ class Objective:
                 raise ValueError("front.t must be strictly increasing")
             if check_data:
                 _check_front_plausible(self.front.source or "front", tf, xf, scene, x_lo, x_hi, self.dtype)
-            tf = np.minimum(tf, t_end)
+            tf = np.minimum(_at_run_precision(tf, self.dtype), t_end)
+            if np.any(np.diff(tf) <= 0):
+                raise ValueError(f"front.t: two times coincide at the run's precision ({jnp.dtype(self.dtype).name}); "
+                                 "space them further apart or run in float64")
             self._t_front, self._xf_data = tf, xf
             tau = self.front.correlation_time
             if tau is not None and not (isinstance(tau, (int, float, np.floating)) and math.isfinite(tau) and tau > 0):
@@ -446,6 +461,12 @@ class Objective:
         """(r, prediction) at θ with the scene's particles sampled with ``seed`` instead
         (``Scene.resampled``): the same objective on another draw of the same body."""
         return self.functions.residuals(self.as_theta(theta), *self.arguments(self.scene.resampled(seed)))
+
+    def at_dx(self, dx: float) -> Objective:
+        """The same objective (keys, data, weights, bounds, options) on the scene rebuilt at grid
+        spacing ``dx`` (``Scene.at_dx``). A smoothing width or front threshold that was not given
+        follows the new particle spacing, as a fit at that ``dx`` would have it."""
+        return Objective(self.scene.at_dx(dx), self.keys, **self._options)
 
     def residuals_and_jacobian_z(self, z, bounds: Bounds | None = None):
         """(r, dr/dz, prediction) at the unconstrained z of ``bounds`` (default: the

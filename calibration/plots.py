@@ -390,3 +390,37 @@ def plot_posterior_predictive(predictive, path, *, title: str | None = None, spl
     if title:
         fig.suptitle(title, fontsize=10)
     return _save(plt, fig, path, dpi=120)
+
+
+def plot_design(result, path, *, title: str | None = None):
+    """The expected 95 % ellipses of the first two keys for the candidate sets of
+    ``calibration.design`` (at most eight: the cheapest of each cost, then the recommended one),
+    centred on θ, with the tolerance as a dotted box."""
+    plt = _plt()
+    keys, theta = result.keys, result.theta
+    fig, ax = plt.subplots(figsize=(6.4, 5.2))
+    chosen, seen = [], set()
+    for c in result.candidates:
+        if c.cost not in seen:
+            chosen.append(c)
+            seen.add(c.cost)
+    if result.recommended is not None and result.recommended not in chosen:
+        chosen.append(result.recommended)
+    t = np.linspace(0.0, 2.0 * np.pi, 200)
+    circle = np.stack([np.cos(t), np.sin(t)])
+    radius = np.sqrt(5.991)  # the 95 % quantile of chi-square with two degrees of freedom
+    for i, c in enumerate(chosen[:8]):
+        cov = c.cov[:2, :2]
+        evals, evecs = np.linalg.eigh(cov)
+        xy = (evecs * np.sqrt(np.maximum(evals, 0.0))) @ circle * radius + theta[:2, None]
+        style = "-" if c is result.recommended else "--"
+        ax.plot(xy[0], xy[1], style, color=f"C{i}", lw=2 if c is result.recommended else 1.2,
+                label=f"{c.name} (cost {c.cost:g})" + (": recommended" if c is result.recommended else ""))
+    tol = result.tolerance * np.abs(theta[:2])
+    ax.plot(theta[0] + tol[0] * np.array([-1, 1, 1, -1, -1]), theta[1] + tol[1] * np.array([-1, -1, 1, 1, -1]),
+            ":", color="k", lw=1, label=f"±{100 * result.tolerance:g} %")
+    ax.plot(theta[0], theta[1], "k+", ms=10)
+    ax.set(xlabel=keys[0], ylabel=keys[1] if len(keys) > 1 else "",
+           title=title or f"expected 95 % regions of ({keys[0]}, {keys[1]}) before measuring")
+    ax.legend(fontsize=7, loc="best")
+    return _save(plt, fig, path, 120)

@@ -41,7 +41,15 @@ from .history import History
 from .lm import LMOptions, levenberg_marquardt
 from .loop import Evaluation, run
 from .objective import jacobian_by_columns, jacobians_z
-from .uncertainty import ROUNDOFF_SAMPLES, block_noise, chi2_of, chi2_quantile, judge_point
+from .uncertainty import (
+    GRID_DRAWS,
+    ROUNDOFF_SAMPLES,
+    block_noise,
+    check_grid_options,
+    chi2_of,
+    chi2_quantile,
+    judge_point,
+)
 from .workers import using
 
 __all__ = ["COARSE_OPTIONS", "DEFAULT_STARTS", "DESIGNS", "WITHIN_NOISE_P", "Minimum", "SearchResult",
@@ -223,18 +231,20 @@ def search(objective, starts: int | np.ndarray = DEFAULT_STARTS, *, seed: int = 
            stat_tol: float = 0.1, max_rejections: int = 6, cluster_tol: float = 0.01,
            noise: Mapping[str, float] | float | None = None, uncertainty: bool = True, shrink: bool = True,
            roundoff_samples: int = ROUNDOFF_SAMPLES, sampling_seeds: int = 0, reference_noise: float = 0.01,
-           threshold: float = 0.1, progress: bool = False, workers=None) -> SearchResult:
+           threshold: float = 0.1, grid_ratio: float | None = None, grid_draws: int = GRID_DRAWS,
+           progress: bool = False, workers=None) -> SearchResult:
     """Multi-start LM from ``starts`` design points (an int k) or from given physical starts
     ((k, n) array). ``init`` (physical values by key, as for ``fit``): one more start, placed
     first. ``steps``: the maximum number of model evaluations per start, as in ``fit``.
     ``cluster_tol``: endpoints closer than this fraction of every bound range are one minimum.
     ``noise``: the known noise per block (None: estimated from the best point's residual
     structure). ``shrink``: evaluate only the active starts (padded to a power of two).
-    ``roundoff_samples``, ``sampling_seeds``, ``reference_noise``, ``threshold``: for the best
-    point's verdict and uncertainty, as in ``fit``. ``workers`` (an integer or a
+    ``roundoff_samples``, ``sampling_seeds``, ``reference_noise``, ``threshold``, ``grid_ratio``,
+    ``grid_draws``: for the best point's verdict and uncertainty, as in ``fit``. ``workers`` (an integer or a
     ``calibration.workers.Workers``): with more than one, every iteration's forward-mode passes
     (each active start's, one per key) run in that many single-threaded processes instead of
     one vmapped batch, and so do the verdict's extra runs."""
+    check_grid_options(grid_ratio, grid_draws)
     with using(workers) as workers:
         clock0 = time.perf_counter()
         steps = _check_int("steps", steps, 1)
@@ -320,7 +330,8 @@ def search(objective, starts: int | np.ndarray = DEFAULT_STARTS, *, seed: int = 
                                    uncertainty=uncertainty and bool(np.all(np.isfinite(J_b))),
                                    roundoff_samples=roundoff_samples if uncertainty else 0,
                                    sampling_seeds=sampling_seeds, reference_noise=reference_noise,
-                                   threshold=threshold, workers=workers)
+                                   threshold=threshold, grid_ratio=grid_ratio if uncertainty else None,
+                                   grid_draws=grid_draws, workers=workers)
         wall = time.perf_counter() - clock0
         histories = [history.arrays(i) for i in range(k)]
         hist = histories[i_best]

@@ -45,6 +45,18 @@ run can tell, and is a verified minimum; and the reported covariance is the stat
 the numerical one (``stderr`` the total; ``stderr_statistical`` and ``stderr_numerical`` apart).
 For noise-free twins made by the same program that numerical part is what is left, and it is
 what keeps their interval from claiming a precision the run does not have.
+
+**The grid** (``grid_shift``). A fitted value is a property of the material only if it does not
+move with the grid. ``grid_shift`` rebuilds the objective at a coarser spacing ρ·dx
+(``Objective.at_dx``; ρ = 1.5 by default), averages its residuals at the fitted θ over a few
+particle draws, and takes one Gauss–Newton step with the fit's Jacobian: the shift
+δ = −J⁺ r̄_coarse is, to first order, where a fit at ρ·dx would land (at the fit's minimum J⁺r = 0,
+so the fine run's own draw does not enter; that is the sampling term). The grid term is Roache's
+grid convergence index for two grids, a 95 % half-width of 3 |δ| / (ρ^p − 1) with the order p = 1
+that the S4 deposit shows (docs/calibration.md); its covariance, rank one along δ, is added to the
+interval. Two grids cannot show the order, and the S4 study shows fits at two neighbouring grids
+that agree while both are off: the term is a floor on the grid's share, not a bound. Where it
+exceeds the data's interval for some key, the statement says the fit is not converged in the grid.
 """
 
 from __future__ import annotations
@@ -59,9 +71,12 @@ import numpy as np
 
 from .objective import residuals_at
 
-__all__ = ["NOISE_FLOOR", "ROUNDOFF_SAMPLES", "ModelScatter", "Uncertainty", "Verdict", "assess_fit", "block_noise",
-           "chi2_of", "chi2_quantile", "gauss_newton_uncertainty", "judge_point", "model_scatter", "sampling_scatter",
-           "structural_noise"]
+__all__ = [
+    "GRID_RATIO", "GridCheck", "GRID_DRAWS", "NOISE_FLOOR", "ROUNDOFF_SAMPLES", "ModelScatter", "Uncertainty",
+    "Verdict", "assess_fit", "block_noise", "check_grid_options", "chi2_of", "chi2_quantile",
+    "gauss_newton_uncertainty", "grid_shift", "judge_point", "model_scatter", "sampling_scatter",
+    "structural_noise",
+]
 
 Z95 = 1.959963984540054
 #: Noise (relative units) below which no misfit is told apart from the run's own round-off.
@@ -76,6 +91,12 @@ ROUNDOFF_SAMPLES = 8
 ROUNDOFF_STEP = 1e-6
 #: Other draws of the particles behind ``sampling_scatter`` when asked for (one forward run each).
 SAMPLING_SEEDS = 4
+#: The grid check's coarser spacing, as a multiple of the fit's dx.
+GRID_RATIO = 1.5
+#: Particle draws averaged at the coarser spacing (one forward run each, cheaper than the fit's).
+GRID_DRAWS = 2
+#: Roache's safety factor for a two-grid study, and the order of convergence assumed.
+GCI_SAFETY, GRID_ORDER = 3.0, 1.0
 #: A stopped optimiser's remaining Gauss–Newton step within this quantile of χ²_n (in the metric
 #: of the run's scatter) counts as converged.
 ROUNDOFF_P = 0.99
@@ -262,6 +283,80 @@ def sampling_scatter(objective, theta, r, J, *, seeds: int = SAMPLING_SEEDS, wor
 
 
 @dataclasses.dataclass(frozen=True)
+class GridCheck:
+    """The grid's share of a fit's uncertainty (``grid_shift``; the module docstring)."""
+
+    dx: float  # the fit's grid spacing (m)
+    dx_coarse: float
+    draws: int  # coarse runs averaged (particle draws that ran without status bits)
+    shift: np.ndarray  # θ(ρ dx) − θ(dx), to first order
+    halfwidth: np.ndarray  # the grid convergence index: the 95 % half-width of θ's grid error
+    wall_s: float
+
+    @property
+    def ratio(self) -> float:
+        return self.dx_coarse / self.dx
+
+    @property
+    def stderr(self) -> np.ndarray:
+        return self.halfwidth / Z95
+
+    @property
+    def cov(self) -> np.ndarray:
+        """Rank one along the shift: the grid moves the keys together, as the fits move along a valley."""
+        norm = np.linalg.norm(self.shift)
+        if norm == 0.0:
+            return np.zeros((self.shift.size, self.shift.size))
+        v = self.shift / norm * np.linalg.norm(self.stderr)
+        return np.outer(v, v)
+
+    def to_dict(self, keys: Sequence[str]) -> dict[str, Any]:
+        by_key = lambda a: {k: float(v) for k, v in zip(keys, a)}  # noqa: E731
+        return {"dx": self.dx, "dx_coarse": self.dx_coarse, "ratio": round(self.ratio, 6), "draws": self.draws,
+                "shift": by_key(self.shift), "halfwidth95": by_key(self.halfwidth), "stderr": by_key(self.stderr),
+                "order_assumed": GRID_ORDER, "safety_factor": GCI_SAFETY, "wall_s": round(self.wall_s, 3)}
+
+
+def check_grid_options(ratio, draws) -> None:
+    """Refuse a grid check that cannot be made (before anything runs): ``ratio`` None (no
+    check) or a number > 1, ``draws`` an integer >= 1."""
+    if ratio is not None and not (isinstance(ratio, (int, float)) and not isinstance(ratio, bool)
+                                  and math.isfinite(ratio) and ratio > 1.0):
+        raise ValueError(f"grid_ratio must be None (no grid check) or a number > 1 (the coarser grid's dx over "
+                         f"the fit's), got {ratio!r}")
+    if not (isinstance(draws, int) and not isinstance(draws, bool) and draws >= 1):
+        raise ValueError(f"grid_draws must be an integer >= 1, got {draws!r}")
+
+
+def grid_shift(objective, theta, J, *, ratio: float = GRID_RATIO, draws: int = GRID_DRAWS,
+               workers=None) -> GridCheck | None:
+    """The grid term at the fit's θ (``J`` the objective's weighted Jacobian there): the
+    objective rebuilt at ``ratio`` × its dx (``Objective.at_dx``), its residuals at θ averaged over
+    ``draws`` particle draws (one, the scene's own, for a sampling with no seed), and the
+    Gauss–Newton shift −J⁺ r̄ (see the module docstring). Raises ``ValueError`` when the objective
+    cannot be rebuilt (a scene with no recipe, data outside the coarser grid); returns None when
+    no coarse run ran without status bits."""
+    check_grid_options(ratio, draws)
+    if not hasattr(objective, "at_dx"):
+        raise ValueError("this objective cannot be rebuilt at another dx (a composite: check each member)")
+    clock = time.perf_counter()
+    dx = float(objective.scene.config.grid.dx)
+    coarse = objective.at_dx(ratio * dx)
+    seeded = getattr(coarse.scene, "sampler", None) is not None
+    seeds = list(range(draws)) if seeded else None
+    thetas = [np.asarray(theta, float)] * (draws if seeded else 1)
+    kept = [np.asarray(r_c, float) for r_c, pred in _runs(coarse, thetas, workers, seeds)
+            if int(np.asarray(pred["status"])) == 0 and np.all(np.isfinite(np.asarray(r_c, float)))]
+    if not kept:
+        return None
+    r_mean = np.mean(kept, axis=0)
+    shift = -np.linalg.lstsq(np.asarray(J, float), r_mean, rcond=None)[0]
+    halfwidth = GCI_SAFETY * np.abs(shift) / (ratio ** GRID_ORDER - 1.0)
+    return GridCheck(dx, float(coarse.scene.config.grid.dx), len(kept), shift, halfwidth,
+                     time.perf_counter() - clock)
+
+
+@dataclasses.dataclass(frozen=True)
 class Verdict:
     """Whether a point is a fit of the data, and if not, why (see the module docstring)."""
 
@@ -368,6 +463,16 @@ class Uncertainty:
     stderr_statistical: np.ndarray | None = None  # from the data's noise alone
     stderr_numerical: np.ndarray | None = None  # from the run's round-off scatter alone (None: not measured)
     sampling: ModelScatter | None = None  # the particle sampling's scatter (None: not measured)
+    grid: GridCheck | None = None  # the grid's share (None: not measured)
+    grid_note: str = ""  # why the grid term is missing, when it was asked for
+
+    @property
+    def grid_converged(self) -> bool | None:
+        """Whether the grid term stays within the data's interval for every key (None: not
+        measured, or no interval)."""
+        if self.grid is None or self.stderr_statistical is None:
+            return None
+        return bool(np.all(self.grid.stderr <= self.stderr_statistical))
 
     @property
     def withheld(self) -> bool:
@@ -381,7 +486,7 @@ class Uncertainty:
                "constrained": list(self.constrained), "statement": self.statement}
         if not self.withheld:
             out["stderr"] = by_key(self.stderr)
-            if self.stderr_numerical is not None or self.sampling is not None:
+            if self.stderr_numerical is not None or self.sampling is not None or self.grid is not None:
                 out["stderr_statistical"] = by_key(self.stderr_statistical)
             if self.stderr_numerical is not None:
                 out["stderr_numerical"] = by_key(self.stderr_numerical)
@@ -389,8 +494,15 @@ class Uncertainty:
                 out["stderr_sampling"] = by_key(self.sampling.stderr)
             out["ci95"] = {k: [float(lo), float(hi)] for k, (lo, hi) in zip(self.keys, self.ci95)}
             out["relative_halfwidth_at_reference_noise"] = by_key(self.relative_halfwidth)
+            if self.grid is not None:
+                out["stderr_grid"] = by_key(self.grid.stderr)
+                out["grid_converged"] = self.grid_converged
         if self.sampling is not None:
             out["sampling"] = self.sampling.to_dict(self.keys)
+        if self.grid is not None:
+            out["grid"] = self.grid.to_dict(self.keys)
+        elif self.grid_note:
+            out["grid"] = {"measured": False, "why": self.grid_note}
         return out
 
 
@@ -415,7 +527,7 @@ def gauss_newton_uncertainty(
     J, r, keys: Sequence[str], theta, blocks: Mapping[str, slice], row_scale,
     *, noise: Mapping[str, float] | float | None = None, reference_noise: float = 0.01,
     threshold: float = 0.1, bounds=None, verdict: Verdict | None = None, scatter: ModelScatter | None = None,
-    sampling: ModelScatter | None = None,
+    sampling: ModelScatter | None = None, grid: GridCheck | None = None, grid_note: str = "",
 ) -> Uncertainty:
     """Covariance, standard errors and identifiability at the optimum.
 
@@ -427,7 +539,8 @@ def gauss_newton_uncertainty(
     constrained keys) is withheld and the statement says why; only the local geometry
     (correlations, Fisher eigen-directions) is kept. ``scatter`` (``model_scatter``; default:
     the verdict's): its covariance of θ, the run's round-off, is added to the statistical one;
-    so is ``sampling``'s (``sampling_scatter``), the particle draw's.
+    so is ``sampling``'s (``sampling_scatter``), the particle draw's, and ``grid``'s
+    (``grid_shift``), the grid's; ``grid_note`` says why the grid term is missing, if it is.
     """
     keys = tuple(keys)
     J = np.asarray(J, float)
@@ -458,7 +571,7 @@ def gauss_newton_uncertainty(
     cov_stat = _inverse(fisher)
     if scatter is None and verdict is not None:
         scatter = verdict.scatter
-    cov = cov_stat + sum(sc.cov for sc in (scatter, sampling) if sc is not None)
+    cov = cov_stat + sum(sc.cov for sc in (scatter, sampling, grid) if sc is not None)
     stderr = np.sqrt(np.maximum(np.diag(cov), 0.0))
     with np.errstate(invalid="ignore", divide="ignore"):
         corr = cov / np.outer(stderr, stderr)
@@ -501,8 +614,11 @@ def gauss_newton_uncertainty(
     if verdict is not None and not verdict.is_fit:
         geometry = [line for line in lines if not line.startswith(("The data constrain", "They do not"))]
         statement = " ".join([verdict.statement] + (["Local geometry only:"] + geometry if geometry else []))
+        if grid is not None:
+            statement += (f" At {grid.ratio:.3g} × the grid spacing the same θ would move " + ", ".join(
+                f"{k} by {d:+.2g}" for k, d in zip(keys, grid.shift)) + ".")
         return Uncertainty(keys, theta, None, None, corr, None, used, estimated, None, None, (), evals, evecs,
-                           statement, verdict, sampling=sampling)
+                           statement, verdict, sampling=sampling, grid=grid, grid_note=grid_note)
     se_stat = np.sqrt(np.maximum(np.diag(cov_stat), 0.0))
     if scatter is not None:
         dominated = [k for k, a, b in zip(keys, se_stat, scatter.stderr) if b > a]
@@ -516,22 +632,39 @@ def gauss_newton_uncertainty(
             lines.append(f"Another draw of the particles ({sampling.samples} seeds) moves " + ", ".join(moved)
                          + " by more than the data's interval: at this resolution that part of the answer is a "
                          "property of the discretisation, not of the material.")
+    if grid is not None:
+        moved = [f"{k} (±{h:.2g} against ±{Z95 * a:.2g})" for k, a, h in zip(keys, se_stat, grid.halfwidth)
+                 if h > Z95 * a]
+        if moved:
+            lines.append(f"Not converged in the grid: a fit at {grid.ratio:.3g} × dx would move " + ", ".join(
+                f"{k} by {d:+.2g}" for k, d in zip(keys, grid.shift)) + "; the grid's share of the interval of "
+                + ", ".join(moved) + " exceeds the data's. At this dx that part of the answer is a property of "
+                "the grid, not of the material: refit at a finer dx.")
+        else:
+            lines.append(f"Converged in the grid as far as one coarser grid ({grid.ratio:.3g} × dx) can show: its "
+                         "share stays within the data's interval for every key.")
+    elif grid_note:
+        lines.append(f"The grid's share was not measured: {grid_note}.")
     return Uncertainty(keys, theta, stderr, cov, corr, ci95, used, estimated, se_ref, rel, constrained,
                        evals, evecs, " ".join(lines), verdict, se_stat,
-                       scatter.stderr if scatter is not None else None, sampling)
+                       scatter.stderr if scatter is not None else None, sampling, grid, grid_note)
 
 
 def judge_point(objective, r, J, theta, *, converged: bool, message: str,
                 noise: Mapping[str, float] | float | None = None, uncertainty: bool = True,
                 roundoff_samples: int = ROUNDOFF_SAMPLES, sampling_seeds: int = 0, reference_noise: float = 0.01,
-                threshold: float = 0.1, workers=None):
+                threshold: float = 0.1, grid_ratio: float | None = None, grid_draws: int = GRID_DRAWS,
+                workers=None):
     """The verdict on a fit's end point and, when ``uncertainty``, its Gauss–Newton uncertainty
     (intervals withheld unless the verdict is a fit): what ``fit`` and ``search`` report for
     their best point. ``roundoff_samples`` perturbed runs measure the run's own scatter there
     (``model_scatter``; 0: not measured, the verdict and interval then assume a smooth run);
     ``sampling_seeds`` other draws of the particles measure the sampling's share of the interval
-    (``sampling_scatter``; 0, the default: not measured). Both go to ``workers`` (a
-    ``calibration.workers.Workers``) when given. Returns ``(verdict, uncertainty or None)``."""
+    (``sampling_scatter``; 0, the default: not measured); ``grid_ratio`` rebuilds the objective at
+    that multiple of its dx for the grid's share (``grid_shift``, ``grid_draws`` draws there; None,
+    the default: not measured). All go to ``workers`` (a ``calibration.workers.Workers``) when
+    given. Returns ``(verdict, uncertainty or None)``."""
+    check_grid_options(grid_ratio, grid_draws)
     J = np.asarray(J, float)
     scatter = None
     if roundoff_samples and np.all(np.isfinite(J)) and hasattr(objective, "residuals"):
@@ -544,8 +677,18 @@ def judge_point(objective, r, J, theta, *, converged: bool, message: str,
         sampling = None
         if sampling_seeds and np.all(np.isfinite(J)):
             sampling = sampling_scatter(objective, theta, r, J, seeds=sampling_seeds, workers=workers)
+        grid, grid_note = None, ""
+        if grid_ratio is not None and np.all(np.isfinite(J)):
+            try:
+                grid = grid_shift(objective, theta, J, ratio=grid_ratio, draws=grid_draws, workers=workers)
+            except ValueError as error:
+                grid_note = str(error)
+            else:
+                if grid is None:
+                    grid_note = f"no run at {grid_ratio:g} × dx ran without status bits"
         unc = gauss_newton_uncertainty(J, r, objective.keys, theta, objective.blocks, objective.row_scale,
                                        noise=noise, bounds=objective.bounds, verdict=verdict, scatter=scatter,
-                                       sampling=sampling, reference_noise=reference_noise, threshold=threshold)
+                                       sampling=sampling, grid=grid, grid_note=grid_note,
+                                       reference_noise=reference_noise, threshold=threshold)
     return verdict, unc
 

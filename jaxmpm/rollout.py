@@ -14,6 +14,7 @@ from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from . import state as st
 from .config import Config
@@ -70,6 +71,9 @@ def make_rollout_parts(config: Config, observer: Observer | None = frame_observe
     def start(state, params):
         if not n_frames:
             return state, None, jnp.zeros((), jnp.int32)
+        if np.any(np.diff(np.asarray(frame_times, state.t.dtype)) <= 0):  # at trace time, before compiling
+            raise ValueError(f"frame_times: two of them coincide at the run's precision ({state.t.dtype}); a frame "
+                             f"would never be recorded: {frame_times!r}")
         times = jnp.asarray(frame_times, state.t.dtype)
         first = observer(state, params)
         frames = jax.tree.map(lambda o: jnp.zeros((n_frames,) + o.shape, o.dtype), first)

@@ -34,6 +34,8 @@ def test_fit_prints_the_documented_json_and_writes_history_and_figures(capsys, t
     assert "stderr" not in out and "ci95" not in out and "No Gauss–Newton interval" in out["statement"]
     assert out["search"]["starts"] == 1
     assert out["roundoff"]["samples"] == 8  # the default: the run's own scatter, measured at the end point
+    # The default grid check: the objective rebuilt at 1.5 dx, two draws there (no interval to add it to).
+    assert out["grid"]["ratio"] == 1.5 and out["grid"]["draws"] == 2 and set(out["grid"]["shift"]) == {"beta", "mu1"}
     # One profile: the loss is the mean squared misfit relative to the data's peak, so the RMS in metres
     # is its root times that peak.
     from calibration import load_profile
@@ -137,6 +139,7 @@ def test_fit_with_profiles_and_posterior_draws_them(capsys, tmp_path):
     profile.write_text("\n".join(lines + ["x_m,h_m"] + [f"{a:.6e},{b:.6e}" for a, b in zip(data.x, noisy)]) + "\n")
     code, out = run(capsys, "fit", "--scene", "cohesive-collapse", "--data", str(profile), "--fit", "mu1",
                     "--set", "beta=0.25", "--init", "mu1=0.4", "--steps", "8", "--roundoff-samples", "0",
+                    "--grid-check", "0",
                     "--profiles", "5", "--posterior", "7", "--nuts", "40", "--chains", "2",
                     "--plot", str(tmp_path / "figs"), *TINY)
     assert code == 0 and out["verdict"]["is_fit"]

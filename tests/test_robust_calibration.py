@@ -107,7 +107,8 @@ def history(tmp_path_factory):
             raise OSError(28, "No space left on device")
 
         mp.setattr(plots, "plot_fit", full_disk)
-        code, out, err = call([*FIT, "--data", S4, "--init", "beta=0.2", "--steps", "1", "--out", path,
+        code, out, err = call([*FIT, "--data", S4, "--init", "beta=0.2", "--steps", "1", "--grid-check", "0",
+                               "--out", path,
                                "--plot", folder / "figs", *TINY])
     return {"path": path, "code": code, "out": out, "err": err, "folder": folder}
 

@@ -68,6 +68,9 @@ class Scene:
     info: SceneInfo  # geometry and set-up facts (body extents, slope, initial front, sampling, ...)
     #: seed -> the same body sampled with another seed (None: the scene's sampling has no seed).
     sampler: Callable[[int], State] | None = dataclasses.field(default=None, compare=False, repr=False)
+    #: builder arguments -> the set-up built again with those changed (None: the builder cannot
+    #: remake it); see ``variant`` and ``at_dx``.
+    remake: Callable[..., Scene] | None = dataclasses.field(default=None, compare=False, repr=False)
 
     def __iter__(self):
         return iter((self.config, self.state, self.params))
@@ -91,6 +94,33 @@ class Scene:
         if not (isinstance(seed, int) and seed >= 0):
             raise ValueError(f"seed must be an integer >= 0, got {seed!r}")
         return self.sampler(seed)
+
+    def variant(self, **changes) -> Scene:
+        """This set-up built again with some of its builder's arguments changed (``collapse``'s:
+        ``dx``, ``height``, ``length``, ``slope_deg``, ``front_gate_speed``, ``runout``, ``t_end``,
+        ``ppc``, ``seed``, ...), with this scene's material (its ``params`` as they are now, set
+        after building or not): the same material in another experiment, or the same experiment
+        on another grid. Material keys are not builder arguments: replace ``params`` instead."""
+        if self.remake is None:
+            raise ValueError(f"scene {self.name!r} cannot be rebuilt (its builder records no recipe)")
+        from ..params import PARAM_KEYS
+
+        material = sorted(set(changes) & set(PARAM_KEYS))
+        if material:
+            raise ValueError(f"variant: {material} are material parameters, not builder arguments; "
+                             "use scene.params.replace(...)")
+        return dataclasses.replace(self.remake(**changes), params=self.params, name=self.name)
+
+    def at_dx(self, dx: float) -> Scene:
+        """This scene built at grid spacing ``dx`` (m): the same body, walls, gates, end time,
+        sampling and seed, with this scene's parameters (``variant``); grid, particles and step
+        budget follow from ``dx``. For the grid (discretisation) term of a fit
+        (``calibration.grid_shift``) and resolution studies."""
+        if not (isinstance(dx, (int, float)) and math.isfinite(dx) and dx > 0):
+            raise ValueError(f"dx must be a positive number of metres, got {dx!r}")
+        if self.remake is None:
+            raise ValueError(f"scene {self.name!r} cannot be rebuilt at another dx (its builder records no recipe)")
+        return self.variant(dx=float(dx))
 
 
 def _check_positive(**values):
@@ -159,6 +189,8 @@ def collapse(
     against the walls (default: the lowest particle half a cell above the floor; see the module
     docstring).
     """
+    recipe = {k: v for k, v in locals().items() if k != "param_values"}
+    recipe.update(param_values)
     _check_positive(dx=dx, length=length, height=height, runout=runout, t_end=t_end, width=width)
     if dim not in (2, 3):
         raise ValueError(f"dim must be 2 or 3, got {dim!r}")
@@ -253,7 +285,14 @@ def collapse(
             x_, vol_, _ = body(seed_)
             return init_state(config, x_, vol_, dtype=dtype)
 
-    return Scene(name, config, init_state(config, x, vol, dtype=dtype), params, info, sampler)
+    def remake(**changes):
+        unknown = sorted(set(changes) - set(recipe))
+        if unknown:
+            raise ValueError(f"variant: {unknown} are not arguments of the collapse builder; it takes "
+                             f"{sorted(k for k in recipe if k not in param_values)}")
+        return collapse(**{**recipe, **changes})
+
+    return Scene(name, config, init_state(config, x, vol, dtype=dtype), params, info, sampler, remake)
 
 
 #: S2's own default particles per cell: with dx = 1.5 mm, the cheapest setting whose runouts, top
@@ -326,7 +365,10 @@ def aspect_ratio_collapse(a: float = 1.0, L0: float = 0.05, dx: float | None = N
     t_end = t_end if t_end is not None else 4.0 * math.sqrt(height / G) + 0.1
     scene = collapse("aspect-ratio", L0, height, dx=dx, ppc=ppc, dim=dim, width=width, t_end=t_end,
                      frames=frames, base_params=S5_PARAMS, **kw)
-    return dataclasses.replace(scene, info=dataclasses.replace(scene.info, aspect=a))
+    return dataclasses.replace(
+        scene, info=dataclasses.replace(scene.info, aspect=a),
+        remake=lambda **c: aspect_ratio_collapse(**{"a": a, "L0": L0, "dx": dx, "ppc": ppc, "dim": dim, "width": width,
+                                                    "t_end": t_end, "frames": frames, **kw, **c}))
 
 
 #: S7 aluminium bars (Bui, Fukagawa, Sako & Ohno 2008), every value with its source

@@ -1,0 +1,118 @@
+"""``calibration.design`` and ``python -m calibration design``: what to measure, before measuring."""
+
+import json
+
+import numpy as np
+import pytest
+
+from calibration import Objective
+from calibration.__main__ import main
+from calibration.design import Experiment, design, expected_halfwidths
+from calibration.uncertainty import Z95
+from jaxmpm import scenes
+
+L = 0.089
+KEYS = ("beta", "mu1")
+TINY = ["--scene", "cohesive-collapse", "--dx", str(L / 4), "--t-end", "0.1"]
+
+
+def _experiment(J, sigma, rows, label="main"):
+    m = J.shape[0]
+    return Experiment(label, None, rows, np.full(m, sigma), J, None, None, None)
+
+
+def test_expected_halfwidths_are_the_gauss_newton_ones_of_the_chosen_rows():
+    rng = np.random.default_rng(1)
+    J = rng.standard_normal((12, 2))
+    rows = {"final": np.arange(0, 4), "profiles": np.arange(0, 8), "front": np.arange(8, 12),
+            "top": np.arange(8, 12)}
+    e = _experiment(J, 0.05, rows)
+    for parts, chosen in ((((("main", "final"),)), np.arange(0, 4)),
+                          ((("main", "profiles"), ("main", "front")), np.arange(12)),
+                          ((("main", "final"), ("main", "profiles")), np.arange(8))):  # rows counted once
+        hw, cov, data_only = expected_halfwidths([e], parts)
+        expected = np.linalg.inv(J[chosen].T @ J[chosen] / 0.05 ** 2)
+        np.testing.assert_allclose(cov, expected, rtol=1e-10)
+        np.testing.assert_allclose(hw, Z95 * np.sqrt(np.diag(expected)), rtol=1e-10)
+        np.testing.assert_allclose(data_only, hw, rtol=1e-12)
+    # A second experiment adds its Fisher information.
+    J2 = rng.standard_normal((6, 2))
+    e2 = _experiment(J2, 0.02, {"final": np.arange(6), "profiles": np.arange(6), "front": np.arange(0),
+                                "top": np.arange(0)}, "tall")
+    _, cov, _ = expected_halfwidths([e, e2], (("main", "final"), ("tall", "final")))
+    fisher = J[:4].T @ J[:4] / 0.05 ** 2 + J2.T @ J2 / 0.02 ** 2
+    np.testing.assert_allclose(cov, np.linalg.inv(fisher), rtol=1e-10)
+
+
+@pytest.mark.parametrize("kwargs, match", [
+    ({"tolerance": 0.0}, "tolerance"),
+    ({"times": [0.5]}, "times must increase strictly within"),
+    ({"times": []}, "times must be a non-empty"),
+    ({"noise": {"height": 0.01}}, "noise: unknown kind"),
+    ({"noise": -0.1}, "must be a positive fraction"),
+    ({"variants": {"tall": {"beta": 0.3}}}, "material parameters"),
+    ({"variants": {"tall": {"heigth": 0.2}}}, "not arguments of the collapse builder"),
+    ({"variants": {"main": {"height": 0.2}}}, "'main' names the scene"),
+    ({"sampling_seeds": 1}, "sampling_seeds"),
+    ({"grid_ratio": 0.5}, "grid_ratio"),
+    ({"theta": {"xi": 10.0}}, "not among the keys"),
+    ({"sets": [("x", [("other", "final")])]}, "experiments are"),
+])
+def test_bad_input_is_refused_before_any_run(kwargs, match, monkeypatch):
+    scene = scenes.cohesive_collapse(dx=L / 4, t_end=0.1)
+
+    def tripwire(*args, **kw):
+        raise AssertionError("the model ran: the input should have been refused before")
+
+    monkeypatch.setattr(Objective, "predict", tripwire)
+    theta = kwargs.pop("theta", None)
+    with pytest.raises(ValueError, match=match):
+        design(scene, KEYS, theta, **kwargs)
+
+
+@pytest.fixture(scope="module")
+def tiny():
+    scene = scenes.cohesive_collapse(dx=L / 4, t_end=0.1, dtype="float32")  # as the command line builds it
+    return design(scene, KEYS, {"beta": 0.25}, noise=0.02, tolerance=0.5)
+
+
+def test_more_observations_never_widen_the_datas_interval(tiny):
+    by_name = {c.name: c for c in tiny.candidates}
+    final = by_name["final profile"].halfwidth_data
+    for name in ("final profile + front", "final profile + top height", "profiles in time",
+                 "profiles in time + front", "profiles in time + front + top"):
+        assert np.all(by_name[name].halfwidth_data <= final * (1 + 1e-9)), name
+    assert np.all(by_name["profiles in time + front"].halfwidth_data
+                  <= by_name["profiles in time"].halfwidth_data * (1 + 1e-9))
+    # Candidates come by cost; the recommendation is the cheapest that meets the tolerance.
+    costs = [c.cost for c in tiny.candidates]
+    assert costs == sorted(costs) and costs[0] == 1.0
+    meeting = [c for c in tiny.candidates if c.meets]
+    assert tiny.recommended is (meeting[0] if meeting else None)
+    out = tiny.to_json()
+    json.dumps(out, allow_nan=False)
+    assert out["experiments"] == ["main"] and out["candidates"][0]["name"] == "final profile"
+
+
+def test_the_command_line_prints_the_candidates_and_draws_the_regions(tiny, capsys, tmp_path):
+    figure = tmp_path / "design.png"
+    code = main(["design", *TINY, "--fit", "beta,mu1", "--at", "beta=0.25", "--tolerance", "0.5", "--grid-check", "0",
+                 "--workers", "1", "--json", "--plot", str(figure)])
+    out = json.loads(capsys.readouterr().out)
+    assert code == 0 and figure.stat().st_size > 10_000
+    # The same candidates as the library call with the same settings (float32 runs, one process).
+    ours = {c["name"]: c["halfwidth95"] for c in out["candidates"]}
+    for c in tiny.candidates:
+        np.testing.assert_allclose([ours[c.name][k] for k in KEYS], c.halfwidth, rtol=1e-6)
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--fit", "beta", "--plot", "x.png"], "--plot draws the first two keys"),
+    (["--fit", "beta,mu1", "--variant", "tall"], "--variant expects LABEL:key=value"),
+    (["--fit", "beta,mu1", "--variant", "a:height=0.1", "--variant", "a:height=0.2"], "given twice"),
+    (["--fit", "beta,mu1", "--times", "0.05,0.2"], "times must increase strictly within"),
+])
+def test_command_line_errors_name_the_option(argv, message, capsys):
+    with pytest.raises(SystemExit) as stop:
+        main(["design", *TINY, *argv])
+    assert stop.value.code == 2 and message in capsys.readouterr().err

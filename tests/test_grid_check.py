@@ -1,0 +1,107 @@
+"""The grid's share of a fit's interval: ``Scene.at_dx``, ``Objective.at_dx``, ``grid_shift``."""
+
+import dataclasses
+import math
+import types
+
+import numpy as np
+import pytest
+
+from calibration import Objective, ProfileTarget, fit
+from calibration.uncertainty import GCI_SAFETY, GRID_ORDER, gauss_newton_uncertainty, grid_shift
+from jaxmpm import scenes
+
+L = 0.089
+KEYS = ("beta", "mu1")
+
+
+def test_scene_at_dx_is_the_scene_built_at_that_dx_with_its_current_params():
+    scene = scenes.cohesive_collapse(dx=L / 6, t_end=0.1, beta=0.2, pc0=400.0)
+    later = dataclasses.replace(scene, params=scene.params.replace(mu1=0.41))  # set after building
+    coarse = later.at_dx(L / 4)
+    built = scenes.cohesive_collapse(dx=L / 4, t_end=0.1, beta=0.2, pc0=400.0)
+    assert coarse.config == built.config and coarse.info == built.info
+    np.testing.assert_array_equal(np.asarray(coarse.state.x), np.asarray(built.state.x))
+    assert float(coarse.params.mu1) == 0.41 and float(coarse.params.pc0) == 400.0
+    np.testing.assert_array_equal(np.asarray(coarse.resampled(3).x), np.asarray(built.resampled(3).x))
+    aspect = scenes.aspect_ratio_collapse(a=2.0, dx=0.01, t_end=0.1).at_dx(0.0125)
+    assert aspect.info.aspect == 2.0 and aspect.config.grid.dx == 0.0125
+    with pytest.raises(ValueError, match="dx must be a positive number"):
+        scene.at_dx(-1.0)
+    with pytest.raises(ValueError, match="cannot be rebuilt"):
+        dataclasses.replace(scene, remake=None).at_dx(L / 4)
+
+
+class _Linear:
+    """An objective whose coarse residual at θ is J a exactly: the shift must be −a."""
+
+    def __init__(self, J, a, dx=0.01):
+        self.J, self.a = np.asarray(J, float), np.asarray(a, float)
+        self.scene = types.SimpleNamespace(config=types.SimpleNamespace(grid=types.SimpleNamespace(dx=dx)),
+                                           sampler=None)
+        self.asked = []
+
+    def at_dx(self, dx):
+        self.asked.append(dx)
+        coarse = _Linear(self.J, self.a, dx)
+        coarse.residuals = lambda theta: (self.J @ self.a, {"status": np.int32(0)})
+        return coarse
+
+
+def test_grid_shift_is_the_gauss_newton_step_to_the_coarse_minimum_and_its_gci():
+    rng = np.random.default_rng(0)
+    J, a = rng.standard_normal((30, 2)), np.array([0.02, -0.05])
+    objective = _Linear(J, a)
+    grid = grid_shift(objective, np.array([0.3, 0.4]), J, ratio=1.5, draws=3)
+    assert objective.asked == [pytest.approx(0.015)]
+    np.testing.assert_allclose(grid.shift, -a, rtol=1e-12)
+    np.testing.assert_allclose(grid.halfwidth, GCI_SAFETY * np.abs(a) / (1.5 ** GRID_ORDER - 1.0), rtol=1e-12)
+    assert grid.draws == 1  # no seeded sampling: the scene's own draw only
+    # Rank one along the shift, with the grid's standard errors' total length.
+    assert np.linalg.matrix_rank(grid.cov) == 1
+    np.testing.assert_allclose(np.trace(grid.cov), np.sum(grid.stderr ** 2), rtol=1e-12)
+    # The interval carries it, and says the fit is not converged where it dominates.
+    r = np.zeros(30)
+    blocks = {"profile": slice(0, 30)}
+    unc = gauss_newton_uncertainty(J, r, KEYS, np.array([0.3, 0.4]), blocks, np.ones(30), noise=1e-4, grid=grid)
+    assert unc.grid_converged is False and "Not converged in the grid" in unc.statement
+    np.testing.assert_allclose(unc.stderr ** 2, unc.stderr_statistical ** 2 + grid.stderr ** 2, rtol=1e-9)
+    d = unc.to_dict()
+    assert d["grid_converged"] is False and set(d["stderr_grid"]) == set(KEYS) and d["grid"]["ratio"] == 1.5
+    small = grid_shift(_Linear(J, 1e-9 * a), np.array([0.3, 0.4]), J)
+    unc = gauss_newton_uncertainty(J, r, KEYS, np.array([0.3, 0.4]), blocks, np.ones(30), noise=1e-2, grid=small)
+    assert unc.grid_converged is True and "Converged in the grid" in unc.statement
+
+
+@pytest.mark.parametrize("ratio, draws, match", [(1.0, 2, "grid_ratio"), (0.5, 2, "grid_ratio"),
+                                                 (math.nan, 2, "grid_ratio"), (1.5, 0, "grid_draws")])
+def test_bad_grid_options_are_refused_before_anything_runs(ratio, draws, match, monkeypatch):
+    scene = scenes.cohesive_collapse(dx=L / 4, t_end=0.05)
+    xs = np.linspace(0.0, 0.15, 9)
+    objective = Objective(scene, KEYS, profile=ProfileTarget(xs, np.ones_like(xs)), check_data=False)
+
+    def tripwire(*args, **kwargs):
+        raise AssertionError("the model ran: the options should have been refused before")
+
+    monkeypatch.setattr(Objective, "residuals_and_jacobian", tripwire)
+    monkeypatch.setattr(Objective, "residuals_and_jacobian_z", tripwire)
+    with pytest.raises(ValueError, match=match):
+        fit(objective, {"beta": 0.1}, grid_ratio=ratio, grid_draws=draws)
+
+
+def test_grid_shift_runs_the_objective_rebuilt_coarser_over_two_draws():
+    """On a real objective: the shift is −J⁺ of the mean residual of the objective rebuilt at
+    1.5 dx over two particle draws (any J: the shift is linear in that mean)."""
+    scene = scenes.cohesive_collapse(dx=L / 4, t_end=0.05, beta=0.25)
+    xs = np.linspace(0.0, 0.14, 15)
+    objective = Objective(scene, KEYS, profile=ProfileTarget(xs, 0.05 * np.ones_like(xs)), check_data=False)
+    theta = np.array([0.25, 0.4])
+    J = np.random.default_rng(2).standard_normal((xs.size, 2))
+    grid = grid_shift(objective, theta, J)
+    coarse = objective.at_dx(1.5 * L / 4)
+    assert coarse.keys == objective.keys and coarse.scene.config.grid.dx == pytest.approx(1.5 * L / 4)
+    assert coarse.sigma == pytest.approx(1.5 * objective.sigma)  # not given: follows the new particle spacing
+    r_c = np.mean([np.asarray(coarse.residuals_resampled(theta, s)[0]) for s in (0, 1)], axis=0)
+    np.testing.assert_allclose(grid.shift, -np.linalg.lstsq(J, r_c, rcond=None)[0], rtol=1e-6, atol=1e-12)
+    assert grid.draws == 2 and grid.dx == pytest.approx(L / 4)
+    # A fit's grid term through the command line: tests/test_calibration_cli.py (the documented JSON).
