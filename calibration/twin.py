@@ -152,7 +152,8 @@ def twin(*, quick: bool = False, noise: float = 0.0, keys: Sequence[str] = ("bet
     profiles, front = twin_data(scene, keys, truth, noise=noise, seed=seed)
     objective = Objective(scene, keys, profile=profiles, front=front)
     # Identifiability at the stated reference noise (or the twin's own noise when larger).
-    result = fit(objective, start, method=method, steps=steps or (25 if method == "lm" else 150), out=out,
+    steps = (25 if method == "lm" else 150) if steps is None else steps
+    result = fit(objective, start, method=method, steps=steps, out=out,
                  resume=resume, overwrite=overwrite, progress=progress, noise=None,
                  reference_noise=max(reference_noise, noise), threshold=threshold, roundoff_samples=roundoff_samples,
                  meta={"twin": True, "noise": noise, "seed": seed, "true": dict(zip(keys, truth.tolist()))})

@@ -118,7 +118,10 @@ def _temp_mb(compiled) -> float | None:
 def bench_gradient(quick=False, dim=2, dtype="float32", repeat=3, n_particles=None, steps=None) -> dict:
     """Gradient of the final mean height with respect to all parameters, for ``steps`` steps."""
     n_particles = n_particles or (1_000 if quick else 2_500)
-    steps = steps or (500 if quick else 5_000)
+    if steps is None:
+        steps = 500 if quick else 5_000
+    elif not (isinstance(steps, int) and steps >= 1):
+        raise ValueError(f"steps must be a positive int, got {steps!r}")
     config, state, params = falling_block(n_particles=n_particles, dim=dim, t_end=10.0, max_steps=steps, dtype=dtype)
     out = {"scene": "elastic-block", "dim": dim, "dtype": str(jnp.dtype(state.x.dtype)),
            "n_particles": state.n_particles, "n_steps": steps, "device": _device()}

@@ -67,7 +67,7 @@ def bagnold(quick=False, plot_dir=None, alpha=0.95, slopes=(22.0, 24.0, 26.0, 28
     particles start half a cell above it). The precision is the session's (float32 unless
     jax_enable_x64 is on). ``xpic``: the order of an XPIC filter on the FLIP part (0: off)."""
     divisions = divisions or ((8, 16) if quick else (8, 16, 32))
-    t_end = t_end or (0.5 if quick else 3.0)
+    t_end = (0.5 if quick else 3.0) if t_end is None else t_end
     cases, profiles = [], {}
     for slope in slopes:
         for div in divisions:
@@ -117,7 +117,7 @@ def bagnold_from_rest(quick=False, plot_dir=None, alpha=0.95, slope=24.0, divisi
     a series of times, with its RMS distance to the analytic profile over v_max, and the
     surface velocity against v_max. Near the steady state the flow relaxes on the time scale
     v/(g cos θ μ'(I) I) (about 4 s at 24°), so the run lasts several of them."""
-    t_end = t_end or (2.0 if quick else 12.0)
+    t_end = (2.0 if quick else 12.0) if t_end is None else t_end
     frames = 24 if not quick else 8
     scene = scenes.incline(slope, dx=0.038 / division, t_end=t_end, frames=frames, alpha=alpha,
                            critical_start=True, start_from_analytic=False)

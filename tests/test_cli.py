@@ -61,6 +61,14 @@ def test_run_rejects_bad_input(tmp_path):
     assert out.returncode == 2 and "dx must be > 0" in out.stderr
     out = _cli("run", "cohesive-collapse", "--slope", "10", cwd=tmp_path)
     assert out.returncode == 2 and "--slope applies to slope-collapse" in out.stderr
+    # A grid cell larger than the column ran one particle outside the body and exited 0.
+    out = _cli("run", "cohesive-collapse", "--dx", "10", cwd=tmp_path)
+    assert out.returncode == 2 and "dx = 10 m is larger than the body" in out.stderr
+    # A zero option was taken as "not given" (the run went to the scene's 0.39 s).
+    out = _cli("run", "elastic-block", "--t-end", "0", cwd=tmp_path)
+    assert out.returncode == 2 and "t_end must be > 0" in out.stderr
+    out = _cli("bench", "--grad", "--steps", "0", cwd=tmp_path)
+    assert out.returncode == 2 and "steps must be a positive int, got 0" in out.stderr
 
 
 def test_bench_prints_the_documented_fields():

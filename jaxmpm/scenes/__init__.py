@@ -65,7 +65,8 @@ def build_scene(name: str, dx=None, ppc=None, dim=2, width=None, t_end=None, fra
             raise ValueError("elastic-block is 2D")
         if sampling not in (None, "lattice") or ppc not in (None, 2):
             raise ValueError("elastic-block is sampled on a 2 x 2 lattice (--ppc and --sampling do not apply)")
-        return falling_block(n_particles=2_500, t_end=t_end or 0.39, frames=frames, dtype=dtype, **values)
+        return falling_block(n_particles=2_500, t_end=0.39 if t_end is None else t_end, frames=frames, dtype=dtype,
+                             **values)
     raise ValueError(f"scene must be one of {SCENE_NAMES}, got {name!r}")
 
 

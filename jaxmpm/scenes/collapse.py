@@ -192,6 +192,11 @@ def collapse(
     recipe = {k: v for k, v in locals().items() if k != "param_values"}
     recipe.update(param_values)
     _check_positive(dx=dx, length=length, height=height, runout=runout, t_end=t_end, width=width)
+    thinnest = min(length, height, width if dim == 3 and width is not None else math.inf)
+    if dx > thinnest:
+        raise ValueError(f"dx = {dx:g} m is larger than the body ({length:g} m long, {height:g} m high"
+                         + (f", {width:g} m wide" if dim == 3 and width is not None else "")
+                         + "): a body needs at least one grid cell across each side; use a smaller dx")
     if dim not in (2, 3):
         raise ValueError(f"dim must be 2 or 3, got {dim!r}")
     if dim == 3 and width is None:
