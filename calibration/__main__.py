@@ -496,8 +496,10 @@ def _design(args) -> int:
         out["figure"] = _guard(errors, "--plot", lambda: str(plot_design(result, args.plot)))
     if not args.json:
         for c in result.candidates:
-            widths = ", ".join(f"{k} ±{100 * r:.3g} % (data alone ±{100 * d / max(abs(t), 1e-12):.3g} %)"
-                               for k, r, d, t in zip(result.keys, c.relative, c.halfwidth_data, result.theta))
+            widths = ", ".join(f"{k} ±{100 * r:.3g} % (data alone ±{100 * d / max(abs(t), 1e-12):.3g} %, "
+                               f"noise-weighted ±{100 * b / max(abs(t), 1e-12):.3g} %)"
+                               for k, r, d, b, t in zip(result.keys, c.relative, c.halfwidth_data,
+                                                        c.halfwidth_weighted, result.theta))
             print(f"{'*' if c is result.recommended else ' '} cost {c.cost:g}  {c.name}: {widths}")
         print(result.statement)
     return _finish(out, args, errors) if args.json else (1 if errors else 0)

@@ -12,11 +12,14 @@ once at θ with every observation it could give recorded:
 
 One forward-mode Jacobian per experiment then gives the Fisher information of every *set* of
 these observations by choosing its rows, so a dozen candidate sets cost one Jacobian per
-experiment. Each set gets its expected 95 % half-width per key, 1.96 sqrt(diag F⁻¹), with the
-noise a user expects (relative, as the fit's: a fraction of the profile's peak, of the column's
-length for the front, of the top's height), optionally plus the particle draw's share
-(``sampling_seeds`` other draws, as ``uncertainty.sampling_scatter``) and the grid's
-(``grid_ratio``, as ``uncertainty.grid_shift``), both read off the same runs by row selection.
+experiment. Each set gets its expected 95 % half-width per key, 1.96 sqrt(diag Cov), Cov the
+covariance of the fit the library would make from those data (the sandwich of
+``uncertainty.gauss_newton_uncertainty``: the fit weighs each block as a whole, which is not
+1/σ² per row when blocks differ in length), with the noise a user expects (relative, as the
+fit's: a fraction of the profile's peak, of the column's length for the front, of the top's
+height), optionally plus the particle draw's share (``sampling_seeds`` other draws, as
+``uncertainty.sampling_scatter``) and the grid's (``grid_ratio``, as
+``uncertainty.grid_shift``), both read off the same runs by row selection.
 
 The cost to the experimenter is counted per experiment: 1 for running it and photographing the
 deposit, 2 more if anything time-resolved is filmed (profiles, front and top come from the same
@@ -39,7 +42,7 @@ from typing import Any
 import numpy as np
 
 from .objective import FrontTarget, Objective, ProfileTarget
-from .uncertainty import GCI_SAFETY, GRID_ORDER, Z95, _inverse, _runs, check_grid_options
+from .uncertainty import GCI_SAFETY, GRID_ORDER, Z95, _inverse, _runs, _sandwich_fisher, check_grid_options
 
 __all__ = ["KINDS", "DesignResult", "Experiment", "design", "expected_halfwidths"]
 
@@ -58,6 +61,7 @@ class Experiment:
     rows: dict[str, np.ndarray]  # kind -> row indices
     noise_rows: np.ndarray  # σ of every row (relative units)
     J: np.ndarray  # relative units (J / row_scale)
+    weights: np.ndarray  # each row's weight in the fit's loss (row_scale²)
     draws: np.ndarray | None  # (K, m) relative residual deviations of other particle draws
     coarse: np.ndarray | None  # (m,) relative mean residual at ρ dx
     ratio: float | None
@@ -72,7 +76,9 @@ class Candidate:
     relative: np.ndarray  # halfwidth / |θ|
     cov: np.ndarray
     meets: bool  # every relative half-width within the tolerance
-    halfwidth_data: np.ndarray  # 95 %, the data's noise alone
+    halfwidth_data: np.ndarray  # 95 %, the data's noise alone (the library's fit)
+    halfwidth_weighted: np.ndarray  # 95 %, the data's noise alone, every row weighed by 1/σ² (the bound)
+    cov_data: np.ndarray  # the data's share of ``cov``
 
 
 @dataclasses.dataclass(frozen=True)
@@ -91,7 +97,8 @@ class DesignResult:
             return {"name": c.name, "cost": c.cost, "meets_tolerance": c.meets,
                     "halfwidth95": dict(zip(self.keys, map(float, c.halfwidth))),
                     "relative_halfwidth95": dict(zip(self.keys, map(float, c.relative))),
-                    "halfwidth95_data_only": dict(zip(self.keys, map(float, c.halfwidth_data)))}
+                    "halfwidth95_data_only": dict(zip(self.keys, map(float, c.halfwidth_data))),
+                    "halfwidth95_noise_weighted": dict(zip(self.keys, map(float, c.halfwidth_weighted)))}
 
         return {"keys": list(self.keys), "theta": dict(zip(self.keys, map(float, self.theta))), "noise": self.noise,
                 "tolerance": self.tolerance, "experiments": list(self.experiments),
@@ -189,7 +196,7 @@ def _experiment(label, scene, keys, theta, xs, times, front_times, top_x, noise,
                 if int(np.asarray(p["status"])) == 0]
         if kept:
             coarse_mean = np.mean(kept, axis=0)
-    return Experiment(label, objective, rows, sigma, J, draws, coarse_mean, grid_ratio)
+    return Experiment(label, objective, rows, sigma, J, scale ** 2, draws, coarse_mean, grid_ratio)
 
 
 def _cost(parts) -> float:
@@ -202,40 +209,52 @@ def _cost(parts) -> float:
     return cost
 
 
-def expected_halfwidths(experiments: Sequence[Experiment], parts) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(95 % half-widths, their covariance, the data's share of the half-widths) of θ from the
-    observations ``parts`` ((experiment label, kind) pairs): the data's noise plus, where the
-    experiments measured them, the particle draw's and the grid's shares."""
+def expected_halfwidths(experiments: Sequence[Experiment], parts) -> tuple[np.ndarray, ...]:
+    """(95 % half-widths, their covariance, the data's share of the half-widths, the same with
+    every row weighed by 1/σ², the data's share of the covariance) of θ from the observations
+    ``parts`` ((experiment label, kind) pairs): the data's noise plus, where the experiments
+    measured them, the particle draw's and the grid's shares. The fourth is the Cramér–Rao bound
+    of the data: a fit that weighs each row by its noise reaches it, the library's (each block
+    weighed as a whole) only when the blocks are alike."""
     by_label = {e.label: e for e in experiments}
     chosen: dict[str, list[np.ndarray]] = {}
     for label, kind in parts:
         chosen.setdefault(label, []).append(by_label[label].rows[kind])
-    Js, sigmas, draws, coarse = [], [], [], []
+    Js, sigmas, weights, draws, coarse = [], [], [], [], []
     for label, row_sets in chosen.items():
         e = by_label[label]
         rows = np.unique(np.concatenate(row_sets))
         Js.append(e.J[rows])
         sigmas.append(e.noise_rows[rows])
+        weights.append(e.weights[rows])
         draws.append(None if e.draws is None else e.draws[:, rows])
         coarse.append(None if e.coarse is None else e.coarse[rows])
-    J, sigma = np.concatenate(Js), np.concatenate(sigmas)
-    Jw = J / sigma[:, None]
-    cov = _inverse(Jw.T @ Jw)
+    J, sigma, w = np.concatenate(Js), np.concatenate(sigmas), np.concatenate(weights)
+    # The fit's estimator weighs row i by w_i (its objective's row_scale²), not by 1/σ_i²: its
+    # covariance is the sandwich (uncertainty.gauss_newton_uncertainty), and its response to a
+    # change r of the residuals is −(JᵀWJ)⁻¹JᵀW r, the least-squares solution of the weighted rows.
+    A = J.T @ (w[:, None] * J)
+    B = J.T @ ((w * w * sigma * sigma)[:, None] * J)
+    cov = cov_data = _inverse(_sandwich_fisher(A, B))
     data_only = Z95 * np.sqrt(np.maximum(np.diag(cov), 0.0))
+    Js = J / sigma[:, None]
+    weighted = Z95 * np.sqrt(np.maximum(np.diag(_inverse(Js.T @ Js)), 0.0))
+    root = np.sqrt(w)
+    J = J * root[:, None]
     if all(d is not None for d in draws):
         k = min(d.shape[0] for d in draws)
-        S = np.concatenate([d[:k] for d in draws], axis=1)
+        S = np.concatenate([d[:k] for d in draws], axis=1) * root[None, :]
         P = np.linalg.lstsq(J, S.T, rcond=None)[0].T
         cov = cov + np.atleast_2d(np.cov(P, rowvar=False, ddof=1))
     if all(c is not None for c in coarse):
         ratio = experiments[0].ratio
-        shift = -np.linalg.lstsq(J, np.concatenate(coarse), rcond=None)[0]
+        shift = -np.linalg.lstsq(J, np.concatenate(coarse) * root, rcond=None)[0]
         halfwidth = GCI_SAFETY * np.abs(shift) / (ratio ** GRID_ORDER - 1.0)
         norm = np.linalg.norm(shift)
         if norm > 0:
             v = shift / norm * np.linalg.norm(halfwidth / Z95)
             cov = cov + np.outer(v, v)
-    return Z95 * np.sqrt(np.maximum(np.diag(cov), 0.0)), cov, data_only
+    return Z95 * np.sqrt(np.maximum(np.diag(cov), 0.0)), cov, data_only, weighted, cov_data
 
 
 def _default_sets(labels: Sequence[str]) -> list[tuple[str, tuple[tuple[str, str], ...]]]:
@@ -312,10 +331,10 @@ def design(scene, keys: Sequence[str], theta: Mapping[str, float] | None = None,
     theta_arr = np.array([values[k] for k in keys])
     candidates = []
     for name, parts in candidate_sets:
-        halfwidth, cov, data_only = expected_halfwidths(experiments, parts)
+        halfwidth, cov, data_only, weighted, cov_data = expected_halfwidths(experiments, parts)
         relative = halfwidth / np.maximum(np.abs(theta_arr), 1e-12)
         candidates.append(Candidate(name, parts, _cost(parts), halfwidth, relative, cov,
-                                    bool(np.all(relative <= tolerance)), data_only))
+                                    bool(np.all(relative <= tolerance)), data_only, weighted, cov_data))
     candidates.sort(key=lambda c: (c.cost, float(np.max(c.relative))))
     recommended = next((c for c in candidates if c.meets), None)
     return DesignResult(keys, theta_arr, noise, float(tolerance), tuple(candidates), recommended,

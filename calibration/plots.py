@@ -392,25 +392,26 @@ def plot_posterior_predictive(predictive, path, *, title: str | None = None, spl
     return _save(plt, fig, path, dpi=120)
 
 
-def plot_design(result, path, *, title: str | None = None):
+def plot_design(result, path, *, title: str | None = None, data_only: bool = False):
     """The expected 95 % ellipses of the first two keys for the candidate sets of
-    ``calibration.design`` (at most eight: the cheapest of each cost, then the recommended one),
-    centred on θ, with the tolerance as a dotted box."""
+    ``calibration.design`` (at most eight: the narrowest of each cost, then the recommended one),
+    centred on θ, with the tolerance as a dotted box. ``data_only``: the data's share alone
+    (without the particle draw's and the grid's)."""
     plt = _plt()
     keys, theta = result.keys, result.theta
     fig, ax = plt.subplots(figsize=(6.4, 5.2))
-    chosen, seen = [], set()
-    for c in result.candidates:
-        if c.cost not in seen:
-            chosen.append(c)
-            seen.add(c.cost)
+    def widest(c):  # the candidate's largest relative half-width, of what is drawn
+        return float(np.max((c.halfwidth_data if data_only else c.halfwidth) / np.maximum(np.abs(theta), 1e-12)))
+
+    chosen = [min((c for c in result.candidates if c.cost == cost), key=widest)
+              for cost in sorted({c.cost for c in result.candidates})]
     if result.recommended is not None and result.recommended not in chosen:
         chosen.append(result.recommended)
     t = np.linspace(0.0, 2.0 * np.pi, 200)
     circle = np.stack([np.cos(t), np.sin(t)])
     radius = np.sqrt(5.991)  # the 95 % quantile of chi-square with two degrees of freedom
     for i, c in enumerate(chosen[:8]):
-        cov = c.cov[:2, :2]
+        cov = (c.cov_data if data_only else c.cov)[:2, :2]
         evals, evecs = np.linalg.eigh(cov)
         xy = (evecs * np.sqrt(np.maximum(evals, 0.0))) @ circle * radius + theta[:2, None]
         style = "-" if c is result.recommended else "--"

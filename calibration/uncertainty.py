@@ -1,11 +1,16 @@
 """Uncertainty and identifiability from the residual Jacobian at the optimum (Gauss–Newton).
 
 For residual blocks e_b (relative misfits of the profile, of the front, ...) with independent
-noise of standard deviation σ_b, the linearised covariance of the fitted parameters is
+noise of standard deviation σ_b, fitted by minimising Σ_b w_b Σ_i e_bi² (each block's weight
+w_b shared by its m_b rows: w_b = weight / m_b), the linearised covariance of the fitted
+parameters is the sandwich
 
-    Cov = (Σ_b J_bᵀ J_b / σ_b²)⁻¹,
+    Cov = A⁻¹ B A⁻¹,  A = Σ_b w_b J_bᵀ J_b,  B = Σ_b w_b² σ_b² J_bᵀ J_b,
 
-with J_b = de_b/dθ. σ_b is either given (a known measurement precision) or estimated from the
+with J_b = de_b/dθ. When w_b ∝ 1/σ_b² (one block; or blocks of equal length and noise) it is the
+familiar (Σ_b J_bᵀ J_b / σ_b²)⁻¹; otherwise it is wider, and the fit is not the most efficient
+use of the data (a block of few rows weighs as much as a long one: design.py's validation).
+σ_b is either given (a known measurement precision) or estimated from the
 residuals at the optimum, s_b² = Σ e_b² / (m_b − n m_b / m) (each block takes its share of the
 n degrees of freedom). Standard errors are sqrt(diag Cov), 95 % intervals θ ± 1.96 se (a normal
 quantile: the data have many more points than parameters), and correlations Cov_ij / (se_i se_j).
@@ -523,6 +528,13 @@ def _inverse(fisher, rcond: float = 1e-14):
     return (evecs / np.maximum(evals, floor)) @ evecs.T
 
 
+def _sandwich_fisher(A, B):
+    """The inverse of the sandwich covariance A⁻¹ B A⁻¹ of a weighted least-squares estimate
+    (A = Jᵀ W J, B = Jᵀ W Σ W J), A B⁻¹ A: with weights W = Σ⁻¹ it is Jᵀ Σ⁻¹ J."""
+    F = A @ _inverse(B) @ A
+    return 0.5 * (F + F.T)
+
+
 def gauss_newton_uncertainty(
     J, r, keys: Sequence[str], theta, blocks: Mapping[str, slice], row_scale,
     *, noise: Mapping[str, float] | float | None = None, reference_noise: float = 0.01,
@@ -555,8 +567,13 @@ def gauss_newton_uncertainty(
     if noise is not None and not isinstance(noise, Mapping):
         noise = {name: float(noise) for name in blocks}
     estimated, used, reference = {}, {}, {}
-    fisher = np.zeros((n, n))
-    fisher_ref = np.zeros((n, n))
+    # The fit minimises Σ (row_scale e)²: its weights are row_scale², which need not be 1/σ² (a block's
+    # weight is shared by its rows, so a short block's rows weigh more). The covariance of that
+    # estimator is the sandwich A⁻¹ B A⁻¹; its inverse, A B⁻¹ A, is the Fisher matrix used below.
+    weight = row_scale ** 2
+    A = np.zeros((n, n))
+    B = np.zeros((n, n))
+    B_ref = np.zeros((n, n))
     for name, sl in blocks.items():
         mb = sl.stop - sl.start
         dof = max(mb - n * mb / m, 1.0)
@@ -565,9 +582,11 @@ def gauss_newton_uncertainty(
         sigma = float(noise[name]) if noise is not None else s
         used[name] = sigma
         reference[name] = max(s, reference_noise)
-        Jb = Je[sl]
-        fisher_ref += Jb.T @ Jb / reference[name] ** 2
-        fisher += Jb.T @ Jb / max(sigma, 1e-12) ** 2  # σ = 0 only for an exact fit: ~zero-width intervals
+        Jb, wb = Je[sl], weight[sl]
+        A += Jb.T @ (wb[:, None] * Jb)
+        B += Jb.T @ ((wb * wb)[:, None] * Jb) * max(sigma, 1e-12) ** 2  # σ = 0 only for an exact fit
+        B_ref += Jb.T @ ((wb * wb)[:, None] * Jb) * reference[name] ** 2
+    fisher, fisher_ref = _sandwich_fisher(A, B), _sandwich_fisher(A, B_ref)
     cov_stat = _inverse(fisher)
     if scatter is None and verdict is not None:
         scatter = verdict.scatter

@@ -16,9 +16,10 @@ KEYS = ("beta", "mu1")
 TINY = ["--scene", "cohesive-collapse", "--dx", str(L / 4), "--t-end", "0.1"]
 
 
-def _experiment(J, sigma, rows, label="main"):
+def _experiment(J, sigma, rows, label="main", weights=None):
     m = J.shape[0]
-    return Experiment(label, None, rows, np.full(m, sigma), J, None, None, None)
+    weights = np.ones(m) if weights is None else weights
+    return Experiment(label, None, rows, np.full(m, sigma), J, weights, None, None, None)
 
 
 def test_expected_halfwidths_are_the_gauss_newton_ones_of_the_chosen_rows():
@@ -30,18 +31,32 @@ def test_expected_halfwidths_are_the_gauss_newton_ones_of_the_chosen_rows():
     for parts, chosen in ((((("main", "final"),)), np.arange(0, 4)),
                           ((("main", "profiles"), ("main", "front")), np.arange(12)),
                           ((("main", "final"), ("main", "profiles")), np.arange(8))):  # rows counted once
-        hw, cov, data_only = expected_halfwidths([e], parts)
+        hw, cov, data_only, weighted, cov_data = expected_halfwidths([e], parts)
         expected = np.linalg.inv(J[chosen].T @ J[chosen] / 0.05 ** 2)
         np.testing.assert_allclose(cov, expected, rtol=1e-10)
         np.testing.assert_allclose(hw, Z95 * np.sqrt(np.diag(expected)), rtol=1e-10)
         np.testing.assert_allclose(data_only, hw, rtol=1e-12)
+        np.testing.assert_allclose(weighted, hw, rtol=1e-8)  # equal weights, equal noise: the bound
+        np.testing.assert_array_equal(cov_data, cov)  # no draws, no grid: the data's share is all
     # A second experiment adds its Fisher information.
     J2 = rng.standard_normal((6, 2))
     e2 = _experiment(J2, 0.02, {"final": np.arange(6), "profiles": np.arange(6), "front": np.arange(0),
                                 "top": np.arange(0)}, "tall")
-    _, cov, _ = expected_halfwidths([e, e2], (("main", "final"), ("tall", "final")))
-    fisher = J[:4].T @ J[:4] / 0.05 ** 2 + J2.T @ J2 / 0.02 ** 2
-    np.testing.assert_allclose(cov, np.linalg.inv(fisher), rtol=1e-10)
+    # Weights 1/σ² (each row by its own noise): the Fisher matrices add.
+    optimal = np.linalg.inv(J[:4].T @ J[:4] / 0.05 ** 2 + J2.T @ J2 / 0.02 ** 2)
+    e = _experiment(J, 0.05, rows, weights=np.full(12, 1 / 0.05 ** 2))
+    e2 = _experiment(J2, 0.02, e2.rows, "tall", weights=np.full(6, 1 / 0.02 ** 2))
+    _, cov, *_ = expected_halfwidths([e, e2], (("main", "final"), ("tall", "final")))
+    np.testing.assert_allclose(cov, optimal, rtol=1e-8)
+    # Other weights (the fit's: a block's weight shared by its rows): the sandwich, wider.
+    e2 = _experiment(J2, 0.02, e2.rows, "tall", weights=np.full(6, 30.0))
+    _, cov, *_ = expected_halfwidths([e, e2], (("main", "final"), ("tall", "final")))
+    Jall, wall = np.concatenate([J[:4], J2]), np.concatenate([e.weights[:4], e2.weights])
+    sall = np.concatenate([np.full(4, 0.05), np.full(6, 0.02)])
+    A = Jall.T @ (wall[:, None] * Jall)
+    B = Jall.T @ ((wall ** 2 * sall ** 2)[:, None] * Jall)
+    np.testing.assert_allclose(cov, np.linalg.inv(A) @ B @ np.linalg.inv(A), rtol=1e-8)
+    assert np.all(np.diag(cov) > np.diag(optimal))  # wider than the 1/σ²-weighted estimate
 
 
 @pytest.mark.parametrize("kwargs, match", [
@@ -76,14 +91,18 @@ def tiny():
     return design(scene, KEYS, {"beta": 0.25}, noise=0.02, tolerance=0.5)
 
 
-def test_more_observations_never_widen_the_datas_interval(tiny):
+def test_more_observations_never_widen_the_datas_bound(tiny):
+    """The noise-weighted half-widths (the data's Cramér–Rao bound) can only shrink as rows are
+    added; the library's fit, which weighs each block as a whole, need not (the sandwich)."""
     by_name = {c.name: c for c in tiny.candidates}
-    final = by_name["final profile"].halfwidth_data
+    final = by_name["final profile"].halfwidth_weighted
     for name in ("final profile + front", "final profile + top height", "profiles in time",
                  "profiles in time + front", "profiles in time + front + top"):
-        assert np.all(by_name[name].halfwidth_data <= final * (1 + 1e-9)), name
-    assert np.all(by_name["profiles in time + front"].halfwidth_data
-                  <= by_name["profiles in time"].halfwidth_data * (1 + 1e-9))
+        assert np.all(by_name[name].halfwidth_weighted <= final * (1 + 1e-9)), name
+        assert np.all(by_name[name].halfwidth_data >= by_name[name].halfwidth_weighted * (1 - 1e-9)), name
+    assert np.all(by_name["profiles in time + front"].halfwidth_weighted
+                  <= by_name["profiles in time"].halfwidth_weighted * (1 + 1e-9))
+    np.testing.assert_allclose(final, by_name["final profile"].halfwidth_data, rtol=1e-8)  # one block
     # Candidates come by cost; the recommendation is the cheapest that meets the tolerance.
     costs = [c.cost for c in tiny.candidates]
     assert costs == sorted(costs) and costs[0] == 1.0
