@@ -502,6 +502,8 @@ def _design(args) -> int:
                                                         c.halfwidth_weighted, result.theta))
             print(f"{'*' if c is result.recommended else ' '} cost {c.cost:g}  {c.name}: {widths}")
         print(result.statement)
+        for note in result.notes:
+            print(f"note: {note}")
     return _finish(out, args, errors) if args.json else (1 if errors else 0)
 
 

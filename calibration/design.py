@@ -91,6 +91,7 @@ class DesignResult:
     recommended: Candidate | None
     experiments: tuple[str, ...]
     wall_s: float
+    notes: tuple[str, ...] = ()  # a share that was asked for and could not be measured, and why
 
     def to_json(self) -> dict[str, Any]:
         def one(c):
@@ -104,7 +105,7 @@ class DesignResult:
                 "tolerance": self.tolerance, "experiments": list(self.experiments),
                 "candidates": [one(c) for c in self.candidates],
                 "recommended": None if self.recommended is None else one(self.recommended),
-                "statement": self.statement, "wall_s": round(self.wall_s, 2)}
+                "statement": self.statement, "notes": list(self.notes), "wall_s": round(self.wall_s, 2)}
 
     @property
     def statement(self) -> str:
@@ -329,6 +330,14 @@ def design(scene, keys: Sequence[str], theta: Mapping[str, float] | None = None,
     experiments = [_experiment(label, s, keys, values, xs, times, front_times, top_x, noise, sampling_seeds,
                                grid_ratio, grid_draws, workers) for label, s in scenes.items()]
     theta_arr = np.array([values[k] for k in keys])
+    notes = []
+    for e in experiments:
+        if sampling_seeds and e.draws is None:
+            notes.append(f"experiment {e.label!r}: the particle draw's share was not measured (a sampling with no "
+                         "seed to redraw, or fewer than two redrawn runs without status bits)")
+        if grid_ratio is not None and e.coarse is None:
+            notes.append(f"experiment {e.label!r}: the grid's share was not measured (no run at {grid_ratio:g} × dx "
+                         "ran without status bits)")
     candidates = []
     for name, parts in candidate_sets:
         halfwidth, cov, data_only, weighted, cov_data = expected_halfwidths(experiments, parts)
@@ -338,4 +347,4 @@ def design(scene, keys: Sequence[str], theta: Mapping[str, float] | None = None,
     candidates.sort(key=lambda c: (c.cost, float(np.max(c.relative))))
     recommended = next((c for c in candidates if c.meets), None)
     return DesignResult(keys, theta_arr, noise, float(tolerance), tuple(candidates), recommended,
-                        tuple(scenes), time.perf_counter() - clock)
+                        tuple(scenes), time.perf_counter() - clock, tuple(notes))

@@ -111,6 +111,7 @@ def test_more_observations_never_widen_the_datas_bound(tiny):
     out = tiny.to_json()
     json.dumps(out, allow_nan=False)
     assert out["experiments"] == ["main"] and out["candidates"][0]["name"] == "final profile"
+    assert out["notes"] == []  # nothing asked for went unmeasured
 
 
 def test_the_command_line_prints_the_candidates_and_draws_the_regions(tiny, capsys, tmp_path):
