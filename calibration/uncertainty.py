@@ -58,7 +58,7 @@ particle draws, and takes one Gauss–Newton step with the fit's Jacobian: the s
 δ = −J⁺ r̄_coarse is, to first order, where a fit at ρ·dx would land (at the fit's minimum J⁺r = 0,
 so the fine run's own draw does not enter; that is the sampling term). The grid term is Roache's
 grid convergence index for two grids, a 95 % half-width of 3 |δ| / (ρ^p − 1) with the order p = 1
-that the S4 deposit shows (docs/calibration.md); its covariance, rank one along δ, is added to the
+that the S4 deposit shows (docs/grid_convergence.md); its covariance, rank one along δ, is added to the
 interval. Two grids cannot show the order, and the S4 study shows fits at two neighbouring grids
 that agree while both are off: the term is a floor on the grid's share, not a bound. Where it
 exceeds the data's interval for some key, the statement says the fit is not converged in the grid.
