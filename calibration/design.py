@@ -42,7 +42,16 @@ from typing import Any
 import numpy as np
 
 from .objective import FrontTarget, Objective, ProfileTarget
-from .uncertainty import GCI_SAFETY, GRID_ORDER, Z95, _inverse, _runs, _sandwich_fisher, check_grid_options
+from .uncertainty import (
+    GCI_SAFETY,
+    GRID_ORDER,
+    Z95,
+    _inverse,
+    _sandwich_fisher,
+    check_grid_options,
+    coarse_residuals,
+    redrawn_residuals,
+)
 
 __all__ = ["KINDS", "DesignResult", "Experiment", "design", "expected_halfwidths"]
 
@@ -177,26 +186,17 @@ def _experiment(label, scene, keys, theta, xs, times, front_times, top_x, noise,
     sigma[rows["profiles"]] = noise["profile"]
     sigma[rows["top"]] = noise["top"]
     sigma[rows["front"]] = noise["front"]
-    theta_arr = theta
     draws = None
     if sampling_seeds and getattr(scene, "sampler", None) is not None:
-        own = scene.info.seed
-        seeds = [s for s in range(sampling_seeds + 1) if s != own][:sampling_seeds]
-        runs = [np.asarray(r_s, float) / scale for r_s, p in _runs(objective, [theta_arr] * len(seeds), workers, seeds)
-                if int(np.asarray(p["status"])) == 0]
+        runs = redrawn_residuals(objective, theta, sampling_seeds, workers)
         if len(runs) >= 2:
-            draws = np.stack(runs + [np.asarray(r, float) / scale])
+            draws = np.stack(runs + [np.asarray(r, float)]) / scale
             draws = draws - draws.mean(axis=0)
     coarse_mean = None
     if grid_ratio is not None:
-        coarse = objective.at_dx(grid_ratio * float(scene.config.grid.dx))
-        seeded = getattr(coarse.scene, "sampler", None) is not None
-        seeds = list(range(grid_draws)) if seeded else None
-        kept = [np.asarray(r_c, float) / scale
-                for r_c, p in _runs(coarse, [theta_arr] * (grid_draws if seeded else 1), workers, seeds)
-                if int(np.asarray(p["status"])) == 0]
+        _, kept = coarse_residuals(objective, theta, grid_ratio, grid_draws, workers)
         if kept:
-            coarse_mean = np.mean(kept, axis=0)
+            coarse_mean = np.mean(kept, axis=0) / scale
     return Experiment(label, objective, rows, sigma, J, scale ** 2, draws, coarse_mean, grid_ratio)
 
 

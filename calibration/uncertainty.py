@@ -225,6 +225,35 @@ def _runs(objective, thetas, workers, seeds=None) -> list:
     return [objective.residuals_resampled(t, int(sd)) for t, sd in zip(thetas, seeds)]
 
 
+def _ran(runs) -> list[np.ndarray]:
+    """The residuals of the runs (``_runs``' (r, prediction) pairs) that ran without status bits
+    and are finite."""
+    kept = []
+    for r, pred in runs:
+        r = np.asarray(r, float)
+        if int(np.asarray(pred["status"])) == 0 and np.all(np.isfinite(r)):
+            kept.append(r)
+    return kept
+
+
+def redrawn_residuals(objective, theta, seeds: int, workers=None) -> list[np.ndarray]:
+    """The residuals at θ with the scene's body drawn with ``seeds`` seeds other than its own
+    (``Objective.residuals_resampled``), those that ran cleanly (``_ran``)."""
+    own = objective.scene.info.seed
+    draws = [s for s in range(seeds + 1) if s != own][:seeds]
+    return _ran(_runs(objective, [theta] * len(draws), workers, draws))
+
+
+def coarse_residuals(objective, theta, ratio: float, draws: int, workers=None) -> tuple[Any, list[np.ndarray]]:
+    """The objective rebuilt at ``ratio`` × its dx (``Objective.at_dx``) and its residuals at θ
+    over ``draws`` particle draws (the scene's own only, for a sampling with no seed), those that
+    ran cleanly (``_ran``)."""
+    coarse = objective.at_dx(ratio * float(objective.scene.config.grid.dx))
+    seeded = getattr(coarse.scene, "sampler", None) is not None
+    seeds = list(range(draws)) if seeded else None
+    return coarse, _ran(_runs(coarse, [np.asarray(theta, float)] * (draws if seeded else 1), workers, seeds))
+
+
 def model_scatter(objective, theta, r, J, *, samples: int = ROUNDOFF_SAMPLES, step: float = ROUNDOFF_STEP,
                   seed: int = 0, workers=None) -> ModelScatter | None:
     """The run's round-off scatter at θ (residuals ``r``, Jacobian ``J`` there, the objective's
@@ -274,13 +303,7 @@ def sampling_scatter(objective, theta, r, J, *, seeds: int = SAMPLING_SEEDS, wor
     if scene is None or getattr(scene, "sampler", None) is None or not hasattr(objective, "residuals_resampled"):
         return None
     clock = time.perf_counter()
-    own = scene.info.seed
-    kept = [np.asarray(r, float)]
-    draws = [s for s in range(seeds + 1) if s != own][:seeds]
-    for r_s, pred in _runs(objective, [theta] * len(draws), workers, draws):
-        r_s = np.asarray(r_s, float)
-        if int(np.asarray(pred["status"])) == 0 and np.all(np.isfinite(r_s)):
-            kept.append(r_s)
+    kept = [np.asarray(r, float)] + redrawn_residuals(objective, theta, seeds, workers)
     if len(kept) < 3:
         return None
     return _scatter_of(np.stack(kept), np.asarray(J, float), objective.blocks, objective.row_scale, "sampling", 0.0,
@@ -346,12 +369,7 @@ def grid_shift(objective, theta, J, *, ratio: float = GRID_RATIO, draws: int = G
         raise ValueError("this objective cannot be rebuilt at another dx (a composite: check each member)")
     clock = time.perf_counter()
     dx = float(objective.scene.config.grid.dx)
-    coarse = objective.at_dx(ratio * dx)
-    seeded = getattr(coarse.scene, "sampler", None) is not None
-    seeds = list(range(draws)) if seeded else None
-    thetas = [np.asarray(theta, float)] * (draws if seeded else 1)
-    kept = [np.asarray(r_c, float) for r_c, pred in _runs(coarse, thetas, workers, seeds)
-            if int(np.asarray(pred["status"])) == 0 and np.all(np.isfinite(np.asarray(r_c, float)))]
+    coarse, kept = coarse_residuals(objective, theta, ratio, draws, workers)
     if not kept:
         return None
     r_mean = np.mean(kept, axis=0)

@@ -54,21 +54,19 @@ def test_run_every_scene_on_tiny_settings(scene):
     assert json.loads(out.stdout)["status"] == 0
 
 
-def test_run_rejects_bad_input(tmp_path):
-    out = _cli("run", "cohesive-collapse", "--set", "nu=0.7", cwd=tmp_path)
-    assert out.returncode == 2 and "nu must be in (-1, 0.5)" in out.stderr
-    out = _cli("run", "cohesive-collapse", "--dx", "-1", cwd=tmp_path)
-    assert out.returncode == 2 and "dx must be > 0" in out.stderr
-    out = _cli("run", "cohesive-collapse", "--slope", "10", cwd=tmp_path)
-    assert out.returncode == 2 and "--slope applies to slope-collapse" in out.stderr
+@pytest.mark.parametrize("argv, message", [
+    (["run", "cohesive-collapse", "--set", "nu=0.7"], "nu must be in (-1, 0.5)"),
+    (["run", "cohesive-collapse", "--dx", "-1"], "dx must be > 0"),
+    (["run", "cohesive-collapse", "--slope", "10"], "--slope applies to slope-collapse"),
     # A grid cell larger than the column ran one particle outside the body and exited 0.
-    out = _cli("run", "cohesive-collapse", "--dx", "10", cwd=tmp_path)
-    assert out.returncode == 2 and "dx = 10 m is larger than the body" in out.stderr
+    (["run", "cohesive-collapse", "--dx", "10"], "dx = 10 m is larger than the body"),
     # A zero option was taken as "not given" (the run went to the scene's 0.39 s).
-    out = _cli("run", "elastic-block", "--t-end", "0", cwd=tmp_path)
-    assert out.returncode == 2 and "t_end must be > 0" in out.stderr
-    out = _cli("bench", "--grad", "--steps", "0", cwd=tmp_path)
-    assert out.returncode == 2 and "steps must be a positive int, got 0" in out.stderr
+    (["run", "elastic-block", "--t-end", "0"], "t_end must be > 0"),
+    (["bench", "--grad", "--steps", "0"], "steps must be a positive int, got 0"),
+])
+def test_run_rejects_bad_input(argv, message, tmp_path):
+    out = _cli(*argv, cwd=tmp_path)
+    assert out.returncode == 2 and message in out.stderr
 
 
 def test_bench_prints_the_documented_fields():

@@ -105,3 +105,23 @@ def test_grid_shift_runs_the_objective_rebuilt_coarser_over_two_draws():
     np.testing.assert_allclose(grid.shift, -np.linalg.lstsq(J, r_c, rcond=None)[0], rtol=1e-6, atol=1e-12)
     assert grid.draws == 2 and grid.dx == pytest.approx(L / 4)
     # A fit's grid term through the command line: tests/test_calibration_cli.py (the documented JSON).
+
+
+def test_intervals_are_the_sandwich_of_the_fit_as_weighted():
+    """Two blocks of unequal length, each weighed as a whole (row_scale² = 1/m_b): the interval is
+    A⁻¹BA⁻¹, wider than (Σ J_bᵀJ_b/σ²)⁻¹; with one block the two agree."""
+    rng = np.random.default_rng(4)
+    Je = rng.standard_normal((21, 2))  # relative units: 20 profile rows, 1 front row
+    blocks = {"profile": slice(0, 20), "front": slice(20, 21)}
+    row_scale = np.concatenate([np.full(20, np.sqrt(1 / 20)), np.ones(1)])
+    J, r, sigma = Je * row_scale[:, None], np.zeros(21), 0.02
+    unc = gauss_newton_uncertainty(J, r, KEYS, np.array([0.3, 0.4]), blocks, row_scale, noise=sigma)
+    w = row_scale ** 2
+    A = Je.T @ (w[:, None] * Je)
+    B = Je.T @ ((w * w)[:, None] * Je) * sigma ** 2
+    sandwich = np.linalg.inv(A) @ B @ np.linalg.inv(A)
+    np.testing.assert_allclose(unc.cov, sandwich, rtol=1e-8)
+    assert np.all(np.diag(unc.cov) > np.diag(np.linalg.inv(Je.T @ Je / sigma ** 2)))
+    one = gauss_newton_uncertainty(J[:20], r[:20], KEYS, np.array([0.3, 0.4]), {"profile": slice(0, 20)},
+                                   row_scale[:20], noise=sigma)
+    np.testing.assert_allclose(one.cov, np.linalg.inv(Je[:20].T @ Je[:20] / sigma ** 2), rtol=1e-8)

@@ -118,8 +118,6 @@ class Scene:
         (``calibration.grid_shift``) and resolution studies."""
         if not (isinstance(dx, (int, float)) and math.isfinite(dx) and dx > 0):
             raise ValueError(f"dx must be a positive number of metres, got {dx!r}")
-        if self.remake is None:
-            raise ValueError(f"scene {self.name!r} cannot be rebuilt at another dx (its builder records no recipe)")
         return self.variant(dx=float(dx))
 
 
