@@ -61,15 +61,27 @@ def _pairs(items, option: str) -> dict[str, float]:
     return out
 
 
-def _load_data(args):
+def _load_data(args, experiment=None):
+    """The profiles and the front history: --data and --front, else the experiment file's
+    [[profile]] and [front] (read with the units they state)."""
     from jaxmpm import describe_status
 
     from .data import load_front_history, load_profile
 
-    profiles = [load_profile(p, units=args.units, dataset=args.dataset, sort=args.sort, clip_noise=args.clip_noise)
-                for p in args.data]
-    front = (load_front_history(args.front, units=args.units, time_units=args.time_units, dataset=args.dataset,
-                                sort=args.sort) if args.front else None)
+    if experiment is not None and not args.data and not args.front:
+        profiles = [load_profile(p.file, units=p.units, time_s=p.time, dataset=p.dataset, sort=args.sort,
+                                 clip_noise=args.clip_noise) for p in experiment.profiles]
+        front = (load_front_history(experiment.front.file, units=experiment.front.units,
+                                    time_units=experiment.front.time_units, sort=args.sort)
+                 if experiment.front is not None else None)
+        if not profiles and front is None:
+            raise ValueError(f"{experiment.path}: lists no measurement ([[profile]] or [front]); give --data or "
+                             "--front")
+    else:
+        profiles = [load_profile(p, units=args.units, dataset=args.dataset, sort=args.sort,
+                                 clip_noise=args.clip_noise) for p in args.data]
+        front = (load_front_history(args.front, units=args.units, time_units=args.time_units, dataset=args.dataset,
+                                    sort=args.sort) if args.front else None)
     if not profiles and front is None:
         raise ValueError("--data (a profile CSV) and/or --front (a front-history CSV) is required")
     for data in [*profiles, front]:
@@ -80,35 +92,115 @@ def _load_data(args):
     return profiles, front
 
 
-def _scene_and_objective(args, keys):
+def _experiments(args) -> list:
+    """The experiment files of ``fit``/``sweep`` (positional), with the command line's scene
+    options over their values; [] for a named --scene."""
+    from jaxmpm.scenes import experiment_from_args
+
+    files = list(getattr(args, "experiments", None) or [])
+    if files and args.scene:
+        raise ValueError(f"give --scene or experiment files, not both (--scene {args.scene}, {files[0]})")
+    if not files and not args.scene:
+        raise ValueError("the scene is missing: give an experiment file (EXPERIMENT.toml, docs/experiments.md) or "
+                         "--scene NAME")
+    for file in files:
+        if not file.endswith(".toml"):
+            raise ValueError(f"{file}: an experiment file ends in .toml")
+    if len(files) > 1 and (args.data or args.front):
+        raise ValueError("--data and --front apply to one experiment; with several files, each lists its own "
+                         "measurements ([[profile]], [front])")
+    return [experiment_from_args(args, path=file) for file in files]
+
+
+@dataclasses.dataclass(frozen=True)
+class _FitRequest:
+    """What to fit, from the command line over the experiment files' [fit] tables."""
+
+    keys: tuple[str, ...]
+    init: dict
+    noise: float | None
+
+
+def _fit_request(args, experiments) -> _FitRequest:
+    specs = [e.fit for e in experiments if e.fit is not None]
+
+    def agreed(name, values):
+        values = [v for v in values]
+        if any(v != values[0] for v in values):
+            raise ValueError(f"the experiment files' [fit] {name} differ ({values}); give it on the command line")
+        return values[0] if values else None
+
+    if getattr(args, "fit", None):
+        keys = _keys(args.fit)
+    elif specs:
+        if len(specs) < len(experiments):
+            raise ValueError("--fit is required: not every experiment file has a [fit] table with its keys")
+        keys = agreed("keys", [s.keys for s in specs])
+    else:
+        raise ValueError("--fit is required (the keys to fit), or a [fit] table with keys in the experiment file")
+    init = _pairs(getattr(args, "init", []), "--init")
+    if not init and specs:
+        init = dict(agreed("init", [dict(s.init) for s in specs]) or {})
+    stray = sorted(set(init) - set(keys))
+    if stray:
+        raise ValueError(f"starting values for {stray}, which are not fitted ({', '.join(keys)})")
+    noise = getattr(args, "noise", None)
+    if noise is None and specs:
+        noise = agreed("noise", [s.noise for s in specs])
+    return _FitRequest(keys, init, noise)
+
+
+def _scene_and_objective(args, keys, experiments=()):
+    """(scene, objective): the named --scene with --data/--front, or each experiment file with its
+    measurements (several: one joint objective, ``CompositeObjective``, fitting the same keys;
+    the scene returned is the first's)."""
     import jax
 
-    from jaxmpm.scenes import scene_from_args
+    from jaxmpm.scenes import scene_dtype, scene_from_args
 
-    from .objective import FrontTarget, Objective
+    from .objective import CompositeObjective, FrontTarget, Objective
 
-    if args.dtype == "float64":
+    dtypes = {args.dtype or e.dtype or "float32" for e in experiments} or {scene_dtype(args)}
+    if len(dtypes) > 1:
+        raise ValueError(f"the experiment files run in different dtypes ({sorted(dtypes)}); give --dtype")
+    if dtypes == {"float64"}:
         jax.config.update("jax_enable_x64", True)
-    profiles, front = _load_data(args)
-    if args.t_end is None:  # run until the latest data time, if the data say when they were taken
-        times = [p.time_s for p in profiles if p.time_s is not None]
-        if front is not None:
-            times.append(float(front.t[-1]))
-        if times:
-            args.t_end = max(times)
-    scene = scene_from_args(args)
-    if front is not None and getattr(args, "front_correlation_time", None) is not None:
-        front = dataclasses.replace(FrontTarget.of(front), correlation_time=args.front_correlation_time)
-    objective = Objective(scene, keys, profile=profiles or None, front=front,
-                          weights={"profile": args.weight_profile, "front": args.weight_front},
-                          front_threshold=args.front_threshold, jacobian=getattr(args, "jacobian", "ad"))
-    return scene, objective
+    members, scenes = [], []
+    for experiment in experiments or [None]:
+        profiles, front = _load_data(args, experiment)
+        if experiment is not None:
+            scene = experiment.scene()
+            spec = experiment.fit
+            weights = {"profile": args.weight_profile if args.weight_profile is not None else
+                       (spec.weight_profile if spec else 1.0),
+                       "front": args.weight_front if args.weight_front is not None else
+                       (spec.weight_front if spec else 1.0)}
+            correlation = (args.front_correlation_time if args.front_correlation_time is not None else
+                           (experiment.front.correlation_time if experiment.front is not None else None))
+        else:
+            if args.t_end is None:  # run until the latest data time, if the data say when they were taken
+                times = [p.time_s for p in profiles if p.time_s is not None]
+                if front is not None:
+                    times.append(float(front.t[-1]))
+                if times:
+                    args.t_end = max(times)
+            scene = scene_from_args(args)
+            weights = {"profile": 1.0 if args.weight_profile is None else args.weight_profile,
+                       "front": 1.0 if args.weight_front is None else args.weight_front}
+            correlation = getattr(args, "front_correlation_time", None)
+        if front is not None and correlation is not None:
+            front = dataclasses.replace(FrontTarget.of(front), correlation_time=correlation)
+        members.append(Objective(scene, keys, profile=profiles or None, front=front, weights=weights,
+                                 front_threshold=args.front_threshold, jacobian=getattr(args, "jacobian", "ad")))
+        scenes.append(scene)
+    return scenes[0], (members[0] if len(members) == 1 else CompositeObjective(members))
 
 
 def _objective_from_args(values: dict, keys):
     """The objective that ``python -m calibration`` builds from these parsed options: the
     recipe a cluster worker runs (picklable as a ``functools.partial``)."""
-    return _scene_and_objective(argparse.Namespace(**values), keys)[1]
+    args = argparse.Namespace(**values)
+    return _scene_and_objective(args, keys, _experiments(args))[1]
 
 
 def _emit(obj, compact: bool) -> list[str]:
@@ -132,10 +224,12 @@ def _guard(errors: dict, option: str, write):
         return None
 
 
-def _single_start_reason(args) -> str | None:
+def _single_start_reason(args, init=None) -> str | None:
     """Why ``fit`` runs one start (None: a global search is possible)."""
     if args.init:
         return "--init"
+    if init:
+        return "the experiment file's [fit] init"
     for option, given in (("--out", args.out), ("--resume", args.resume), ("--method adam", args.method == "adam"),
                           ("--jacobian fd", args.jacobian == "fd")):
         if given:
@@ -143,15 +237,15 @@ def _single_start_reason(args) -> str | None:
     return None
 
 
-def _starts(args) -> int:
+def _starts(args, init=None) -> int:
     """The number of starts: --starts, or the search's default when nothing asks for one start.
     More than one start with an option that needs a single one is refused, naming both."""
-    single = _single_start_reason(args)
+    single = _single_start_reason(args, init)
     if args.starts is None:
         from .search import DEFAULT_STARTS
 
         return 1 if single else DEFAULT_STARTS
-    if args.starts > 1 and single not in (None, "--init"):
+    if args.starts > 1 and single not in (None, "--init", "the experiment file's [fit] init"):
         what = {"--out": "keeps the resumable history of one start", "--resume": "continues one start's history",
                 "--method adam": "is a single-start optimiser (the search is Levenberg–Marquardt)",
                 "--jacobian fd": "is not batched (the search uses forward-mode Jacobians)"}[single]
@@ -178,11 +272,11 @@ def _fit(args) -> int:
 
     from .fit import fit
 
-    keys = _keys(args.fit)
-    init = _pairs(args.init, "--init")
-    starts = _starts(args)
-    scene, objective = _scene_and_objective(args, keys)
-    noise = args.noise
+    experiments = _experiments(args)
+    request = _fit_request(args, experiments)
+    keys, init, noise = request.keys, request.init, request.noise
+    starts = _starts(args, init)
+    scene, objective = _scene_and_objective(args, keys, experiments)
     steps = args.steps or (25 if args.method == "lm" else 150)
     judging = {"roundoff_samples": args.roundoff_samples, "sampling_seeds": args.sampling_seeds,
                "grid_ratio": args.grid_check or None,
@@ -198,7 +292,9 @@ def _fit(args) -> int:
 
                 coarse_args = copy.copy(args)
                 coarse_args.dx = scene.config.grid.dx * args.coarse
-                _, coarse = _scene_and_objective(coarse_args, keys)
+                if len(experiments) > 1:
+                    raise ValueError("--coarse takes one experiment (its dx); fit several without it")
+                _, coarse = _scene_and_objective(coarse_args, keys, _experiments(coarse_args))
                 found = coarse_to_fine(objective, coarse, starts, refine=args.refine, seed=args.search_seed,
                                        init=init or None, steps=steps, noise=noise, progress=not args.no_progress,
                                        workers=workers, **judging)
@@ -210,7 +306,8 @@ def _fit(args) -> int:
             result = fit(objective, init, method=args.method, steps=steps, out=args.out, resume=args.resume,
                          overwrite=args.overwrite, learning_rate=args.lr, progress=not args.no_progress,
                          noise=noise, meta={"command": "python -m calibration " + " ".join(sys.argv[1:]),
-                                            "data": args.data, "front": args.front},
+                                            "data": args.data, "front": args.front,
+                                            "experiments": [e.to_toml() for e in experiments]},
                          workers=workers, **judging)
     out = found.to_json() if found is not None else result.to_json()
     metres = objective.in_metres(result.residuals)
@@ -226,9 +323,11 @@ def _fit(args) -> int:
     if objective.bound_notes:
         out["bound_notes"] = list(objective.bound_notes)
     if found is None:
-        reason = _single_start_reason(args)
+        reason = _single_start_reason(args, init)
         out["search"] = {"starts": 1, "why": f"a single start ({reason or '--starts 1'})"}
     out["scene"] = scene.name
+    if experiments:
+        out["experiments"] = [str(e.path) for e in experiments]
     if args.out:
         out["out"] = str(args.out)
     near = objective.bounds.near_bound([result.theta[k] for k in keys])
@@ -341,7 +440,7 @@ def _sweep(args) -> int:
         if args.retries < 0:
             raise ValueError(f"--retries must be >= 0, got {args.retries}")
     recipe = dict(vars(args))  # before _scene_and_objective fills in t_end from the data
-    scene, objective = _scene_and_objective(args, keys)
+    scene, objective = _scene_and_objective(args, keys, _experiments(args))
     objective.check_thetas(thetas, "--over")  # every member, before anything compiles
     if args.cluster is not None:
         import functools
@@ -400,9 +499,9 @@ def _twin(args) -> int:
 
     if args.dtype == "float64":
         jax.config.update("jax_enable_x64", True)
-    if args.slope is not None or args.aspect is not None or args.dim != 2 or args.width is not None:
+    if args.slope is not None or args.aspect is not None or args.dim not in (None, 2) or args.width is not None:
         raise ValueError("twin is the 2D S4 cohesive collapse: --slope, --aspect, --dim and --width do not apply")
-    if args.sampling is not None or args.seed != 0:
+    if args.sampling is not None or args.seed not in (None, 0):
         raise ValueError("twin uses the S4 scene's default particle sampling: --sampling and --seed do not apply "
                          "(--noise-seed seeds the noise)")
     keys = _keys(args.fit)
@@ -410,7 +509,7 @@ def _twin(args) -> int:
         raise ValueError("--landscape needs at least two fitted keys")
     result = twin(quick=args.quick, noise=args.noise, keys=keys, method=args.method, steps=args.steps,
                   seed=args.noise_seed, dx=args.dx, ppc=args.ppc, t_end=args.t_end, values=_pairs(args.set, "--set"),
-                  dtype=args.dtype, out=args.out, resume=args.resume, overwrite=args.overwrite,
+                  dtype=args.dtype or "float32", out=args.out, resume=args.resume, overwrite=args.overwrite,
                   progress=not args.no_progress, reference_noise=args.reference_noise, threshold=args.threshold,
                   roundoff_samples=args.roundoff_samples)
     out = result.to_json()
@@ -567,7 +666,11 @@ def _common(p, data: bool = True) -> None:
     from jaxmpm.scenes import SCENE_NAMES, add_scene_arguments
 
     if data:
-        p.add_argument("--scene", required=True, choices=SCENE_NAMES, help="the scene the data come from")
+        p.add_argument("experiments", nargs="*", metavar="EXPERIMENT.toml",
+                       help="experiment files (docs/experiments.md): the set-up, its measurements and what to fit; "
+                            "several: one material fitted to all of them")
+        p.add_argument("--scene", default=None, choices=SCENE_NAMES,
+                       help="a named scene the data come from (instead of an experiment file)")
         p.add_argument("--data", action="append", default=[], metavar="FILE.csv",
                        help="a deposit profile (project CSV or WebPlotDigitizer export); repeat for several times")
         p.add_argument("--front", default=None, metavar="FILE.csv", help="a front history (t_s,xf_m)")
@@ -584,8 +687,10 @@ def _common(p, data: bool = True) -> None:
                        help="sort points given in WebPlotDigitizer click order by x (or t); duplicates are refused")
         p.add_argument("--clip-noise", action="store_true",
                        help="set heights in [-1e-3 max h, 0) to zero (digitisation noise); lower ones are refused")
-        p.add_argument("--weight-profile", type=float, default=1.0, help="weight of the profile misfit")
-        p.add_argument("--weight-front", type=float, default=1.0, help="weight of the front misfit")
+        p.add_argument("--weight-profile", type=float, default=None,
+                       help="weight of the profile misfit (default: the experiment file's, else 1)")
+        p.add_argument("--weight-front", type=float, default=None,
+                       help="weight of the front misfit (default: the experiment file's, else 1)")
         p.add_argument("--front-threshold", type=float, default=None,
                        help="height (m) below which the deposit has ended, for the front (default dx/ppc/2)")
     add_scene_arguments(p, scene_choices=False)
@@ -594,8 +699,9 @@ def _common(p, data: bool = True) -> None:
 
 
 def _fit_options(p, default_keys: str | None) -> None:
-    p.add_argument("--fit", required=default_keys is None, default=default_keys, metavar="KEYS",
-                   help="comma-separated parameters to fit, from beta,mu1,mu2,I0,xi")
+    p.add_argument("--fit", default=default_keys, metavar="KEYS",
+                   help="comma-separated parameters to fit, from beta,mu1,mu2,I0,xi (default: the experiment "
+                        "file's [fit] keys)")
     p.add_argument("--method", choices=("lm", "adam"), default="lm")
     p.add_argument("--steps", type=int, default=None, help="maximum iterations (default 25 for lm, 150 for adam)")
     p.add_argument("--out", default=None, metavar="FILE.h5", help="history file, written after every iteration")
@@ -764,7 +870,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def _check_options(args) -> None:
     """Checks the library would make later, or with its own argument names."""
-    from jaxmpm.__main__ import check_scene_args
+    from jaxmpm.scenes import check_scene_args
 
     if hasattr(args, "sampling"):  # the scene options of add_scene_arguments
         check_scene_args(args)
@@ -777,6 +883,8 @@ def _check_options(args) -> None:
     if hasattr(args, "weight_profile"):
         for option, weight, given, what in (("--weight-profile", args.weight_profile, bool(args.data), "--data"),
                                             ("--weight-front", args.weight_front, bool(args.front), "--front")):
+            if weight is None:
+                continue
             if not (math.isfinite(weight) and weight >= 0):
                 raise ValueError(f"{option} must be a finite number >= 0, got {weight}")
             if given and weight == 0:

@@ -637,7 +637,8 @@ def dataset_path(name: str) -> pathlib.Path:
 
 
 def load_setup(name: str | os.PathLike) -> dict[str, Any]:
-    """A scene set-up (``setups/*.json``) by manifest name (``'setups/S4_cohesive_collapse'``) or path."""
+    """A scene set-up (``setups/*.json``: S1's) by manifest name (``'setups/S1_incline'``) or path.
+    The collapses' set-ups are experiment files: ``jaxmpm.experiment.shipped_experiment``."""
     path = pathlib.Path(name)
     if not path.is_file():
         path = dataset_path(str(name))

@@ -468,6 +468,21 @@ class Objective:
         follows the new particle spacing, as a fit at that ``dx`` would have it."""
         return Objective(self.scene.at_dx(dx), self.keys, **self._options)
 
+    @property
+    def dx(self) -> float:
+        """The scene's grid spacing, m."""
+        return float(self.scene.config.grid.dx)
+
+    @property
+    def seeded(self) -> bool:
+        """Whether the scene's particles can be drawn again with another seed."""
+        return getattr(self.scene, "sampler", None) is not None
+
+    def coarsened(self, ratio: float) -> Objective:
+        """The same objective on a grid ``ratio`` times coarser (``at_dx``): the grid term's
+        coarse run (``calibration.uncertainty.grid_shift``)."""
+        return self.at_dx(ratio * self.dx)
+
     def residuals_and_jacobian_z(self, z, bounds: Bounds | None = None):
         """(r, dr/dz, prediction) at the unconstrained z of ``bounds`` (default: the
         objective's), θ = lo + (hi − lo) sigmoid(z) inside the traced run (forward mode)."""
@@ -672,6 +687,26 @@ class CompositeObjective:
         self.blocks = {f"{i}/{name}": slice(offsets[i] + s.start, offsets[i] + s.stop)
                        for i, m in enumerate(members) for name, s in m.blocks.items()}
         self.row_scale = np.concatenate([m.row_scale for m in members])
+
+    @property
+    def dx(self) -> float:
+        """The first member's grid spacing, m (the grid term coarsens every member by one ratio)."""
+        return self.members[0].dx
+
+    @property
+    def seeded(self) -> bool:
+        return all(m.seeded for m in self.members)
+
+    def coarsened(self, ratio: float) -> CompositeObjective:
+        """Every member on a grid ``ratio`` times coarser (``Objective.coarsened``)."""
+        return CompositeObjective([m.coarsened(ratio) for m in self.members])
+
+    def residuals_resampled(self, theta, seed: int):
+        """The members' residuals at θ with every scene's particles drawn with ``seed``."""
+        outs = [m.residuals_resampled(theta, seed) for m in self.members]
+        status = jnp.bitwise_or.reduce(jnp.stack([jnp.asarray(o[1]["status"]) for o in outs]))
+        return jnp.concatenate([jnp.asarray(o[0]) for o in outs]), {"status": status,
+                                                                     "members": [o[1] for o in outs]}
 
     def residual_fn(self, theta):
         """Pure, unjitted θ -> (r, prediction), the members' concatenated: for ``jax.vmap``."""

@@ -248,8 +248,8 @@ def coarse_residuals(objective, theta, ratio: float, draws: int, workers=None) -
     """The objective rebuilt at ``ratio`` × its dx (``Objective.at_dx``) and its residuals at θ
     over ``draws`` particle draws (the scene's own only, for a sampling with no seed), those that
     ran cleanly (``_ran``)."""
-    coarse = objective.at_dx(ratio * float(objective.scene.config.grid.dx))
-    seeded = getattr(coarse.scene, "sampler", None) is not None
+    coarse = objective.coarsened(ratio)
+    seeded = coarse.seeded
     seeds = list(range(draws)) if seeded else None
     return coarse, _ran(_runs(coarse, [np.asarray(theta, float)] * (draws if seeded else 1), workers, seeds))
 
@@ -365,17 +365,17 @@ def grid_shift(objective, theta, J, *, ratio: float = GRID_RATIO, draws: int = G
     cannot be rebuilt (a scene with no recipe, data outside the coarser grid); returns None when
     no coarse run ran without status bits."""
     check_grid_options(ratio, draws)
-    if not hasattr(objective, "at_dx"):
-        raise ValueError("this objective cannot be rebuilt at another dx (a composite: check each member)")
+    if not hasattr(objective, "coarsened"):
+        raise ValueError("this objective cannot be rebuilt at another dx")
     clock = time.perf_counter()
-    dx = float(objective.scene.config.grid.dx)
+    dx = objective.dx
     coarse, kept = coarse_residuals(objective, theta, ratio, draws, workers)
     if not kept:
         return None
     r_mean = np.mean(kept, axis=0)
     shift = -np.linalg.lstsq(np.asarray(J, float), r_mean, rcond=None)[0]
     halfwidth = GCI_SAFETY * np.abs(shift) / (ratio ** GRID_ORDER - 1.0)
-    return GridCheck(dx, float(coarse.scene.config.grid.dx), len(kept), shift, halfwidth,
+    return GridCheck(dx, coarse.dx, len(kept), shift, halfwidth,
                      time.perf_counter() - clock)
 
 

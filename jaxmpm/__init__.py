@@ -11,6 +11,7 @@ from . import io, scenes, tables
 from ._version import __version__ as __version__  # the one source of the version (pyproject.toml reads it)
 from .boundary import Terrain, Wall
 from .config import Config, Grid
+from .experiment import Experiment, ExperimentError
 from .materials import CriticalState, Hencky, Material, hencky_stress, invariants
 from .params import DEFAULTS, MATERIAL_KEYS, PARAM_KEYS, Params, validate_params
 from .rollout import frame_observer, make_rollout
@@ -49,7 +50,8 @@ def _warn_known_bad_jaxlib():
 _warn_known_bad_jaxlib()
 
 __all__ = [
-    "BUDGET", "Config", "CriticalState", "EDGE", "DEFAULTS", "GRID_FULL", "Grid", "Hencky", "J_NONPOSITIVE",
+    "BUDGET", "Config", "Experiment", "ExperimentError", "CriticalState", "EDGE", "DEFAULTS", "GRID_FULL", "Grid",
+    "Hencky", "J_NONPOSITIVE",
     "LEFT_GRID", "Material", "MATERIAL_KEYS", "NONFINITE", "PARAM_KEYS", "Params", "Result", "SAMPLINGS",
     "SimulationError", "State", "Terrain", "Wall",
     "compiled_rollout", "describe_status", "frame_observer", "hencky_stress", "init_state",

@@ -4,42 +4,22 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import os
 import sys
 
 import numpy as np
 
-from .scenes import SCENE_NAMES, add_scene_arguments, parse_set, scene_from_args
+from .scenes import (
+    SCENE_NAMES,
+    add_scene_arguments,
+    check_repeated_keys,
+    check_scene_args,
+    is_experiment_file,
+    parse_set,
+    scene_dtype,
+    scene_from_args,
+)
 from .threads import add_threads_argument, apply_threads
-
-#: Scene options that take a number (``add_scene_arguments``): argparse's float() accepts
-#: "nan" and "inf", which would otherwise surface as some derived quantity's error.
-_SCENE_NUMBERS = ("dx", "ppc", "width", "slope", "aspect", "t_end")
-
-
-def check_scene_args(args) -> None:
-    """Checks on the scene options of ``add_scene_arguments`` that the scene builders cannot
-    make with the option's name (shared with ``python -m calibration``): every number finite,
-    --width only with --dim 3 (a 2D run has no width: it would be ignored), --set keys once each."""
-    for name in _SCENE_NUMBERS:
-        value = getattr(args, name, None)
-        if value is not None and not math.isfinite(value):
-            raise ValueError(f"--{name.replace('_', '-')} must be a finite number, got {value}")
-    if getattr(args, "width", None) is not None and getattr(args, "dim", 2) != 3:
-        raise ValueError(f"--width applies to --dim 3 (a 3D channel), got --width {args.width} with --dim {args.dim}")
-    check_repeated_keys(getattr(args, "set", []), "--set")
-
-
-def check_repeated_keys(items, option: str) -> None:
-    """``key=value`` items (``--set``, ``--init``, ``--over``) must name each key once: a repeated
-    key would silently keep only its last value."""
-    seen: dict[str, str] = {}
-    for item in items:
-        key = item.partition("=")[0].strip()
-        if key in seen:
-            raise ValueError(f"{option} {key} is given twice ({seen[key]!r} and {item!r}); give each key once")
-        seen[key] = item
 
 
 def print_json(summary: dict, compact: bool) -> list[str]:
@@ -130,9 +110,12 @@ def _run(args) -> int:
         raise ValueError(f"--quick and --snow apply to the avalanche scene, not {args.scene}")
     if args.frames is not None and args.frames < 0:
         raise ValueError(f"--frames must be >= 0, got {args.frames}")
-    frames = args.frames if args.frames is not None else (40 if args.gif else 0)
-    _check_run_outputs(args, frames)
-    if args.dtype == "float64":
+    # Without --frames an experiment file keeps its own [numerics] frames.
+    frames = args.frames if args.frames is not None else (40 if args.gif else
+                                                          (None if is_experiment_file(args.scene) else 0))
+    _check_run_outputs(args, frames or 0)
+    dtype = scene_dtype(args)
+    if dtype == "float64":
         jax.config.update("jax_enable_x64", True)
     from . import io, tables
     from .observables import deposit_profile, particle_volumes
@@ -159,6 +142,11 @@ def _run(args) -> int:
         "run_s": round(result.run_s, 3),
     }
     meta = {"scene": scene.name, **scene.info.to_dict()}
+    if scene.experiment is not None:  # the run can be made again from its file: Experiment.from_h5
+        meta["experiment_toml"] = scene.experiment.to_toml()
+        if scene.experiment.path is not None:
+            meta["experiment_path"] = str(scene.experiment.path.resolve())
+        summary["experiment"] = str(scene.experiment.path) if scene.experiment.path else scene.experiment.name
     # The outputs were checked before the run; should one still fail (a full disk, a folder
     # removed meanwhile), the others are written and the summary is printed all the same.
     errors = {}
@@ -188,7 +176,7 @@ def _run(args) -> int:
                 "experiment": f"{scene.name} (synthetic, jaxmpm {_version()})", "time_s": config.t_end,
                 "units": "m", "synthetic": True, "source": "python -m jaxmpm run " + " ".join(sys.argv[2:]),
                 # float32 leaves printed to the precision they hold (0.3, not 0.30000001192092896)
-                "parameters": {k: float(f"{v:.7g}") if args.dtype == "float32" else v
+                "parameters": {k: float(f"{v:.7g}") if dtype == "float32" else v
                                for k, v in params.to_dict().items()},
                 "scene": scene.info.to_dict(), "status": result.status,
             }))
@@ -210,7 +198,7 @@ def _run_avalanche(args) -> int:
     """``run avalanche``: S6 on its terrain, the fields avalanche engineers use."""
     import jax
 
-    for option, value in (("--dim", args.dim != 2), ("--width", args.width is not None),
+    for option, value in (("--dim", args.dim not in (None, 2)), ("--width", args.width is not None),
                           ("--slope", args.slope is not None), ("--aspect", args.aspect is not None),
                           ("--sampling", args.sampling not in (None, "lattice"))):
         if value:
@@ -235,7 +223,7 @@ def _run_avalanche(args) -> int:
     t_end = args.t_end if args.t_end is not None else (20.0 if args.quick else 100.0)
     frames = args.frames if args.frames is not None else max(2, int(round(t_end)))
     kw = {"dx": args.dx if args.dx is not None else (2.0 if args.quick else 1.0), "t_end": t_end, "frames": frames,
-          "snow": args.snow, "dtype": args.dtype, **dict(parse_set(item) for item in args.set)}
+          "snow": args.snow, "dtype": args.dtype or "float32", **dict(parse_set(item) for item in args.set)}
     if args.ppc is not None:
         kw["ppc"] = int(args.ppc)
     if args.obstacle is not None:
@@ -280,6 +268,13 @@ def _run_avalanche(args) -> int:
         summary["output_errors"] = errors
     bad = print_json(summary, args.json)
     return 0 if result.ok and not bad and not errors else 1
+
+
+def _run_scene(text: str) -> str:
+    if text == "avalanche" or text in SCENE_NAMES or is_experiment_file(text):
+        return text
+    raise argparse.ArgumentTypeError(f"must be one of {', '.join(SCENE_NAMES + ('avalanche',))} or an experiment "
+                                     f"file (.toml), got {text!r}")
 
 
 def _version() -> str:
@@ -330,7 +325,9 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True)
 
     run = sub.add_parser("run", help="run a reference scene (docs/scenes.md)")
-    run.add_argument("scene", choices=SCENE_NAMES + ("avalanche",))
+    run.add_argument("scene", type=_run_scene, metavar="SCENE|EXPERIMENT.toml",
+                     help=f"a scene ({', '.join(SCENE_NAMES + ('avalanche',))}) or an experiment file "
+                          "(docs/experiments.md)")
     add_scene_arguments(run, scene_choices=False)
     avalanche = run.add_argument_group("avalanche (S6) only")
     avalanche.add_argument("--terrain", default=None, metavar="FILE.csv",

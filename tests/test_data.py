@@ -268,7 +268,8 @@ def test_manifest_lists_every_file():
                ("README.md", "manifest.json", "generate.py", "__init__.py") and "__pycache__" not in p.parts}
     assert listed == shipped
     for info in datasets.values():
-        assert info.kind in ("setup", "scaling_law", "analytic", "synthetic", "example", "measured", "terrain")
+        assert info.kind in ("setup", "experiment", "scaling_law", "analytic", "synthetic", "example", "measured",
+                             "terrain")
         # a third party's file: whose, what licence
         assert info.kind not in ("measured", "terrain") or (info.source and info.licence)
         assert info.description and "\n" not in info.description
@@ -281,6 +282,10 @@ def test_every_shipped_file_loads():
         if info.kind == "setup":
             setup = load_setup(name)
             assert setup["scene"] in name
+        elif info.kind == "experiment":
+            from jaxmpm.experiment import Experiment
+
+            assert Experiment.from_toml(info.path).name
         elif info.kind == "scaling_law":
             law = load_scaling_law(info.path)
             assert law.secondary and info.secondary and law.n == 10
@@ -382,54 +387,46 @@ def _gate_speeds(scene):
 
 
 def test_setups_agree_with_scene_builders():
+    """The facts the shipped files state beside the values the builders use (the experiment
+    files' equality with the builders is tests/test_experiment.py's)."""
     from jaxmpm import scenes
+    from jaxmpm.experiment import shipped_experiment
 
-    s2 = load_setup("setups/S2_gates_collapse")
+    s2 = shipped_experiment("gates-collapse")
     scene = scenes.gates_collapse()
-    _check_params(s2, scene)
-    g = s2["geometry"]
-    assert (scene.info.length, scene.info.height) == (g["column_length_m"]["value"], g["column_height_m"]["value"])
-    assert _gate_speeds(scene) == [s2["boundaries"]["gate_speed_m_per_s"]["value"]] * 2
-    assert scene.config.t_end == s2["run"]["t_end_s"]["value"]
-    assert math.isclose(s2["run"]["frames"]["value"] / s2["run"]["frame_rate_fps"]["value"], 0.4198, rel_tol=1e-4)
-    assert scene.info.dx == s2["numerics"]["dx_m"]["value"]
+    assert _gate_speeds(scene) == [s2.gate_speed] * 2 and s2.gate == "both" and not s2.back_wall
+    assert "100 frames at 238.2166843 frames per second" in s2.sources["numerics.t_end"]["note"]
+    assert math.isclose(100 / 238.2166843, scene.config.t_end, rel_tol=1e-4)
 
-    s3 = load_setup("setups/S3_slope_collapse")
-    scene = scenes.slope_collapse()
-    _check_params(s3, scene)
-    g = s3["geometry"]
-    assert (scene.info.length, scene.info.height) == (g["column_length_m"]["value"], g["column_height_m"]["value"])
-    assert scene.info.slope_deg == g["default_slope_deg"]["value"] and _gate_speeds(scene) == []
-    assert scene.info.dx == s3["numerics"]["dx_m"]["value"]
-    m = s3["material"]
-    assert math.isclose(m["rho"]["value"], m["packing_fraction"]["value"] * m["rho_s"]["value"])
-    assert "project choice" in m["pc0"]["source"] and "project choice" in m["xi"]["source"]
+    s3 = shipped_experiment("slope-collapse")
+    assert s3.slope == scenes.slope_collapse().info.slope_deg == 10.0 and s3.gate == "none"
+    assert "project choice" in s3.sources["material.pc0"]["source"]
+    assert "project choice" in s3.sources["material.xi"]["source"]
 
-    s4 = load_setup("setups/S4_cohesive_collapse")
-    for beta in s4["material"]["beta"]["values_in_scene"]:
-        scene = scenes.cohesive_collapse(beta=beta)
-        s4_beta = json.loads(json.dumps(s4))
-        s4_beta["material"]["beta"]["value"] = beta
-        _check_params(s4_beta, scene)
-    g = s4["geometry"]
-    assert (scene.info.length, scene.info.height) == (g["column_length_m"]["value"], g["column_height_m"]["value"])
-    assert _gate_speeds(scene) == [s4["boundaries"]["gate_speed_m_per_s"]["value"]]
-    assert scene.config.t_end == s4["run"]["t_end_s"]["value"]
-    assert math.isclose(scene.info.dx, s4["numerics"]["dx_m"]["value"])
-    m = s4["material"]
-    assert math.isclose(m["rho"]["value"], m["packing_fraction"]["value"] * m["rho_s"]["value"])
+    s4 = shipped_experiment("cohesive-collapse")
+    assert s4.gate == "front" and s4.gate_speed == 50.0
+    assert math.isclose(s4.material["rho"], 0.58 * s4.material["rho_s"])  # packing 0.58 (docs/scenes.md S4)
+    assert "beta = 0 and beta = 0.25" in s4.sources["material.beta"]["note"]
 
-    s5 = load_setup("setups/S5_aspect_ratio")
-    scene = scenes.aspect_ratio_collapse()
-    _check_params(s5, scene)
-    assert scene.info.length == s5["geometry"]["L0_m"]["value"]
-    assert scene.info.aspect == s5["geometry"]["default_aspect_ratio"]["value"]
-    assert "project choice" in s5["material"]["pc0"]["source"]
+    s5 = shipped_experiment("aspect-ratio")
+    assert s5.length == 0.05 and s5.height == 0.05 and "project choice" in s5.sources["material.pc0"]["source"]
 
     s1 = load_setup("setups/S1_incline")
     scene = scenes.incline()
     _check_params(s1, scene)
     assert s1["geometry"]["default_slope_deg"]["value"] == 24.0 and s1["geometry"]["depth_m"]["value"] == 0.038
+
+
+def test_every_shipped_experiment_value_has_a_source():
+    import tomllib
+
+    from jaxmpm.experiment import SHIPPED_EXPERIMENTS
+
+    for file in SHIPPED_EXPERIMENTS.values():
+        raw = tomllib.loads((DATA / "experiments" / file).read_text())
+        for section in ("geometry", "boundaries", "material", "numerics"):
+            for key, value in raw[section].items():
+                assert isinstance(value, dict) and value.get("source"), f"{file} [{section}] {key} has no source"
 
 
 def test_every_setup_number_has_a_source():

@@ -2,7 +2,6 @@
 
 import dataclasses
 import math
-import types
 
 import numpy as np
 import pytest
@@ -35,15 +34,15 @@ def test_scene_at_dx_is_the_scene_built_at_that_dx_with_its_current_params():
 class _Linear:
     """An objective whose coarse residual at θ is J a exactly: the shift must be −a."""
 
+    seeded = False  # no seeded sampling: the scene's own draw only
+
     def __init__(self, J, a, dx=0.01):
-        self.J, self.a = np.asarray(J, float), np.asarray(a, float)
-        self.scene = types.SimpleNamespace(config=types.SimpleNamespace(grid=types.SimpleNamespace(dx=dx)),
-                                           sampler=None)
+        self.J, self.a, self.dx = np.asarray(J, float), np.asarray(a, float), dx
         self.asked = []
 
-    def at_dx(self, dx):
-        self.asked.append(dx)
-        coarse = _Linear(self.J, self.a, dx)
+    def coarsened(self, ratio):
+        self.asked.append(ratio * self.dx)
+        coarse = _Linear(self.J, self.a, ratio * self.dx)
         coarse.residuals = lambda theta: (self.J @ self.a, {"status": np.int32(0)})
         return coarse
 

@@ -11,7 +11,7 @@ import pytest
 
 import jaxmpm as jm
 from calibration import Objective
-from calibration.data import dataset_path, list_datasets, load_profile, load_setup
+from calibration.data import dataset_path, list_datasets, load_profile
 from jaxmpm.scenes import S7_PARAMS, aluminium_bars, build_scene
 
 DATA_NAME = "bui2008/bui2008_final_surface"
@@ -47,24 +47,20 @@ def test_scene_has_the_documented_geometry_and_parameters():
     assert build_scene("aluminium-bars", values={"mu1": 0.3}).params.to_dict()["mu1"] == 0.3
 
 
-def test_setup_json_agrees_with_the_builder():
-    setup = load_setup("setups/S7_aluminium_bars")
-    scene = aluminium_bars()
-    got = scene.params.to_dict()
-    material = setup["material"]
+def test_experiment_file_agrees_with_the_builder():
+    from jaxmpm.experiment import shipped_experiment
+
+    experiment = shipped_experiment("aluminium-bars")
+    got = aluminium_bars().params.to_dict()
     for key in jm.MATERIAL_KEYS:
-        assert math.isclose(got[key], material[key]["value"], rel_tol=1e-12), key
-    assert math.isclose(math.degrees(math.atan(material["mu1"]["value"])), material["friction_angle_deg"]["value"])
-    g, n = setup["geometry"], setup["numerics"]
-    assert (scene.info.length, scene.info.height) == (g["column_length_m"]["value"], g["column_height_m"]["value"])
-    assert scene.info.dx == n["dx_m"]["value"] and scene.config.t_end == setup["run"]["t_end_s"]["value"]
-    assert (scene.info.ppc, scene.info.sampling) == (n["ppc"]["value"], n["sampling"]["value"])
-    assert (scene.config.transfer, scene.config.alpha, scene.config.cfl) == (
-        n["transfer"]["value"], n["alpha"]["value"], n["cfl"]["value"])
+        assert math.isclose(got[key], experiment.material[key], rel_tol=1e-12), key
+    assert experiment.sources["material.mu1"]["expression"] == "tan(19.8 deg)"
     # what was not measured says so
     for key in ("rho", "E", "nu", "d", "mu2", "I0", "pc0", "xi"):
-        assert material[key]["modelling_choice"] is True, key
-    assert "modelling_choice" not in material["beta"] and "modelling_choice" not in material["friction_angle_deg"]
+        assert "modelling choice" in experiment.sources[f"material.{key}"]["note"], key
+    assert "modelling choice" not in experiment.sources["material.beta"].get("note", "")
+    # the measured deposit is the file's profile
+    assert [p.file.resolve() for p in experiment.profiles] == [dataset_path("bui2008/bui2008_final_surface").resolve()]
 
 
 def test_short_cli_run_writes_the_initial_state(tmp_path):
@@ -139,4 +135,4 @@ def test_bad_input_is_refused_before_anything_compiles(kwargs, message, monkeypa
 def test_cli_refuses_a_negative_dx(tmp_path):
     out = subprocess.run([sys.executable, "-m", "jaxmpm", "run", "aluminium-bars", "--dx", "-0.01"],
                          capture_output=True, text=True, timeout=120, cwd=tmp_path)
-    assert out.returncode == 2 and "dx must be > 0, got -0.01" in out.stderr
+    assert out.returncode == 2 and "dx must be > 0 m, got -0.01" in out.stderr

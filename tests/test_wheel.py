@@ -67,7 +67,9 @@ def test_an_installed_copy_finds_its_data_without_the_environment_variable(wheel
         "found = {n: str(d.dataset_path(n)) for n in d.list_datasets()}\n"
         "print(json.dumps({'module': calibration.__file__, 'data': str(d.data_dir()), 'found': found,\n"
         "                  'terrain': str(default_terrain_path()),"
-        " 'setup': d.load_setup('setups/S4_cohesive_collapse') is not None,\n"
+        " 'setup': d.load_setup('setups/S1_incline') is not None,\n"
+        "                  'experiment': __import__('jaxmpm.experiment').experiment.shipped_experiment("
+        "'aluminium-bars').profiles[0].file.is_file(),\n"
         "                  'profile_points':"
         " len(d.load_profile(d.dataset_path('bui2008/bui2008_final_surface')).x)}))\n"
     )
@@ -79,4 +81,4 @@ def test_an_installed_copy_finds_its_data_without_the_environment_variable(wheel
     assert pathlib.Path(out["data"]) == site / "jaxmpm" / "experiments_data"
     assert out["found"] and all(pathlib.Path(p).is_relative_to(site) for p in out["found"].values())
     assert pathlib.Path(out["terrain"]).is_relative_to(site)
-    assert out["profile_points"] == 23 and out["setup"]
+    assert out["profile_points"] == 23 and out["setup"] and out["experiment"]

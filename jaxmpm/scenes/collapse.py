@@ -13,6 +13,7 @@ from __future__ import annotations
 import dataclasses
 import math
 from collections.abc import Callable
+from typing import Any
 
 from ..boundary import Wall
 from ..config import Config, Grid
@@ -29,7 +30,7 @@ __all__ = [
     "S2_PARAMS", "S3_PARAMS",
     "S4_PARAMS", "S5_PARAMS", "S7_PARAMS", "gates_collapse", "slope_collapse", "cohesive_collapse",
     "aspect_ratio_collapse", "aluminium_bars",
-    "collapse", "runout_law", "height_law",
+    "collapse", "runout_law", "height_law", "default_runout",
 ]
 
 G = 9.81
@@ -71,6 +72,8 @@ class Scene:
     #: builder arguments -> the set-up built again with those changed (None: the builder cannot
     #: remake it); see ``variant`` and ``at_dx``.
     remake: Callable[..., Scene] | None = dataclasses.field(default=None, compare=False, repr=False)
+    #: The ``jaxmpm.Experiment`` this scene was built from (None: built in Python).
+    experiment: Any = dataclasses.field(default=None, compare=False, repr=False)
 
     def __iter__(self):
         return iter((self.config, self.state, self.params))
@@ -161,6 +164,7 @@ def collapse(
     dim: int = 2,
     width: float | None = None,
     slope_deg: float = 0.0,
+    floor: str = "no-slip",
     back_wall: bool = True,
     front_gate_speed: float | None = None,
     back_gate_speed: float | None = None,
@@ -177,8 +181,11 @@ def collapse(
     base_params: dict | None = None,
     **param_values: float,
 ) -> Scene:
-    """The common builder: a column [0, L] × [0, H] on a no-slip bed inclined at ``slope_deg``.
+    """The common builder: a column [0, L] × [0, H] on a bed inclined at ``slope_deg``.
 
+    ``floor``: the bed's contact (``jaxmpm.boundary``): ``"no-slip"`` (a rough bed, the default), or
+    ``"slip-stick"`` / ``"separable"`` with Coulomb friction ``Params.mu_w`` (a material key here, so
+    that it can be fitted).
     ``back_wall``: a separable (slip-free) wall behind x = 0. ``front_gate_speed`` /
     ``back_gate_speed``: separable gates in front of x = L / behind x = 0 lifted at that speed
     (their lower edge starts on the bed). ``runout`` and ``backward_runout``: how far beyond x = L
@@ -219,6 +226,8 @@ def collapse(
         raise ValueError(f"slope_deg must be in (-60, 60) degrees, got {slope_deg!r}")
     if not (isinstance(frames, int) and frames >= 0):
         raise ValueError(f"frames must be a non-negative integer, got {frames!r}")
+    if floor not in ("no-slip", "slip-stick", "non-separable", "separable"):
+        raise ValueError(f"floor must be 'no-slip', 'slip-stick' or 'separable', got {floor!r}")
     params = Params.create(dtype=dtype, **{**(base_params or {}), **param_values})
 
     margin = 3 * dx
@@ -246,7 +255,8 @@ def collapse(
     def vec(*c):
         return tuple(c) + ((0.0,) if dim == 3 else ())
 
-    walls = [Wall(vec(0.0, 0.0), vec(0.0, 1.0), "no-slip")]
+    walls = [Wall(vec(0.0, 0.0), vec(0.0, 1.0), "no-slip") if floor == "no-slip"
+             else Wall(vec(0.0, 0.0), vec(0.0, 1.0), floor, friction="mu_w")]
     if back_gate_speed is not None:
         walls.append(Wall(vec(x_back, 0.0), vec(1.0, 0.0), "separable", velocity=vec(0.0, back_gate_speed),
                           edge=vec(0.0, 1.0), thickness=2 * dx))
@@ -347,6 +357,15 @@ def runout_law(a, sand: bool = False):
     return np.where(a <= 2.3, low * a, high * a ** (2.0 / 3.0))
 
 
+def default_runout(length: float, height: float, slope_deg: float, dx: float) -> float:
+    """How far beyond the column a collapse's grid reaches when the set-up does not say: 1.6 times
+    the glass-bead runout law's estimate (``runout_law``, at the aspect ratio H/L), 1 + slope/8
+    times that on a downward slope (degrees), plus four cells. A flow that still reaches the
+    grid's edge sets the ``EDGE`` status bit; give the runout then."""
+    a = height / length
+    return 1.6 * float(runout_law(a)) * length * (1.0 + max(slope_deg, 0.0) / 8.0) + 4 * dx
+
+
 def height_law(a):
     """Normalised final height H_f/L0 of glass-bead collapses (secondary): a below 0.7, a^{1/3} above."""
     import numpy as np
@@ -375,7 +394,7 @@ def aspect_ratio_collapse(a: float = 1.0, L0: float = 0.05, dx: float | None = N
 
 
 #: S7 aluminium bars (Bui, Fukagawa, Sako & Ohno 2008), every value with its source
-#: (experiments_data/setups/S7_aluminium_bars.json holds the same with longer notes):
+#: (experiments_data/experiments/S7_aluminium_bars.toml holds the same with longer notes):
 #: - mu1 = tan 19.8°: the bars' friction angle reported with the data (docs/scenes.md S7). A modelling
 #:   choice of convention: tan φ is the μ(I) law's friction coefficient (q/p̄ in simple shear);
 #:   a plane-strain Mohr–Coulomb match of the same φ would give sin φ = 0.339 instead of 0.360.

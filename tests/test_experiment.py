@@ -1,0 +1,274 @@
+"""Experiment files (jaxmpm.experiment, docs/experiments.md): the shipped scenes are experiment files
+equal to their builders; a user's collapse runs and fits from one file as from the equivalent Python
+set-up; every bad input is one line naming the file, the line and the key, before anything compiles."""
+
+import json
+import math
+import pathlib
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from jaxmpm.experiment import SHIPPED_EXPERIMENTS, Experiment, ExperimentError, shipped_experiment
+from jaxmpm.scenes import (
+    aluminium_bars,
+    aspect_ratio_collapse,
+    cohesive_collapse,
+    collapse,
+    gates_collapse,
+    slope_collapse,
+)
+
+BUILDERS = {"gates-collapse": gates_collapse, "slope-collapse": slope_collapse,
+            "cohesive-collapse": cohesive_collapse, "aspect-ratio": aspect_ratio_collapse,
+            "aluminium-bars": aluminium_bars}
+
+# A collapse none of the named scenes describes: another column, slope, gate speed and cohesion.
+USER_TOML = """\
+# a user's experiment
+[experiment]
+name = "tall-cohesive"
+
+[geometry]
+length = "60 mm"
+height = "90 mm"
+slope = 5
+
+[boundaries]
+gate = "front"
+gate_lift_time = "60 ms"
+
+[material]
+beta = 0.15
+pc0 = { value = 0.4, unit = "kPa", source = "shear-box test" }
+xi = 50
+d = "0.8 mm"
+
+[numerics]
+dx = "15 mm"
+t_end = "0.1 s"
+"""
+# The same set-up written in Python.
+USER_PYTHON = dict(name="tall-cohesive", length=0.06, height=0.09, dx=0.015, slope_deg=5.0, front_gate_speed=1.5,
+                   runout=1.6 * 1.2 * (0.09 / 0.06) * 0.06 * (1 + 5 / 8) + 4 * 0.015, t_end=0.1, beta=0.15,
+                   pc0=400.0, xi=50.0, d=0.8e-3)
+
+
+def _same_scene(a, b, info=True):
+    assert a.name == b.name
+    assert a.config == b.config
+    for field in ("x", "v", "F", "vol0"):
+        np.testing.assert_array_equal(np.asarray(getattr(a.state, field)), np.asarray(getattr(b.state, field)))
+    assert a.params.to_dict() == b.params.to_dict()
+    if info:
+        assert a.info == b.info
+
+
+@pytest.mark.parametrize("name", sorted(SHIPPED_EXPERIMENTS))
+def test_shipped_experiments_build_the_named_scenes(name):
+    experiment = shipped_experiment(name)
+    # S5's builder also records the aspect ratio it was asked for; the geometry is the same.
+    _same_scene(experiment.scene(), BUILDERS[name](), info=name != "aspect-ratio")
+    assert "docs/scenes.md" in experiment.sources["geometry.height"]["source"]
+    # Written and read back: the same experiment, sources kept.
+    again = Experiment.from_text(experiment.to_toml(), experiment.path)
+    assert again == experiment and again.sources == experiment.sources
+
+
+def test_named_shortcut_with_options_equals_builder():
+    from jaxmpm.scenes import build_scene
+
+    _same_scene(build_scene("cohesive-collapse", dx=0.089 / 8, ppc=2, t_end=0.2, values={"beta": 0.2}, seed=3),
+                cohesive_collapse(beta=0.2, dx=0.089 / 8, ppc=2, t_end=0.2, seed=3))
+
+
+def test_user_experiment_equals_python_set_up(tmp_path):
+    path = tmp_path / "tall.toml"
+    path.write_text(USER_TOML)
+    experiment = Experiment.from_toml(path)
+    assert experiment.gate_speed == pytest.approx(1.5) and experiment.material["pc0"] == 400.0
+    assert experiment.sources["material.pc0"] == {"source": "shear-box test", "unit": "kPa"}
+    _same_scene(experiment.scene(), collapse(**USER_PYTHON))
+    assert experiment.scene().experiment == experiment
+
+
+def _main(module, argv, capsys):
+    main = __import__(f"{module}.__main__", fromlist=["main"]).main
+    with pytest.raises(SystemExit) as exit_:
+        main(argv)
+    return exit_.value.code, capsys.readouterr().err
+
+
+def test_user_experiment_runs_and_fits_from_the_file_as_from_python(tmp_path, capsys):
+    """The command line on the file against the library on the Python set-up: the same run
+    (and its HDF5 records the experiment) and the same fit."""
+    import jax
+
+    from calibration import Objective, fit, load_profile
+    from jaxmpm import simulate
+    from jaxmpm.__main__ import main as run_main
+    from jaxmpm.io import read_h5
+
+    path = tmp_path / "tall.toml"
+    path.write_text(USER_TOML)
+    h5, csv = tmp_path / "run.h5", tmp_path / "deposit.csv"
+    assert run_main(["run", str(path), "--json", "--no-progress", "--out", str(h5), "--profile-csv", str(csv)]) == 0
+    summary = json.loads(capsys.readouterr().out)
+    python = simulate(*collapse(**USER_PYTHON, dtype="float32"), throw=False)
+    x = np.asarray(python.state.x)
+    assert summary["n_steps"] == int(python.state.steps)
+    assert summary["x_max"] == float(x[:, 0].max()) and summary["y_max"] == float(x[:, 1].max())
+    assert summary["runout"] == pytest.approx(float(x[:, 0].max()) - 0.06, abs=1e-8)
+    assert Experiment.from_h5(h5) == Experiment.from_toml(path).replace(dtype="float32")  # as it ran
+    assert read_h5(h5)["attrs"]["scene"] == "tall-cohesive"
+
+    # The fit: the file names the data and what to fit; Python builds the same objective.
+    path.write_text(USER_TOML + '\n[[profile]]\nfile = "deposit.csv"\n\n[fit]\nkeys = ["beta"]\n'
+                    'init = { beta = 0.1 }\n')
+    from calibration.__main__ import main as calibration_main
+
+    assert calibration_main(["fit", str(path), "--json", "--no-progress", "--workers", "1", "--steps", "2",
+                             "--roundoff-samples", "0", "--grid-check", "0"]) in (0, 1)
+    cli = json.loads(capsys.readouterr().out)
+    assert cli["experiments"] == [str(path)] and cli["search"]["starts"] == 1
+    objective = Objective(collapse(**USER_PYTHON, dtype="float32"), ("beta",), profile=[load_profile(csv)])
+    ours = fit(objective, {"beta": 0.1}, steps=2, progress=False, roundoff_samples=0)
+    assert cli["params"]["beta"] == pytest.approx(ours.theta["beta"], rel=1e-6)
+    assert cli["loss"] == pytest.approx(ours.loss, rel=1e-5)
+    jax.clear_caches()
+
+
+def test_several_experiments_make_one_joint_objective(tmp_path):
+    import argparse
+
+    from calibration.__main__ import _experiments, _fit_request, _scene_and_objective, build_parser
+    from calibration.objective import CompositeObjective
+
+    for name, slope in (("a", 0), ("b", 8)):
+        (tmp_path / f"{name}.toml").write_text(USER_TOML.replace("slope = 5", f"slope = {slope}")
+                                               + f'\n[[profile]]\nfile = "{name}.csv"\n[fit]\nkeys = ["mu1"]\n')
+        (tmp_path / f"{name}.csv").write_text("# units: m\n# time_s: 0.1\nx_m,h_m\n0,0.05\n0.05,0.04\n0.1,0\n")
+    args = build_parser().parse_args(["fit", str(tmp_path / "a.toml"), str(tmp_path / "b.toml")])
+    assert isinstance(args, argparse.Namespace)
+    experiments = _experiments(args)
+    request = _fit_request(args, experiments)
+    assert request.keys == ("mu1",) and request.init == {} and request.noise is None
+    scene, objective = _scene_and_objective(args, request.keys, experiments)
+    assert isinstance(objective, CompositeObjective) and len(objective.members) == 2
+    assert [m.scene.info.slope_deg for m in objective.members] == [0.0, 8.0]
+    coarse = objective.coarsened(1.5)  # the grid term of a joint fit coarsens every member
+    assert [m.dx for m in coarse.members] == pytest.approx([0.0225, 0.0225])
+
+
+# -- bad input: one line naming the file, the line and the key, through the real main() ---------------
+
+BAD = [
+    # (change to USER_TOML, the message's expected parts)
+    (("xi = 50", "xi = 50\npc = 3"), ("tall.toml:18:", "[material] pc: unknown key")),
+    (("[numerics]", "[numeric]"), ("tall.toml:", "numeric", "unknown section or key")),
+    (('length = "60 mm"\n', ""), ("tall.toml:5:", "[geometry] length: missing")),
+    (('t_end = "0.1 s"\n', ""), ("tall.toml:", "[numerics] t_end: missing")),
+    (('height = "90 mm"', 'height = "90 kg"'), ("tall.toml:7:", "[geometry] height: unit 'kg' is not one of")),
+    (('d = "0.8 mm"', 'd = "0.8 kPa"'), ("tall.toml:", "[material] d: unit 'kPa'")),
+    (("xi = 50", 'xi = "fifty"'), ("tall.toml:", "[material] xi: expected a number or 'number unit'")),
+    (("slope = 5", "slope = true"), ("tall.toml:8:", "[geometry] slope: expected a number")),
+    (('gate = "front"', 'gate = "side"'), ("tall.toml:", "[boundaries] gate: must be one of")),
+    (('gate_lift_time = "60 ms"\n', ""), ("tall.toml:", "[boundaries] gate_speed: missing")),
+    (('gate_lift_time = "60 ms"', 'gate_lift_time = "60 ms"\ngate_speed = 1'),
+     ("tall.toml:", "gate_lift_time: give gate_speed or gate_lift_time, not both")),
+    (('dx = "15 mm"', 'dx = "10 cm"'), ("tall.toml:21:", "[numerics] dx: must be at most the column's thinnest side")),
+    (('length = "60 mm"', 'length = "0.1 mm"'), ("tall.toml:", "[numerics] dx: must be at most the column's")),
+    (('dx = "15 mm"', "dx = -0.01"), ("tall.toml:21:", "[numerics] dx: must be > 0")),
+    (("slope = 5", "slope = 5\nwidth = 0.1"), ("tall.toml:", "[geometry] width: applies to dim = 3")),
+    (('gate = "front"', 'gate = "front"\nfloor_friction = 0.3'), ("tall.toml:", "floor_friction: a no-slip floor")),
+    (("[numerics]", "[numerics]\nppc = 2.5"), ("tall.toml:", "[numerics] ppc: must be a positive integer")),
+    (("[experiment]", "[experiment\n"), ("tall.toml: not valid TOML",)),
+]
+
+
+@pytest.mark.parametrize("change, parts", BAD)
+def test_bad_experiment_files_fail_before_compiling(change, parts, tmp_path, capsys):
+    path = tmp_path / "tall.toml"
+    path.write_text(USER_TOML.replace(*change))
+    code, err = _main("jaxmpm", ["run", str(path)], capsys)
+    assert code == 2 and err.count("\n") == 1, err
+    for part in parts:
+        assert part in err, err
+    with pytest.raises(ExperimentError):
+        Experiment.from_toml(path)
+
+
+def test_bad_data_and_fit_requests(tmp_path, capsys):
+    path = tmp_path / "tall.toml"
+    # A measurement that does not exist, and one that does not match the geometry.
+    path.write_text(USER_TOML + '\n[[profile]]\nfile = "missing.csv"\n[fit]\nkeys = ["beta"]\n')
+    code, err = _main("calibration", ["fit", str(path)], capsys)
+    assert code == 2 and "missing.csv" in err
+    (tmp_path / "far.csv").write_text("# units: m\n# time_s: 0.1\nx_m,h_m\n5,0.05\n5.1,0.04\n5.2,0\n")
+    path.write_text(USER_TOML + '\n[[profile]]\nfile = "far.csv"\n[fit]\nkeys = ["beta"]\n')
+    code, err = _main("calibration", ["fit", str(path)], capsys)
+    assert code == 2 and "far.csv" in err
+    path.write_text(USER_TOML + '\n[[profile]]\nfile = "far.csv"\n')
+    code, err = _main("calibration", ["fit", str(path)], capsys)
+    assert code == 2 and "--fit is required" in err
+    code, err = _main("calibration", ["fit", str(path), "--scene", "cohesive-collapse", "--fit", "beta"], capsys)
+    assert code == 2 and "not both" in err
+    path.write_text(USER_TOML + '\n[fit]\nkeys = ["beta", "gamma"]\n')
+    code, err = _main("calibration", ["fit", str(path)], capsys)
+    assert code == 2 and "[fit] keys: unknown parameter(s) ['gamma']" in err
+    # A command-line option that does not fit the file names the option.
+    path.write_text(USER_TOML)
+    code, err = _main("jaxmpm", ["run", str(path), "--dx", "1"], capsys)
+    assert code == 2 and "--dx must be at most the column's thinnest side (0.06 m)" in err
+    code, err = _main("jaxmpm", ["run", str(path), "--aspect", "2"], capsys)
+    assert code == 2 and "--aspect applies to the aspect-ratio scene" in err
+
+
+# -- property tests of the parser ---------------------------------------------------------------------
+
+_KEYS = ["length", "height", "slope", "width", "gate", "gate_speed", "floor", "back_wall", "beta", "pc0", "dx", "t_end",
+         "ppc", "seed", "dim", "frames", "unknown", "file", "keys"]
+_SECTIONS = ["experiment", "geometry", "boundaries", "material", "numerics", "fit", "front", "bogus"]
+_VALUES = st.one_of(st.integers(-5, 5), st.floats(allow_nan=True, allow_infinity=True), st.booleans(),
+                    st.text(max_size=8), st.sampled_from(['"60 mm"', '"1 s"', '"2 kPa"', '"x m"']),
+                    st.lists(st.integers(0, 3), max_size=2))
+
+
+def _literal(value):
+    if isinstance(value, str) and value.startswith('"'):
+        return value
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, float):
+        return "nan" if math.isnan(value) else ("inf" if value > 0 else "-inf") if math.isinf(value) else repr(value)
+    if isinstance(value, str):
+        return json.dumps(value)
+    return str(value).replace("'", '"')
+
+
+@settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(st.dictionaries(st.sampled_from(_SECTIONS),
+                       st.dictionaries(st.sampled_from(_KEYS), _VALUES, max_size=4), max_size=6))
+def test_parser_fuzz_gives_an_experiment_or_one_clear_error(document):
+    text = "\n".join(f"[{section}]\n" + "\n".join(f"{k} = {_literal(v)}" for k, v in table.items())
+                     for section, table in document.items())
+    try:
+        experiment = Experiment.from_text(text, pathlib.Path("fuzz.toml"))
+    except ExperimentError as err:
+        assert str(err).startswith("fuzz.toml") and "\n" not in str(err).strip()
+    else:
+        assert Experiment.from_text(experiment.to_toml(), pathlib.Path("fuzz.toml")) == experiment
+
+
+@settings(max_examples=60, deadline=None)
+@given(length=st.floats(0.02, 1.0), aspect=st.floats(0.3, 3.0), slope=st.floats(-20, 30),
+       gate=st.sampled_from(["none", "front"]), speed=st.floats(0.1, 100), beta=st.floats(0, 1),
+       dx_cells=st.integers(2, 20), t_end=st.floats(0.01, 3))
+def test_to_toml_round_trips(length, aspect, slope, gate, speed, beta, dx_cells, t_end):
+    height = aspect * length
+    experiment = Experiment(name="p", length=length, height=height, t_end=t_end, slope=slope, gate=gate,
+                            gate_speed=speed if gate != "none" else None, material={"beta": beta},
+                            dx=min(length, height) / dx_cells)
+    assert Experiment.from_text(experiment.to_toml()) == experiment
