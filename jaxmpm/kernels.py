@@ -117,8 +117,7 @@ def make_stencil(x, grid) -> Stencil:
     fx = xi - base.astype(x.dtype)  # (N, dim)
 
     w_axis, dw_axis, off_axis = [], [], []
-    for a in range(dim):
-        f = fx[:, a]
+    for f in jnp.unstack(fx, axis=-1):  # unstack: its transpose is a stack (linalg.planes)
         w, dw = bspline_weights(f)
         w_axis.append(tuple(w))
         dw_axis.append(tuple(d / dx for d in dw))

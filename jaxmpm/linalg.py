@@ -33,8 +33,12 @@ JACOBI_SWEEPS = 6
 
 
 def planes(a):
-    """The planes [[a[..., i, j]]] of a batch of matrices (..., m, n)."""
-    return [[a[..., i, j] for j in range(a.shape[-1])] for i in range(a.shape[-2])]
+    """The planes [[a[..., i, j]]] of a batch of matrices (..., m, n).
+
+    Split by ``unstack``, whose transpose is a ``stack``: indexing (``a[..., i, j]``) transposes
+    into m·n padded (..., m, n) arrays summed element by element, every pad's operand computed for
+    every element, which made the reverse pass of a step several times its forward."""
+    return [list(jnp.unstack(row, axis=-1)) for row in jnp.unstack(a, axis=-2)]
 
 
 def unplanes(p):

@@ -106,7 +106,7 @@ def make_step(config: Config):
             node_x, n_grid, touched = jnp.asarray(node_x_np, dtype), grid.n_nodes, 0
         stencil = _materialize(stencil, token)
         mass = params.rho * state.vol0
-        v = [state.v[:, a] for a in range(dim)]
+        v = list(jnp.unstack(state.v, axis=-1))  # unstack: its transpose is a stack (linalg.planes)
         F = planes(state.F)
         fields = p2g(stencil, mass, v, planes(state.C), state.vol0, planes(state.tau), n_grid)
         v_old, v_new = grid_velocities(fields, dt, jnp.asarray(config.gravity, dtype))
@@ -116,7 +116,7 @@ def make_step(config: Config):
             v_flip = list(xpic_velocity(stencil, mass, fields.mass, state.v, config.xpic).T)
         v_old, v_new = _materialize((v_old, v_new), token)
         moved = _materialize(g2p_planes(stencil, v_old, v_new, v_flip, dx, config.transfer, alpha), token)
-        x = [state.x[:, a] + dt * moved.v_pic[a] for a in range(dim)]
+        x = [x_a + dt * moved.v_pic[a] for a, x_a in enumerate(jnp.unstack(state.x, axis=-1))]
         for a in range(dim):
             if periodic[a]:  # wrap positions on periodic axes
                 x[a] = origin[a] + jnp.mod(x[a] - origin[a], length[a])
@@ -168,6 +168,9 @@ def make_step(config: Config):
         def idle(s):  # at rest before t_end: jump to the next stop (a frame or t_end); else nothing
             return s.replace(t=jnp.where(t < config.t_end, next_stop, t))
 
+        # Not rematerialised per step (jax.checkpoint around advance): it halved the elastic
+        # block's backward pass but made the critical-state model's 3.6 times slower, recomputing
+        # the return map's Newton solves (docs/performance.md, "Reverse mode").
         return jax.lax.cond(active, lambda s: advance(s, params, dt, t_new), idle, state)
 
     return step

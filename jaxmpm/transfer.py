@@ -20,7 +20,7 @@ from typing import NamedTuple
 import jax.numpy as jnp
 
 from .kernels import APIC_INERTIA, Stencil
-from .linalg import safe_div, unplanes
+from .linalg import planes, safe_div, unplanes
 
 __all__ = ["GridFields", "Transferred", "p2g", "grid_velocities", "g2p", "g2p_planes", "xpic_velocity"]
 
@@ -41,11 +41,11 @@ class Transferred(NamedTuple):
 
 
 def _vector_planes(a):
-    return [a[:, i] for i in range(a.shape[-1])]
+    return list(jnp.unstack(a, axis=-1))  # unstack transposes into a stack (``jaxmpm.linalg.planes``)
 
 
 def _matrix_planes(a):
-    return [[a[:, i, j] for j in range(a.shape[-1])] for i in range(a.shape[-2])]
+    return planes(a)
 
 
 def p2g(stencil: Stencil, mass, v, C, vol0, tau, n_nodes: int) -> GridFields:
@@ -91,8 +91,11 @@ def g2p_planes(stencil: Stencil, v_old, v_new, v_p, dx, transfer: str, alpha: fl
     dim = v_new.shape[0]
     n_stencil = stencil.index.shape[0]
     flip = transfer != "pic" and alpha != 0.0
-    new = [v_new[a][stencil.index] for a in range(dim)]  # (S, N) each
-    old = [v_old[a][stencil.index] for a in range(dim)] if flip else None
+    # (S, N) gathers split into rows by ``unstack``, whose transpose is one ``stack``: indexing
+    # the rows (``g[s]``) would transpose into S padded (S, N) arrays summed element by element,
+    # which made the reverse pass of G2P cost 9 forward G2Ps (docs/performance.md).
+    new = [jnp.unstack(v_new[a][stencil.index]) for a in range(dim)]  # S (N,) rows each
+    old = [jnp.unstack(v_old[a][stencil.index]) for a in range(dim)] if flip else None
     weights = [stencil.weight_plane(s) for s in range(n_stencil)]
 
     def over_stencil(term):
