@@ -16,7 +16,16 @@ posterior of one or two keys on a grid, and predictions of held-out data with a 
 """
 
 from .bounds import DEFAULT_BOUNDS, FIT_KEYS, Bounds
-from .data import FrontHistory, Profile, RunoutLaw, list_datasets, load_front_history, load_profile, load_scaling_law
+from .data import (
+    FrontHistory,
+    Profile,
+    RunoutLaw,
+    list_datasets,
+    load_front_history,
+    load_measurements,
+    load_profile,
+    load_scaling_law,
+)
 from .fit import FitResult, fit
 from .history import read_history
 from .likelihood import GridPosterior, HeldOut, ProfileLikelihood, grid_posterior, predict_heldout, profile_likelihood
@@ -39,6 +48,7 @@ __all__ = [
     "Minimum", "ModelFunctions", "Objective", "Observations", "Profile", "ProfileTarget", "RunoutLaw", "SearchResult",
     "GridCheck", "Uncertainty", "Verdict",
     "assess_fit", "design_starts", "fit", "gauss_newton_uncertainty", "list_datasets", "load_front_history",
+    "load_measurements",
     "coarse_to_fine", "load_profile", "model_functions", "load_scaling_law", "read_history", "search",
     "grid_shift", "structural_noise",
 ]

@@ -66,14 +66,10 @@ def _load_data(args, experiment=None):
     [[profile]] and [front] (read with the units they state)."""
     from jaxmpm import describe_status
 
-    from .data import load_front_history, load_profile
+    from .data import load_front_history, load_measurements, load_profile
 
     if experiment is not None and not args.data and not args.front:
-        profiles = [load_profile(p.file, units=p.units, time_s=p.time, dataset=p.dataset, sort=args.sort,
-                                 clip_noise=args.clip_noise) for p in experiment.profiles]
-        front = (load_front_history(experiment.front.file, units=experiment.front.units,
-                                    time_units=experiment.front.time_units, sort=args.sort)
-                 if experiment.front is not None else None)
+        profiles, front = load_measurements(experiment, sort=args.sort, clip_noise=args.clip_noise)
         if not profiles and front is None:
             raise ValueError(f"{experiment.path}: lists no measurement ([[profile]] or [front]); give --data or "
                              "--front")
@@ -168,30 +164,32 @@ def _scene_and_objective(args, keys, experiments=()):
     members, scenes = [], []
     for experiment in experiments or [None]:
         profiles, front = _load_data(args, experiment)
+        options = dict(front_threshold=args.front_threshold, jacobian=getattr(args, "jacobian", "ad"))
         if experiment is not None:
-            scene = experiment.scene()
-            spec = experiment.fit
-            weights = {"profile": args.weight_profile if args.weight_profile is not None else
-                       (spec.weight_profile if spec else 1.0),
-                       "front": args.weight_front if args.weight_front is not None else
-                       (spec.weight_front if spec else 1.0)}
-            correlation = (args.front_correlation_time if args.front_correlation_time is not None else
-                           (experiment.front.correlation_time if experiment.front is not None else None))
-        else:
-            if args.t_end is None:  # run until the latest data time, if the data say when they were taken
-                times = [p.time_s for p in profiles if p.time_s is not None]
-                if front is not None:
-                    times.append(float(front.t[-1]))
-                if times:
-                    args.t_end = max(times)
-            scene = scene_from_args(args)
-            weights = {"profile": 1.0 if args.weight_profile is None else args.weight_profile,
-                       "front": 1.0 if args.weight_front is None else args.weight_front}
-            correlation = getattr(args, "front_correlation_time", None)
-        if front is not None and correlation is not None:
-            front = dataclasses.replace(FrontTarget.of(front), correlation_time=correlation)
-        members.append(Objective(scene, keys, profile=profiles or None, front=front, weights=weights,
-                                 front_threshold=args.front_threshold, jacobian=getattr(args, "jacobian", "ad")))
+            weights = {"profile": args.weight_profile, "front": args.weight_front}
+            if any(w is not None for w in weights.values()):  # the command line's over the file's
+                spec = experiment.fit
+                weights = {k: w if w is not None else (getattr(spec, f"weight_{k}") if spec else 1.0)
+                           for k, w in weights.items()}
+                options["weights"] = weights
+            if front is not None and args.front_correlation_time is not None:
+                front = dataclasses.replace(FrontTarget.of(front), correlation_time=args.front_correlation_time)
+            member = Objective.from_experiment(experiment, keys, profile=profiles or None, front=front, **options)
+            members.append(member)
+            scenes.append(member.scene)
+            continue
+        if args.t_end is None:  # run until the latest data time, if the data say when they were taken
+            times = [p.time_s for p in profiles if p.time_s is not None]
+            if front is not None:
+                times.append(float(front.t[-1]))
+            if times:
+                args.t_end = max(times)
+        scene = scene_from_args(args)
+        weights = {"profile": 1.0 if args.weight_profile is None else args.weight_profile,
+                   "front": 1.0 if args.weight_front is None else args.weight_front}
+        if front is not None and getattr(args, "front_correlation_time", None) is not None:
+            front = dataclasses.replace(FrontTarget.of(front), correlation_time=args.front_correlation_time)
+        members.append(Objective(scene, keys, profile=profiles or None, front=front, weights=weights, **options))
         scenes.append(scene)
     return scenes[0], (members[0] if len(members) == 1 else CompositeObjective(members))
 
@@ -569,11 +567,11 @@ def _variants(items) -> dict[str, dict[str, float]]:
 def _design(args) -> int:
     import jax
 
-    from jaxmpm.scenes import scene_from_args
+    from jaxmpm.scenes import scene_dtype, scene_from_args
 
     from .design import design
 
-    if args.dtype == "float64":
+    if scene_dtype(args) == "float64":
         jax.config.update("jax_enable_x64", True)
     keys = _keys(args.fit)
     if args.plot and len(keys) < 2:
@@ -604,6 +602,16 @@ def _design(args) -> int:
         for note in result.notes:
             print(f"note: {note}")
     return _finish(out, args, errors) if args.json else (1 if errors else 0)
+
+
+def _design_scene(text: str) -> str:
+    from jaxmpm.scenes import SCENE_NAMES, is_experiment_file
+
+    collapses = [n for n in SCENE_NAMES if n != "elastic-block"]
+    if is_experiment_file(text) or text in collapses:
+        return text
+    raise argparse.ArgumentTypeError(f"must be a collapse scene ({', '.join(collapses)}) or an experiment file "
+                                     f"(.toml), got {text!r}")
 
 
 def _floats(text: str, option: str) -> list[float]:
@@ -829,8 +837,9 @@ def build_parser() -> argparse.ArgumentParser:
                                        "candidate observation sets before the experiment")
     from jaxmpm.scenes import SCENE_NAMES
 
-    de.add_argument("--scene", required=True, choices=[n for n in SCENE_NAMES if n != "elastic-block"],
-                    help="the experiment's set-up (a collapse)")
+    de.add_argument("--scene", required=True, type=_design_scene, metavar="SCENE|EXPERIMENT.toml",
+                    help="the experiment's set-up: a collapse scene "
+                         f"({', '.join(n for n in SCENE_NAMES if n != 'elastic-block')}) or an experiment file")
     _common(de, data=False)
     de.add_argument("--fit", required=True, metavar="KEYS", help="comma-separated keys to calibrate")
     de.add_argument("--at", action="append", default=[], metavar="KEY=VALUE",

@@ -636,6 +636,19 @@ def dataset_path(name: str) -> pathlib.Path:
     return info.path
 
 
+def load_measurements(experiment, *, sort: bool = False, clip_noise: bool = False) -> tuple[list, Any]:
+    """(profiles, front history or None) that a ``jaxmpm.Experiment`` lists ([[profile]],
+    [front]), read with the units and times it states; ``sort`` and ``clip_noise`` as for
+    ``load_profile``."""
+    profiles = [load_profile(p.file, units=p.units, time_s=p.time, dataset=p.dataset, sort=sort, clip_noise=clip_noise)
+                for p in experiment.profiles]
+    front = None
+    if experiment.front is not None:
+        front = load_front_history(experiment.front.file, units=experiment.front.units,
+                                   time_units=experiment.front.time_units, sort=sort)
+    return profiles, front
+
+
 def load_setup(name: str | os.PathLike) -> dict[str, Any]:
     """A scene set-up (``setups/*.json``: S1's) by manifest name (``'setups/S1_incline'``) or path.
     The collapses' set-ups are experiment files: ``jaxmpm.experiment.shipped_experiment``."""

@@ -468,6 +468,34 @@ class Objective:
         follows the new particle spacing, as a fit at that ``dx`` would have it."""
         return Objective(self.scene.at_dx(dx), self.keys, **self._options)
 
+    @classmethod
+    def from_experiment(cls, experiment, keys: Sequence[str] | None = None, **options) -> Objective:
+        """The objective of a ``jaxmpm.Experiment``: its scene, its measurements
+        (``calibration.data.load_measurements``; ``profile=``/``front=`` replace them), the keys of
+        its [fit] table (or ``keys``) and its blocks' weights; ``options`` as for ``Objective``.
+        What ``python -m calibration fit EXPERIMENT.toml`` fits."""
+        from .data import load_measurements
+
+        spec = experiment.fit
+        if keys is None:
+            if spec is None:
+                raise ValueError(f"{experiment.path or experiment.name}: no [fit] keys; pass keys")
+            keys = spec.keys
+        if "profile" not in options and "front" not in options:
+            profiles, front = load_measurements(experiment)
+            options.update(profile=profiles or None, front=front)
+            if not profiles and front is None:
+                raise ValueError(f"{experiment.path or experiment.name}: lists no measurement ([[profile]] or "
+                                 "[front])")
+        if spec is not None and options.get("weights") is None:
+            options["weights"] = {"profile": spec.weight_profile, "front": spec.weight_front}
+        front = options.get("front")
+        if (front is not None and experiment.front is not None and experiment.front.correlation_time is not None
+                and not isinstance(front, FrontTarget)):
+            options["front"] = dataclasses.replace(FrontTarget.of(front),
+                                                   correlation_time=experiment.front.correlation_time)
+        return cls(experiment.scene(), keys, **options)
+
     @property
     def dx(self) -> float:
         """The scene's grid spacing, m."""

@@ -134,6 +134,8 @@ def test_user_experiment_runs_and_fits_from_the_file_as_from_python(tmp_path, ca
     cli = json.loads(capsys.readouterr().out)
     assert cli["experiments"] == [str(path)] and cli["search"]["starts"] == 1
     objective = Objective(collapse(**USER_PYTHON, dtype="float32"), ("beta",), profile=[load_profile(csv)])
+    from_file = Objective.from_experiment(Experiment.from_toml(path).replace(dtype="float32"))
+    assert from_file.fingerprint() == objective.fingerprint() and from_file.keys == ("beta",)
     ours = fit(objective, {"beta": 0.1}, steps=2, progress=False, roundoff_samples=0)
     assert cli["params"]["beta"] == pytest.approx(ours.theta["beta"], rel=1e-6)
     assert cli["loss"] == pytest.approx(ours.loss, rel=1e-5)
