@@ -34,7 +34,7 @@ def test_planes_match_indexing(dim):
     np.testing.assert_array_equal(jax.jvp(planes, (a,), (t,))[1], jax.jvp(_reference_planes, (a,), (t,))[1])
 
 
-@pytest.mark.parametrize("dim", [2, 3])
+@pytest.mark.parametrize("dim", [2, pytest.param(3, marks=pytest.mark.slow)])  # 3D: 22 s of compiling
 def test_g2p_gradient_matches_indexed_gather(dim):
     """g2p_planes (rows by unstack) against the same sums over rows indexed from the gather."""
     config, state, _ = jm.scenes.falling_block(n_particles=8**dim // 2 ** (dim - 1), dim=dim, dtype="float64")
