@@ -121,7 +121,6 @@ def _fit_request(args, experiments) -> _FitRequest:
     specs = [e.fit for e in experiments if e.fit is not None]
 
     def agreed(name, values):
-        values = [v for v in values]
         if any(v != values[0] for v in values):
             raise ValueError(f"the experiment files' [fit] {name} differ ({values}); give it on the command line")
         return values[0] if values else None
@@ -165,6 +164,8 @@ def _scene_and_objective(args, keys, experiments=()):
     for experiment in experiments or [None]:
         profiles, front = _load_data(args, experiment)
         options = dict(front_threshold=args.front_threshold, jacobian=getattr(args, "jacobian", "ad"))
+        if front is not None and getattr(args, "front_correlation_time", None) is not None:
+            front = dataclasses.replace(FrontTarget.of(front), correlation_time=args.front_correlation_time)
         if experiment is not None:
             weights = {"profile": args.weight_profile, "front": args.weight_front}
             if any(w is not None for w in weights.values()):  # the command line's over the file's
@@ -172,8 +173,6 @@ def _scene_and_objective(args, keys, experiments=()):
                 weights = {k: w if w is not None else (getattr(spec, f"weight_{k}") if spec else 1.0)
                            for k, w in weights.items()}
                 options["weights"] = weights
-            if front is not None and args.front_correlation_time is not None:
-                front = dataclasses.replace(FrontTarget.of(front), correlation_time=args.front_correlation_time)
             member = Objective.from_experiment(experiment, keys, profile=profiles or None, front=front, **options)
             members.append(member)
             scenes.append(member.scene)
@@ -187,8 +186,6 @@ def _scene_and_objective(args, keys, experiments=()):
         scene = scene_from_args(args)
         weights = {"profile": 1.0 if args.weight_profile is None else args.weight_profile,
                    "front": 1.0 if args.weight_front is None else args.weight_front}
-        if front is not None and getattr(args, "front_correlation_time", None) is not None:
-            front = dataclasses.replace(FrontTarget.of(front), correlation_time=args.front_correlation_time)
         members.append(Objective(scene, keys, profile=profiles or None, front=front, weights=weights, **options))
         scenes.append(scene)
     return scenes[0], (members[0] if len(members) == 1 else CompositeObjective(members))

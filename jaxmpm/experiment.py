@@ -43,7 +43,7 @@ if sys.version_info >= (3, 11):
 else:  # pragma: no cover - Python 3.10
     import tomli as tomllib
 
-from .params import DEFAULTS, PARAM_KEYS
+from .params import PARAM_KEYS
 
 __all__ = ["Experiment", "ExperimentError", "ProfileMeasurement", "FrontMeasurement", "FitSpec", "shipped_experiment",
            "SHIPPED_EXPERIMENTS", "FORMAT"]
@@ -164,7 +164,7 @@ class Experiment:
     path: pathlib.Path | None = dataclasses.field(default=None, compare=False)
 
     def __post_init__(self):
-        _check_experiment(self, _Where(self.path, None))
+        _check_experiment(self)
 
     # -- reading and writing ---------------------------------------------------------------------------
 
@@ -527,7 +527,7 @@ class _Invalid(ExperimentError):
         self.section, self.key, self.what = section, key, what
 
 
-def _check_experiment(e: Experiment, where: _Where) -> None:
+def _check_experiment(e: Experiment) -> None:
     """Checks of the values (the parser has checked kinds and units); raises ``_Invalid``."""
 
     def need(ok, section, key, what):
@@ -723,8 +723,3 @@ def shipped_experiment(name: str) -> Experiment:
     if not path.is_file():
         raise ValueError(f"no shipped experiment {name!r}; known: {sorted(SHIPPED_EXPERIMENTS)}")
     return Experiment.from_toml(path)
-
-
-def material_defaults() -> dict[str, float]:
-    """docs/model.md §4's defaults, for a reader of a file that leaves a key out."""
-    return dict(DEFAULTS)
