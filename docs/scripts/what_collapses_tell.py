@@ -34,15 +34,18 @@ def main():
     parser.add_argument("--noise", type=float, default=0.01)
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--grid-check", type=float, default=1.5)
+    parser.add_argument("--variants", type=json.loads, default=VARIANTS,
+                        help="the other experiments, as JSON {label: {builder argument: value}} (heights and "
+                             "runouts in m); default: a column twice as tall and a 10 degree slope")
     parser.add_argument("--out", default=str(ROOT / "docs/results/what_collapses_tell.json"))
     parser.add_argument("--figure", default=str(ROOT / "docs/figures/what_collapses_tell.png"))
     args = parser.parse_args()
     scene = cohesive_collapse(dx=L / args.cells, t_end=0.5, beta=0.25)
     with Workers(args.workers) as workers:
-        result = design(scene, KEYS, {"beta": 0.25}, noise=args.noise, tolerance=0.1, variants=VARIANTS,
+        result = design(scene, KEYS, {"beta": 0.25}, noise=args.noise, tolerance=0.1, variants=args.variants,
                         grid_ratio=args.grid_check or None, workers=workers)
     out = result.to_json()
-    out.update(cells_per_L=args.cells, variants=VARIANTS)
+    out.update(cells_per_L=args.cells, variants=args.variants)
     pathlib.Path(args.out).write_text(json.dumps(out, indent=1))
     plot_design(result, args.figure, data_only=True,
                 title=f"S4 at L/{args.cells}, {100 * args.noise:g} % noise: the data's 95 % regions of (β, μ1)")
