@@ -3,7 +3,8 @@
 The data flow: ``data`` (profiles and front histories, validated) -> ``objective`` (a scene's
 residuals against them; ``observe`` holds what the run observes, apart from the data, and
 compiles the pure functions once per way of observing) -> ``fit`` (Levenberg–Marquardt or optax Adam, with bounds and a
-resumable history) -> ``uncertainty`` (Gauss–Newton covariance, identifiability, and the verdict
+resumable history; its options are ``options.FitOptions`` and ``options.JudgeOptions``, its JSON
+``report.fit_report``) -> ``uncertainty`` (Gauss–Newton covariance, identifiability, and the verdict
 whether a point is a fit of the data at all); ``search`` runs LM from many space-filling starts in
 one vmapped batch and reports every minimum within the noise of the best. Both run the
 ``(init, update)`` optimisers of ``lm`` (Levenberg–Marquardt) and ``adam`` through the one loop of
@@ -31,6 +32,8 @@ from .history import read_history
 from .likelihood import GridPosterior, HeldOut, ProfileLikelihood, grid_posterior, predict_heldout, profile_likelihood
 from .objective import CompositeObjective, FrontTarget, Objective, ProfileTarget
 from .observe import ModelFunctions, Observations, model_functions
+from .options import FitOptions, JudgeOptions, OptionError
+from .report import fit_report
 from .search import Minimum, SearchResult, coarse_to_fine, design_starts, search
 from .uncertainty import (
                           GridCheck,
@@ -50,5 +53,5 @@ __all__ = [
     "assess_fit", "design_starts", "fit", "gauss_newton_uncertainty", "list_datasets", "load_front_history",
     "load_measurements",
     "coarse_to_fine", "load_profile", "model_functions", "load_scaling_law", "read_history", "search",
-    "grid_shift", "structural_noise",
+    "grid_shift", "structural_noise", "FitOptions", "JudgeOptions", "OptionError", "fit_report",
 ]

@@ -153,6 +153,7 @@ def _scene_and_objective(args, keys, experiments=()):
 
     from jaxmpm.scenes import scene_dtype, scene_from_args
 
+    from .data import data_end_time
     from .objective import CompositeObjective, FrontTarget, Objective
 
     dtypes = {args.dtype or e.dtype or "float32" for e in experiments} or {scene_dtype(args)}
@@ -177,13 +178,8 @@ def _scene_and_objective(args, keys, experiments=()):
             members.append(member)
             scenes.append(member.scene)
             continue
-        if args.t_end is None:  # run until the latest data time, if the data say when they were taken
-            times = [p.time_s for p in profiles if p.time_s is not None]
-            if front is not None:
-                times.append(float(front.t[-1]))
-            if times:
-                args.t_end = max(times)
-        scene = scene_from_args(args)
+        t_end = args.t_end if args.t_end is not None else data_end_time(profiles, front)
+        scene = scene_from_args(argparse.Namespace(**{**vars(args), "t_end": t_end}))
         weights = {"profile": 1.0 if args.weight_profile is None else args.weight_profile,
                    "front": 1.0 if args.weight_front is None else args.weight_front}
         members.append(Objective(scene, keys, profile=profiles or None, front=front, weights=weights, **options))
@@ -196,6 +192,24 @@ def _objective_from_args(values: dict, keys):
     recipe a cluster worker runs (picklable as a ``functools.partial``)."""
     args = argparse.Namespace(**values)
     return _scene_and_objective(args, keys, _experiments(args))[1]
+
+
+def _fit_options_of(args, noise=None):
+    """The fit's ``FitOptions`` and ``JudgeOptions`` from the flags (``--grid-check 0``: off),
+    an error reported under the flag's name (``calibration.options.FLAGS``)."""
+    from .options import FitOptions, JudgeOptions, OptionError, cli_steps
+
+    try:
+        options = (FitOptions(method=args.method, steps=cli_steps(args.method, args.steps), learning_rate=args.lr)
+                   if getattr(args, "command", None) == "fit" else None)
+        judge = JudgeOptions(noise=noise, roundoff_samples=getattr(args, "roundoff_samples", 0),
+                             sampling_seeds=getattr(args, "sampling_seeds", 0),
+                             reference_noise=getattr(args, "reference_noise", 0.01),
+                             threshold=getattr(args, "threshold", 0.1),
+                             grid_ratio=getattr(args, "grid_check", 0) or None)
+    except OptionError as err:
+        raise err.as_flag() from None
+    return options, judge
 
 
 def _emit(obj, compact: bool) -> list[str]:
@@ -263,20 +277,17 @@ def _workers(args) -> int:
 
 
 def _fit(args) -> int:
-    import numpy as np
-
     from .fit import fit
+    from .report import fit_report
 
     experiments = _experiments(args)
     request = _fit_request(args, experiments)
     keys, init, noise = request.keys, request.init, request.noise
     starts = _starts(args, init)
     scene, objective = _scene_and_objective(args, keys, experiments)
-    steps = args.steps or (25 if args.method == "lm" else 150)
-    judging = {"roundoff_samples": args.roundoff_samples, "sampling_seeds": args.sampling_seeds,
-               "grid_ratio": args.grid_check or None,
-               "reference_noise": args.reference_noise,
-               "threshold": args.threshold}
+    options, judge = _fit_options_of(args, noise)
+    steps = options.steps
+    judging = {k: v for k, v in judge.kwargs().items() if k != "noise"}
     found = None
     with Workers(_workers(args)) as workers:
         if starts > 1:
@@ -298,25 +309,13 @@ def _fit(args) -> int:
                                noise=noise, progress=not args.no_progress, workers=workers, **judging)
             result = found.best
         else:
-            result = fit(objective, init, method=args.method, steps=steps, out=args.out, resume=args.resume,
-                         overwrite=args.overwrite, learning_rate=args.lr, progress=not args.no_progress,
-                         noise=noise, meta={"command": "python -m calibration " + " ".join(sys.argv[1:]),
-                                            "data": args.data, "front": args.front,
-                                            "experiments": [e.to_toml() for e in experiments]},
-                         workers=workers, **judging)
-    out = found.to_json() if found is not None else result.to_json()
-    metres = objective.in_metres(result.residuals)
-    profile = [v for name, v in metres.items() if "profile" in name]
-    out["residual_rms_m"] = (float(np.sqrt(np.mean(np.concatenate(profile) ** 2))) if profile else None)
-    out["residual_rms_m_by_block"] = {name: float(np.sqrt(np.mean(v ** 2))) for name, v in metres.items()}
-    if "front" in metres and metres["front"].size >= 3:
-        from .uncertainty import front_correlation
-
-        out["front_residual_correlation"] = {
-            **front_correlation(objective.observations.front_times, metres["front"]),
-            "assumed_correlation_time_s": objective.front.correlation_time}
-    if objective.bound_notes:
-        out["bound_notes"] = list(objective.bound_notes)
+            result = fit(objective, init, options=options, judge=judge, out=args.out, resume=args.resume,
+                         overwrite=args.overwrite, progress=not args.no_progress,
+                         meta={"command": "python -m calibration " + " ".join(sys.argv[1:]),
+                               "data": args.data, "front": args.front,
+                               "experiments": [e.to_toml() for e in experiments]},
+                         workers=workers)
+    out = fit_report(objective, result, found)
     if found is None:
         reason = _single_start_reason(args, init)
         out["search"] = {"starts": 1, "why": f"a single start ({reason or '--starts 1'})"}
@@ -325,9 +324,6 @@ def _fit(args) -> int:
         out["experiments"] = [str(e.path) for e in experiments]
     if args.out:
         out["out"] = str(args.out)
-    near = objective.bounds.near_bound([result.theta[k] for k in keys])
-    if near:
-        out["warning"] = f"{near} ended at a bound: the data push them outside the physical range"
     errors: dict[str, str] = {}
     profiles, posterior = _beyond_gauss_newton(args, objective, result, out)
     if args.plot:
@@ -434,7 +430,7 @@ def _sweep(args) -> int:
             raise ValueError(f"--mode {args.mode}: with --cluster every task is one vmapped chunk; drop --mode")
         if args.retries < 0:
             raise ValueError(f"--retries must be >= 0, got {args.retries}")
-    recipe = dict(vars(args))  # before _scene_and_objective fills in t_end from the data
+    recipe = dict(vars(args))  # the recipe a cluster worker rebuilds the objective from
     scene, objective = _scene_and_objective(args, keys, _experiments(args))
     objective.check_thetas(thetas, "--over")  # every member, before anything compiles
     if args.cluster is not None:
@@ -882,7 +878,7 @@ def _check_options(args) -> None:
         check_scene_args(args)
     if getattr(args, "front_correlation_time", None) is not None and not args.front:
         raise ValueError("--front-correlation-time needs --front (the front history whose errors it describes)")
-    for name in ("lr", "fd_step", "front_threshold", "front_correlation_time"):
+    for name in ("fd_step", "front_threshold", "front_correlation_time"):
         value = getattr(args, name, None)
         if value is not None and not (math.isfinite(value) and value > 0):
             raise ValueError(f"--{name.replace('_', '-')} must be a finite number > 0, got {value}")
@@ -896,16 +892,7 @@ def _check_options(args) -> None:
             if given and weight == 0:
                 raise ValueError(f"{option} 0 gives the {what} data no weight: their residuals would all be zero and "
                                  f"their uncertainty undefined; leave out {what} instead")
-    seeds = getattr(args, "sampling_seeds", 0)
-    if seeds != 0 and seeds < 2:
-        raise ValueError(f"--sampling-seeds must be 0 (not measured) or >= 2, got {seeds}")
-    samples = getattr(args, "roundoff_samples", 0)
-    if samples != 0 and samples < 2:
-        raise ValueError(f"--roundoff-samples must be 0 (not measured) or >= 2, got {samples}")
-    grid = getattr(args, "grid_check", 0)
-    if grid != 0 and not (math.isfinite(grid) and grid > 1):
-        raise ValueError(f"--grid-check must be 0 (not measured) or a finite factor > 1 of the grid spacing, "
-                         f"got {grid}")
+    _fit_options_of(args)  # the fit's and the verdict's options, checked by the library's option objects
     for option in ("init", "set"):
         if hasattr(args, option):
             _pairs(getattr(args, option), f"--{option}")  # malformed or repeated keys
@@ -980,7 +967,7 @@ def main(argv=None) -> int:
 
             if importlib.util.find_spec("blackjax") is None:
                 raise ValueError("--nuts needs blackjax: pip install 'jaxmpm[bayes]'")
-        for name in ("noise", "reference_noise", "threshold"):
+        for name in ("noise",):
             value = getattr(args, name, None)
             if value is not None and not (math.isfinite(value) and value >= 0):
                 raise ValueError(f"--{name.replace('_', '-')} must be >= 0, got {value}")

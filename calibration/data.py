@@ -72,7 +72,8 @@ import numpy as np
 from jaxmpm import tables
 
 __all__ = [
-    "UNITS", "DatasetInfo", "FrontHistory", "Profile", "RunoutLaw", "data_dir", "dataset_path", "list_datasets",
+    "UNITS", "DatasetInfo", "FrontHistory", "Profile", "RunoutLaw", "data_dir", "data_end_time", "dataset_path",
+    "list_datasets",
     "load_front_history", "load_profile", "load_scaling_law", "load_setup", "read_table",
 ]
 
@@ -634,6 +635,16 @@ def dataset_path(name: str) -> pathlib.Path:
     if not info.path.is_file():
         raise FileNotFoundError(f"dataset {name!r} is in the manifest but {str(info.path)!r} is missing")
     return info.path
+
+
+def data_end_time(profiles, front=None) -> float | None:
+    """The latest time (s) at which the data were taken (profiles that state their time, the
+    front history's last), or None where nothing says: the end time a run needs to be compared
+    with them, when none is given."""
+    times = [float(p.time_s) for p in profiles if getattr(p, "time_s", None) is not None]
+    if front is not None:
+        times.append(float(front.t[-1]))
+    return max(times) if times else None
 
 
 def load_measurements(experiment, *, sort: bool = False, clip_noise: bool = False) -> tuple[list, Any]:

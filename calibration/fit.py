@@ -50,16 +50,13 @@ from .history import History, check_out, read_history
 from .lm import LMOptions, LMState, levenberg_marquardt
 from .loop import Evaluation, run, status_text
 from .objective import jacobians_z
-from .uncertainty import GRID_DRAWS, ROUNDOFF_SAMPLES, Uncertainty, Verdict, check_grid_options, judge_point
+from .options import METHODS, FitOptions, JudgeOptions, split_fields
+from .uncertainty import Uncertainty, Verdict, judge_point
 from .workers import using
 
 __all__ = ["METHODS", "FitResult", "fit", "read_history", "start_theta"]
 
-METHODS = ("lm", "adam")
 #: The optimiser options a resume must share with the file (the others may change).
-_RESUME_OPTIONS = ("learning_rate", "clip", "grad_mode")
-
-
 @dataclasses.dataclass
 class FitResult:
     keys: tuple[str, ...]
@@ -215,17 +212,15 @@ def _restore(optimiser, saved: Mapping[str, Any], history: History):
                           count=np.array([history.iterations]), **common)
 
 
-def fit(objective, init: Mapping[str, float] | None = None, *, method: str = "lm", steps: int = 30,
-        out=None, resume: bool = False, overwrite: bool = False, learning_rate: float = 0.05, clip: float = 1.0,
-        grad_mode: str = "fwd",
-        xtol: float = 1e-6, ftol: float = 1e-7, stat_tol: float = 0.1, max_rejections: int = 6, progress: bool = False,
-        callback: Callable | None = None,
-        noise: Mapping[str, float] | float | None = None, uncertainty: bool = True,
-        roundoff_samples: int = ROUNDOFF_SAMPLES, sampling_seeds: int = 0, reference_noise: float = 0.01,
-        threshold: float = 0.1, grid_ratio: float | None = None, grid_draws: int = GRID_DRAWS,
-        meta: Mapping[str, Any] | None = None, workers=None) -> FitResult:
+def fit(objective, init: Mapping[str, float] | None = None, *, options: FitOptions | None = None,
+        judge: JudgeOptions | None = None, out=None, resume: bool = False, overwrite: bool = False,
+        progress: bool = False, callback: Callable | None = None, meta: Mapping[str, Any] | None = None,
+        workers=None, **fields) -> FitResult:
     """Fit ``objective.keys`` from ``init`` (physical values by key; missing keys start at the
-    scene's values). ``steps``: the maximum number of iterations (model evaluations), counted
+    scene's values). How it runs is ``options`` (``calibration.options.FitOptions``) and how its
+    end point is judged ``judge`` (``JudgeOptions``); any of their fields may also be given by
+    name (``steps=10``, ``grid_ratio=1.5``), replacing the object's value. ``steps``: the
+    maximum number of iterations (model evaluations), counted
     over resumes. ``out``: the HDF5 history file; ``resume``: continue from it (it must exist
     and hold a fit of the same objective: same fingerprint, keys, method and optimiser options);
     ``overwrite``: replace an existing ``out`` with a new fit (without it an existing file is an
@@ -249,33 +244,26 @@ def fit(objective, init: Mapping[str, float] | None = None, *, method: str = "lm
     ``calibration.workers.Workers``; with more than one, each iteration's forward-mode passes
     (one per key) and the verdict's extra runs go to that many single-threaded processes (the
     same numbers as one process; None or 1: everything in this process)."""
-    if method not in METHODS:
-        raise ValueError(f"method must be one of {METHODS}, got {method!r}")
-    check_grid_options(grid_ratio, grid_draws)
-    if grad_mode not in ("fwd", "rev"):
-        raise ValueError(f"grad_mode must be 'fwd' or 'rev', got {grad_mode!r}")
-    if not (isinstance(steps, int) and steps >= 1):
-        raise ValueError(f"steps must be a positive integer, got {steps!r}")
-    if not (math.isfinite(learning_rate) and learning_rate > 0):
-        raise ValueError(f"learning_rate must be > 0, got {learning_rate!r}")
+    run_fields, judge_fields = split_fields(fields)
+    options = dataclasses.replace(options or FitOptions(), **run_fields)
+    judge = dataclasses.replace(judge or JudgeOptions(), **judge_fields)
+    method, steps, grad_mode = options.method, options.steps, options.grad_mode
     path = check_out(out, resume=resume, overwrite=overwrite)
     bounds, keys = objective.bounds, objective.keys
     fingerprint_of = getattr(objective, "fingerprint", None)
     fingerprint = json.loads(json.dumps(fingerprint_of())) if fingerprint_of is not None else None
-    options = {"method": method, "steps": steps, "learning_rate": learning_rate, "clip": clip,
-               "grad_mode": grad_mode, "xtol": xtol, "ftol": ftol}
     header = None if path is None else {
-        "keys": list(keys), "method": method, "options": options, "objective": objective.describe(),
-        "fingerprint": fingerprint, "meta": dict(meta or {})}
+        "keys": list(keys), "method": method, "options": options.to_json(), "judge": judge.to_json(),
+        "objective": objective.describe(), "fingerprint": fingerprint, "meta": dict(meta or {})}
     if method == "lm":
-        optimiser = levenberg_marquardt(LMOptions(xtol=xtol, ftol=ftol, stat_tol=stat_tol,
-                                                  max_rejections=max_rejections))
+        optimiser = levenberg_marquardt(LMOptions(xtol=options.xtol, ftol=options.ftol, stat_tol=options.stat_tol,
+                                                  max_rejections=options.max_rejections))
     else:
-        optimiser = adam(learning_rate, steps=steps, clip=clip)
+        optimiser = adam(options.learning_rate, steps=steps, clip=options.clip)
 
     start_note = ""
     if resume:
-        history, saved = History.resume(path, header, same=_RESUME_OPTIONS, snapshot=_snapshot)
+        history, saved = History.resume(path, header, differences=options.differences, snapshot=_snapshot)
         state = _restore(optimiser, saved, history)
     else:
         theta0, start_note = start_theta(objective, init)
@@ -331,10 +319,8 @@ def fit(objective, init: Mapping[str, float] | None = None, *, method: str = "lm
             r_b, J_b = np.asarray(r_b, float), np.asarray(J_b, float)
             loss_b = float(np.sum(r_b * r_b))
         converged = done and message.startswith("converged")
-        verdict, unc = judge_point(objective, r_b, J_b, theta_best, converged=converged, message=message, noise=noise,
-                                   uncertainty=uncertainty, roundoff_samples=roundoff_samples,
-                                   sampling_seeds=sampling_seeds, reference_noise=reference_noise, threshold=threshold,
-                                   grid_ratio=grid_ratio, grid_draws=grid_draws, workers=workers)
+        verdict, unc = judge_point(objective, r_b, J_b, theta_best, converged=converged, message=message,
+                                   workers=workers, **judge.kwargs())
         return FitResult(keys=keys, theta={k: float(v) for k, v in zip(keys, theta_best)}, loss=float(loss_b),
                          iterations=len(hist["loss"]), wall_s=float(hist["wall_s"][-1]) if len(hist["wall_s"]) else 0.0,
                          method=method, converged=converged, message=message,

@@ -160,21 +160,23 @@ class History:
         self.t0 = time.perf_counter() if t0 is None else t0
 
     @classmethod
-    def resume(cls, path: pathlib.Path, header: Mapping[str, Any], *, same: Sequence[str],
+    def resume(cls, path: pathlib.Path, header: Mapping[str, Any], *,
+               differences: Callable[[Mapping[str, Any]], Sequence[str]],
                snapshot: Callable[[Any], dict]) -> tuple[History, dict[str, Any]]:
         """The history in ``path``, to be continued by a fit with this ``header`` (keys, method,
-        options, fingerprint), which must agree with the file's in keys, method, the options
-        named in ``same`` and the fingerprint; and the file's resume arrays, with its message."""
+        options, fingerprint), which must agree with the file's in keys, method and fingerprint,
+        and whose options ``differences(the file's options)`` finds none; and the file's resume
+        arrays, with its message."""
         saved = read_history(path)
         attrs = saved["attrs"]
-        keys, method, options = tuple(header["keys"]), header["method"], header["options"]
+        keys, method = tuple(header["keys"]), header["method"]
         if tuple(attrs["keys_json"]) != keys or attrs["method"] != method:
             raise ValueError(f"out: {str(path)!r} holds a {attrs['method']} fit of {attrs['keys_json']}, "
                              f"not a {method} fit of {list(keys)}")
-        for k in same:
-            if attrs["options_json"].get(k) != options[k]:
-                raise ValueError(f"resume: {k} = {options[k]!r} differs from the file's "
-                                 f"{attrs['options_json'].get(k)!r}")
+        changed = differences(attrs["options_json"])
+        if changed:
+            raise ValueError(f"resume: the fit's options differ from those {str(path)!r} was made with, which a "
+                             "resume would mix into one history: " + "; ".join(changed))
         fingerprint = header.get("fingerprint")
         if fingerprint is not None:
             if "fingerprint_json" not in attrs:

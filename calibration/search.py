@@ -41,11 +41,11 @@ from .history import History
 from .lm import LMOptions, levenberg_marquardt
 from .loop import Evaluation, run
 from .objective import jacobian_by_columns, jacobians_z
+from .options import FitOptions, JudgeOptions
 from .uncertainty import (
     GRID_DRAWS,
     ROUNDOFF_SAMPLES,
     block_noise,
-    check_grid_options,
     chi2_of,
     chi2_quantile,
     judge_point,
@@ -244,10 +244,13 @@ def search(objective, starts: int | np.ndarray = DEFAULT_STARTS, *, seed: int = 
     ``calibration.workers.Workers``): with more than one, every iteration's forward-mode passes
     (each active start's, one per key) run in that many single-threaded processes instead of
     one vmapped batch, and so do the verdict's extra runs."""
-    check_grid_options(grid_ratio, grid_draws)
+    JudgeOptions(noise=noise, uncertainty=uncertainty, roundoff_samples=roundoff_samples,  # validated once,
+                 sampling_seeds=sampling_seeds, reference_noise=reference_noise, threshold=threshold,  # as for fit
+                 grid_ratio=grid_ratio, grid_draws=grid_draws)
     with using(workers) as workers:
         clock0 = time.perf_counter()
         steps = _check_int("steps", steps, 1)
+        FitOptions(steps=int(steps), xtol=xtol, ftol=ftol, stat_tol=stat_tol, max_rejections=max_rejections)
         if not (math.isfinite(cluster_tol) and 0 < cluster_tol < 1):
             raise ValueError(f"cluster_tol must be in (0, 1), got {cluster_tol!r}")
         keys, bounds = objective.keys, objective.bounds

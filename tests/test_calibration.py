@@ -265,6 +265,17 @@ def test_resume_refuses_a_different_fit(problem, tmp_path):
         fit(objective, {"beta": 0.2}, method="adam", steps=2, out=tmp_path / "f.h5", resume=True)
 
 
+@pytest.mark.parametrize("change", [dict(stat_tol=0.2), dict(max_rejections=3), dict(xtol=1e-4)])
+def test_resume_compares_every_run_option(problem, tmp_path, change):
+    """The history records the fit's options whole; a resume that changes any of them but the
+    iteration budget is refused (stat_tol and max_rejections once escaped the check)."""
+    _, _, objective = problem
+    fit(objective, {"beta": 0.2}, steps=1, out=tmp_path / "f.h5", uncertainty=False)
+    (field,) = change
+    with pytest.raises(ValueError, match=f"options differ.*{field}"):
+        fit(objective, {"beta": 0.2}, steps=2, out=tmp_path / "f.h5", resume=True, uncertainty=False, **change)
+
+
 # 40-60 s; the resume logic itself is tested in-process above and by the CLI in test_robust_calibration.
 @pytest.mark.slow
 def test_killed_command_line_fit_resumes(tmp_path):

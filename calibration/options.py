@@ -1,0 +1,173 @@
+"""A fit's options, validated once: how it runs (``FitOptions``) and how its end point is judged
+(``JudgeOptions``).
+
+Both are frozen dataclasses whose ``__post_init__`` refuses a bad value with an ``OptionError``
+naming the field. The command line builds the same objects from its flags and reports the error
+under the flag's name through one table (``FLAGS``), so that every check is written once.
+
+``FitOptions`` is what a fit's history file records and what a resume must repeat: every field
+but ``steps`` (a resumed fit may run further), compared whole (``FitOptions.differences``).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Mapping
+from typing import Any
+
+from .uncertainty import GRID_DRAWS, ROUNDOFF_SAMPLES
+
+__all__ = ["FitOptions", "JudgeOptions", "OptionError", "FLAGS", "METHODS", "GRAD_MODES", "cli_steps"]
+
+METHODS = ("lm", "adam")
+GRAD_MODES = ("fwd", "rev")
+
+#: Library field -> command-line flag (None: the command line does not set it).
+FLAGS: dict[str, str | None] = {
+    "method": "--method", "steps": "--steps", "learning_rate": "--lr", "clip": None, "grad_mode": None,
+    "xtol": None, "ftol": None, "stat_tol": None, "max_rejections": None,
+    "noise": "--noise", "uncertainty": None, "roundoff_samples": "--roundoff-samples",
+    "sampling_seeds": "--sampling-seeds", "reference_noise": "--reference-noise", "threshold": "--threshold",
+    "grid_ratio": "--grid-check", "grid_draws": None,
+}
+
+
+class OptionError(ValueError):
+    """A bad option: ``field`` (the library's name) and ``what`` was wrong with it."""
+
+    def __init__(self, field: str, what: str):
+        super().__init__(f"{field} {what}")
+        self.field, self.what = field, what
+
+    def as_flag(self) -> ValueError:
+        """The same error under the command-line flag's name (``FLAGS``)."""
+        return ValueError(f"{FLAGS.get(self.field) or self.field} {self.what}")
+
+
+def _is_int(value) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool)
+
+
+def _is_number(value) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+
+
+def _require(ok: bool, field: str, what: str, value) -> None:
+    if not ok:
+        raise OptionError(field, f"must be {what}, got {value!r}")
+
+
+@dataclasses.dataclass(frozen=True)
+class FitOptions:
+    """How a fit runs. ``method``: "lm" (Levenberg–Marquardt) or "adam"; ``steps``: the most
+    iterations (model evaluations), counted over resumes; ``learning_rate``, ``clip``,
+    ``grad_mode`` ("fwd" or "rev"): Adam's; LM stops when the decrease its linearised model
+    promises is below ``stat_tol`` × n σ², when an accepted step lowers the loss by less than
+    ``ftol`` or moves θ by less than ``xtol`` (relative), or after ``max_rejections`` rejected
+    steps in a row (``calibration.fit.fit`` says more)."""
+
+    method: str = "lm"
+    steps: int = 30
+    learning_rate: float = 0.05
+    clip: float = 1.0
+    grad_mode: str = "fwd"
+    xtol: float = 1e-6
+    ftol: float = 1e-7
+    stat_tol: float = 0.1
+    max_rejections: int = 6
+
+    def __post_init__(self):
+        _require(self.method in METHODS, "method", f"one of {METHODS}", self.method)
+        _require(_is_int(self.steps) and self.steps >= 1, "steps", "a positive integer", self.steps)
+        _require(_is_number(self.learning_rate) and self.learning_rate > 0, "learning_rate", "a finite number > 0",
+                 self.learning_rate)
+        _require(_is_number(self.clip) and self.clip > 0, "clip", "a finite number > 0", self.clip)
+        _require(self.grad_mode in GRAD_MODES, "grad_mode", f"one of {GRAD_MODES}", self.grad_mode)
+        for name in ("xtol", "ftol", "stat_tol"):
+            value = getattr(self, name)
+            _require(_is_number(value) and value >= 0, name, "a finite number >= 0", value)
+        _require(_is_int(self.max_rejections) and self.max_rejections >= 1, "max_rejections", "an integer >= 1",
+                 self.max_rejections)
+
+    def to_json(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+    def differences(self, saved: Mapping[str, Any]) -> list[str]:
+        """The fields (``steps`` apart) whose value differs from ``saved`` (a history file's
+        record, ``to_json``), as "field: now … , the file's …"; a field the file does not record
+        counts as different."""
+        out = []
+        for field in dataclasses.fields(self):
+            if field.name == "steps":
+                continue
+            now = getattr(self, field.name)
+            if field.name not in saved:
+                out.append(f"{field.name}: {now!r} now, not recorded in the file")
+            elif saved[field.name] != now:
+                out.append(f"{field.name}: {now!r} now, {saved[field.name]!r} in the file")
+        return out
+
+
+def cli_steps(method: str, steps: int | None) -> int:
+    """The command line's iteration budget: ``steps``, or 25 for LM and 150 for Adam."""
+    return steps if steps is not None else (25 if method == "lm" else 150)
+
+
+@dataclasses.dataclass(frozen=True)
+class JudgeOptions:
+    """How a fit's end point is judged (``calibration.uncertainty.judge_point``). ``noise``:
+    the known noise (a number, or one per residual block; None: estimated); ``uncertainty``:
+    compute intervals at all; ``roundoff_samples`` perturbed runs for the run's own scatter and
+    ``sampling_seeds`` other particle draws (0, or 2 and more: 0 is not measured);
+    ``reference_noise`` and ``threshold`` decide which parameters count as constrained;
+    ``grid_ratio`` (None: not measured, else > 1) and ``grid_draws``: the grid term."""
+
+    noise: Mapping[str, float] | float | None = None
+    uncertainty: bool = True
+    roundoff_samples: int = ROUNDOFF_SAMPLES
+    sampling_seeds: int = 0
+    reference_noise: float = 0.01
+    threshold: float = 0.1
+    grid_ratio: float | None = None
+    grid_draws: int = GRID_DRAWS
+
+    def __post_init__(self):
+        noise = self.noise
+        values = list(noise.values()) if isinstance(noise, Mapping) else ([] if noise is None else [noise])
+        for value in values:
+            _require(_is_number(value) and value >= 0, "noise", "None, a finite number >= 0 or one per block",
+                     noise)
+        _require(isinstance(self.uncertainty, bool), "uncertainty", "True or False", self.uncertainty)
+        for name in ("roundoff_samples", "sampling_seeds"):
+            value = getattr(self, name)
+            _require(_is_int(value) and (value == 0 or value >= 2), name, "0 (not measured) or an integer >= 2",
+                     value)
+        for name in ("reference_noise", "threshold"):
+            value = getattr(self, name)
+            _require(_is_number(value) and value >= 0, name, "a finite number >= 0", value)
+        _require(self.grid_ratio is None or (_is_number(self.grid_ratio) and self.grid_ratio > 1), "grid_ratio",
+                 "off (None; 0 on the command line) or a finite factor > 1 of the grid spacing", self.grid_ratio)
+        _require(_is_int(self.grid_draws) and self.grid_draws >= 1, "grid_draws", "an integer >= 1", self.grid_draws)
+
+    def kwargs(self) -> dict[str, Any]:
+        """The fields as keyword arguments (``judge_point``, ``search``)."""
+        return {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
+
+    def to_json(self) -> dict[str, Any]:
+        out = self.kwargs()
+        if isinstance(self.noise, Mapping):
+            out["noise"] = dict(self.noise)
+        return out
+
+
+def split_fields(fields: Mapping[str, Any]) -> tuple[dict[str, Any], dict[str, Any]]:
+    """``fields`` (keyword arguments of ``fit``) divided into ``FitOptions``' and
+    ``JudgeOptions``'; any other name is a ``TypeError``, as for a function's arguments."""
+    run_names = {f.name for f in dataclasses.fields(FitOptions)}
+    judge_names = {f.name for f in dataclasses.fields(JudgeOptions)}
+    unknown = sorted(set(fields) - run_names - judge_names)
+    if unknown:
+        raise TypeError(f"unexpected keyword arguments {unknown}")
+    return ({k: v for k, v in fields.items() if k in run_names},
+            {k: v for k, v in fields.items() if k in judge_names})

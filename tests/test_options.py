@@ -1,0 +1,76 @@
+"""The fit's option objects: every bad value refused once, by field, before anything runs; the
+command line reports the same check under its flag."""
+
+import dataclasses
+
+import pytest
+
+from calibration.options import FLAGS, FitOptions, JudgeOptions, OptionError, split_fields
+
+
+@pytest.mark.parametrize("field, value, what", [
+    ("method", "bfgs", "must be one of"),
+    ("steps", 0, "a positive integer"),
+    ("steps", 2.5, "a positive integer"),
+    ("learning_rate", 0.0, "> 0"),
+    ("learning_rate", float("nan"), "> 0"),
+    ("clip", -1.0, "> 0"),
+    ("grad_mode", "both", "one of"),
+    ("stat_tol", -0.1, ">= 0"),
+    ("max_rejections", 0, "an integer >= 1"),
+    ("max_rejections", True, "an integer >= 1"),
+])
+def test_fit_options_refuse_bad_values(field, value, what):
+    with pytest.raises(OptionError, match=what) as info:
+        FitOptions(**{field: value})
+    assert info.value.field == field and str(info.value).startswith(field)
+
+
+@pytest.mark.parametrize("field, value, what", [
+    ("noise", -0.01, ">= 0"),
+    ("noise", {"profile": float("inf")}, ">= 0"),
+    ("uncertainty", 1, "True or False"),
+    ("roundoff_samples", 1, "0 \\(not measured\\) or an integer >= 2"),
+    ("sampling_seeds", 1, "0 \\(not measured\\) or an integer >= 2"),
+    ("reference_noise", -1.0, ">= 0"),
+    ("threshold", float("nan"), ">= 0"),
+    ("grid_ratio", 1.0, "factor > 1"),
+    ("grid_ratio", 0, "factor > 1"),
+    ("grid_draws", 0, "an integer >= 1"),
+])
+def test_judge_options_refuse_bad_values(field, value, what):
+    with pytest.raises(OptionError, match=what):
+        JudgeOptions(**{field: value})
+
+
+def test_options_are_frozen_and_defaults_valid():
+    options, judge = FitOptions(), JudgeOptions()
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        options.steps = 3
+    assert judge.grid_ratio is None and judge.kwargs()["grid_draws"] >= 1
+
+
+def test_differences_cover_every_field_but_steps():
+    saved = FitOptions().to_json()
+    assert FitOptions(steps=99).differences(saved) == []
+    for field in dataclasses.fields(FitOptions):
+        if field.name in ("steps", "method", "grad_mode"):
+            continue
+        changed = dataclasses.replace(FitOptions(), **{field.name: getattr(FitOptions(), field.name) * 2})
+        assert [d.split(":")[0] for d in changed.differences(saved)] == [field.name]
+    older = {k: v for k, v in saved.items() if k != "stat_tol"}  # a file written before stat_tol was recorded
+    assert FitOptions().differences(older) == ["stat_tol: 0.1 now, not recorded in the file"]
+
+
+def test_one_flag_table_for_every_field():
+    names = {f.name for f in dataclasses.fields(FitOptions)} | {f.name for f in dataclasses.fields(JudgeOptions)}
+    assert set(FLAGS) == names
+    assert str(OptionError("grid_ratio", "must be > 1, got 0.5").as_flag()) == "--grid-check must be > 1, got 0.5"
+    assert str(OptionError("xtol", "must be >= 0").as_flag()) == "xtol must be >= 0"  # no flag: the field's name
+
+
+def test_split_fields():
+    run, judge = split_fields({"steps": 3, "grid_ratio": 1.5})
+    assert run == {"steps": 3} and judge == {"grid_ratio": 1.5}
+    with pytest.raises(TypeError, match="unexpected keyword arguments \\['stepz'\\]"):
+        split_fields({"stepz": 3})
