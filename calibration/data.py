@@ -52,7 +52,7 @@ Shipped data
 ``list_datasets()`` reads ``experiments_data/manifest.json``; ``dataset_path(name)`` finds a
 file from its manifest name or its path inside ``experiments_data/``. The folder is where the
 environment variable ``JAXMPM_EXPERIMENTS_DATA`` points if it is set, else the one next to the
-``calibration`` package (a source checkout or an editable install), else the installed package
+``jaxmpm`` package (a source checkout or an editable install), else the installed package
 ``jaxmpm.experiments_data`` (``pip install .`` installs the folder under that name).
 """
 
@@ -70,6 +70,7 @@ from typing import Any
 import numpy as np
 
 from jaxmpm import tables
+from jaxmpm.datasets import DatasetInfo, data_dir, dataset_path, list_datasets  # the one finder, re-exported
 
 __all__ = [
     "UNITS", "DatasetInfo", "FrontHistory", "Profile", "RunoutLaw", "data_dir", "data_end_time", "dataset_path",
@@ -85,7 +86,6 @@ _FIELD_KEYS = ("experiment", "time_s", "units", "source", "synthetic")
 #: Negative heights down to this fraction of max h count as digitisation noise (``clip_noise``).
 NOISE_FRACTION = 1e-3
 _MIN_POINTS = 3
-_ENV = "JAXMPM_EXPERIMENTS_DATA"
 #: A ``time_s`` header in words that starts with this word means the final deposit, after the
 #: flow stopped (``time_s`` None: the end of the run).
 _FINAL = "final"
@@ -561,80 +561,6 @@ def load_scaling_law(path: str | os.PathLike) -> RunoutLaw:
 # ---------------------------------------------------------------------------------------------
 # Shipped data
 # ---------------------------------------------------------------------------------------------
-
-
-@dataclasses.dataclass(frozen=True)
-class DatasetInfo:
-    """One file of ``experiments_data/`` as its manifest describes it."""
-
-    name: str
-    path: pathlib.Path
-    kind: str  # setup, scaling_law, analytic, synthetic, example or measured
-    description: str
-    synthetic: bool
-    secondary: bool
-    source: str = ""  # where a third-party file comes from (manifest "source"; empty for the project's own)
-    licence: str = ""  # its licence where it is not the project's (manifest "licence")
-
-
-def data_dir() -> pathlib.Path:
-    """The ``experiments_data`` folder: ``$JAXMPM_EXPERIMENTS_DATA`` if set, else the one next to the
-    ``calibration`` package (a source checkout), else the installed ``jaxmpm.experiments_data``.
-    Raises ``FileNotFoundError`` if none holds a ``manifest.json``."""
-    env = os.environ.get(_ENV)
-    if env:
-        folder = pathlib.Path(env)
-        if not (folder / "manifest.json").is_file():
-            raise FileNotFoundError(f"${_ENV} = {env!r} has no manifest.json")
-        return folder
-    checkout = pathlib.Path(__file__).resolve().parent.parent / "experiments_data"
-    if (checkout / "manifest.json").is_file():
-        return checkout
-    installed = _installed_data_dir()
-    if installed is not None and (installed / "manifest.json").is_file():
-        return installed
-    raise FileNotFoundError(
-        f"experiments_data/ not found: neither at {str(checkout)!r} (a source checkout) nor as the installed "
-        f"package jaxmpm.experiments_data ({'not installed' if installed is None else str(installed)!r}). "
-        f"Reinstall jaxmpm (pip install .) or set {_ENV} to the folder's path")
-
-
-def _installed_data_dir() -> pathlib.Path | None:
-    """Where ``pip install .`` put the shipped data, or None if it is not installed."""
-    import importlib.util
-
-    try:
-        spec = importlib.util.find_spec("jaxmpm.experiments_data")
-    except ImportError:
-        return None
-    if spec is None or not spec.submodule_search_locations:
-        return None
-    return pathlib.Path(next(iter(spec.submodule_search_locations)))
-
-
-def list_datasets() -> dict[str, DatasetInfo]:
-    """The shipped files by manifest name (e.g. ``'synthetic/S4_beta0.25'``)."""
-    folder = data_dir()
-    manifest = json.loads((folder / "manifest.json").read_text())
-    out = {}
-    for entry in manifest["files"]:
-        out[entry["name"]] = DatasetInfo(
-            name=entry["name"], path=folder / entry["path"], kind=entry["kind"], description=entry["description"],
-            synthetic=bool(entry["synthetic"]), secondary=bool(entry["secondary"]),
-            source=str(entry.get("source", "")), licence=str(entry.get("licence", "")),
-        )
-    return out
-
-
-def dataset_path(name: str) -> pathlib.Path:
-    """Path of a shipped file from its manifest name or its path inside ``experiments_data/``."""
-    datasets = list_datasets()
-    info = datasets.get(name) or next((d for d in datasets.values() if d.path == data_dir() / name), None)
-    if info is None:
-        raise FileNotFoundError(f"no shipped dataset {name!r}; known: {sorted(datasets)}")
-    if not info.path.is_file():
-        raise FileNotFoundError(f"dataset {name!r} is in the manifest but {str(info.path)!r} is missing")
-    return info.path
 
 
 def data_end_time(profiles, front=None) -> float | None:

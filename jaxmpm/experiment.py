@@ -716,7 +716,7 @@ SHIPPED_EXPERIMENTS = {
 
 def shipped_experiment(name: str) -> Experiment:
     """A shipped experiment by its scene name (``SHIPPED_EXPERIMENTS``) or file name."""
-    from calibration.data import data_dir
+    from .datasets import data_dir
 
     file = SHIPPED_EXPERIMENTS.get(name, name)
     path = data_dir() / "experiments" / file

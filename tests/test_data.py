@@ -461,11 +461,13 @@ def test_dataset_lookup_errors(tmp_path, monkeypatch):
 
 
 def test_data_dir_missing_says_where_it_looked(tmp_path, monkeypatch):
-    # calibration/ with no experiments_data/ beside it and no installed jaxmpm.experiments_data
+    # jaxmpm/ with no experiments_data/ beside it and no installed jaxmpm.experiments_data
     # (a broken install): the error names both places and the environment variable.
+    import jaxmpm.datasets as datasets
+
     monkeypatch.delenv("JAXMPM_EXPERIMENTS_DATA", raising=False)
-    monkeypatch.setattr(data, "__file__", str(tmp_path / "site-packages" / "calibration" / "data.py"))
-    monkeypatch.setattr(data, "_installed_data_dir", lambda: None)
+    monkeypatch.setattr(datasets, "__file__", str(tmp_path / "site-packages" / "jaxmpm" / "datasets.py"))
+    monkeypatch.setattr(datasets, "_installed_data_dir", lambda: None)
     with pytest.raises(FileNotFoundError,
                        match=r"experiments_data/ not found.*source checkout.*not installed.*JAXMPM_EXPERIMENTS_DATA"):
         list_datasets()

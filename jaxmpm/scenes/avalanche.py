@@ -56,7 +56,7 @@ DEFAULT_TERRAIN = "terrain/iseesnow_coulombonly_centerline"
 
 
 def default_terrain_path() -> pathlib.Path:
-    from calibration.data import dataset_path  # the one loader of the shipped data
+    from ..datasets import dataset_path
 
     return dataset_path(DEFAULT_TERRAIN)
 
