@@ -108,41 +108,15 @@ def _experiments(args) -> list:
     return [experiment_from_args(args, path=file) for file in files]
 
 
-@dataclasses.dataclass(frozen=True)
-class _FitRequest:
-    """What to fit, from the command line over the experiment files' [fit] tables."""
+def _fit_request(args, experiments):
+    """The command line's keys, starting values and noise over the experiment files' [fit] tables."""
+    from .options import OptionError, fit_request
 
-    keys: tuple[str, ...]
-    init: dict
-    noise: float | None
-
-
-def _fit_request(args, experiments) -> _FitRequest:
-    specs = [e.fit for e in experiments if e.fit is not None]
-
-    def agreed(name, values):
-        if any(v != values[0] for v in values):
-            raise ValueError(f"the experiment files' [fit] {name} differ ({values}); give it on the command line")
-        return values[0] if values else None
-
-    if getattr(args, "fit", None):
-        keys = _keys(args.fit)
-    elif specs:
-        if len(specs) < len(experiments):
-            raise ValueError("--fit is required: not every experiment file has a [fit] table with its keys")
-        keys = agreed("keys", [s.keys for s in specs])
-    else:
-        raise ValueError("--fit is required (the keys to fit), or a [fit] table with keys in the experiment file")
-    init = _pairs(getattr(args, "init", []), "--init")
-    if not init and specs:
-        init = dict(agreed("init", [dict(s.init) for s in specs]) or {})
-    stray = sorted(set(init) - set(keys))
-    if stray:
-        raise ValueError(f"starting values for {stray}, which are not fitted ({', '.join(keys)})")
-    noise = getattr(args, "noise", None)
-    if noise is None and specs:
-        noise = agreed("noise", [s.noise for s in specs])
-    return _FitRequest(keys, init, noise)
+    keys = _keys(args.fit) if getattr(args, "fit", None) else None
+    try:
+        return fit_request(experiments, keys, _pairs(getattr(args, "init", []), "--init"), getattr(args, "noise", None))
+    except OptionError as err:
+        raise err.as_flag() from None
 
 
 def _scene_and_objective(args, keys, experiments=()):
@@ -151,33 +125,28 @@ def _scene_and_objective(args, keys, experiments=()):
     the scene returned is the first's)."""
     import jax
 
-    from jaxmpm.scenes import scene_dtype, scene_from_args
+    from jaxmpm.scenes import experiments_dtype, scene_dtype, scene_from_args
 
     from .data import data_end_time
     from .objective import CompositeObjective, FrontTarget, Objective
 
-    dtypes = {args.dtype or e.dtype or "float32" for e in experiments} or {scene_dtype(args)}
-    if len(dtypes) > 1:
-        raise ValueError(f"the experiment files run in different dtypes ({sorted(dtypes)}); give --dtype")
-    if dtypes == {"float64"}:
+    dtype = experiments_dtype(experiments, args.dtype) if experiments else scene_dtype(args)
+    if dtype == "float64":
         jax.config.update("jax_enable_x64", True)
     members, scenes = [], []
     for experiment in experiments or [None]:
         profiles, front = _load_data(args, experiment)
         options = dict(front_threshold=args.front_threshold, jacobian=getattr(args, "jacobian", "ad"))
-        if front is not None and getattr(args, "front_correlation_time", None) is not None:
-            front = dataclasses.replace(FrontTarget.of(front), correlation_time=args.front_correlation_time)
         if experiment is not None:
-            weights = {"profile": args.weight_profile, "front": args.weight_front}
-            if any(w is not None for w in weights.values()):  # the command line's over the file's
-                spec = experiment.fit
-                weights = {k: w if w is not None else (getattr(spec, f"weight_{k}") if spec else 1.0)
-                           for k, w in weights.items()}
-                options["weights"] = weights
-            member = Objective.from_experiment(experiment, keys, profile=profiles or None, front=front, **options)
+            member = Objective.from_experiment(
+                experiment, keys, profile=profiles or None, front=front,
+                weights={"profile": args.weight_profile, "front": args.weight_front},
+                front_correlation_time=getattr(args, "front_correlation_time", None), **options)
             members.append(member)
             scenes.append(member.scene)
             continue
+        if front is not None and getattr(args, "front_correlation_time", None) is not None:
+            front = dataclasses.replace(FrontTarget.of(front), correlation_time=args.front_correlation_time)
         t_end = args.t_end if args.t_end is not None else data_end_time(profiles, front)
         scene = scene_from_args(argparse.Namespace(**{**vars(args), "t_end": t_end}))
         weights = {"profile": 1.0 if args.weight_profile is None else args.weight_profile,

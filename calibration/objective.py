@@ -469,11 +469,14 @@ class Objective:
         return Objective(self.scene.at_dx(dx), self.keys, **self._options)
 
     @classmethod
-    def from_experiment(cls, experiment, keys: Sequence[str] | None = None, **options) -> Objective:
+    def from_experiment(cls, experiment, keys: Sequence[str] | None = None, *,
+                        front_correlation_time: float | None = None, **options) -> Objective:
         """The objective of a ``jaxmpm.Experiment``: its scene, its measurements
         (``calibration.data.load_measurements``; ``profile=``/``front=`` replace them), the keys of
-        its [fit] table (or ``keys``) and its blocks' weights; ``options`` as for ``Objective``.
-        What ``python -m calibration fit EXPERIMENT.toml`` fits."""
+        its [fit] table (or ``keys``) and its blocks' weights (``weights=`` over them, block by
+        block: a block given None keeps the file's); the front's correlation time is the file's
+        unless ``front_correlation_time`` is given; ``options`` as for ``Objective``. What
+        ``python -m calibration fit EXPERIMENT.toml`` fits."""
         from .data import load_measurements
 
         spec = experiment.fit
@@ -481,17 +484,23 @@ class Objective:
             if spec is None:
                 raise ValueError(f"{experiment.path or experiment.name}: no [fit] keys; pass keys")
             keys = spec.keys
-        if "profile" not in options and "front" not in options:
+        if options.get("profile") is None and options.get("front") is None:
             profiles, front = load_measurements(experiment)
             options.update(profile=profiles or None, front=front)
             if not profiles and front is None:
                 raise ValueError(f"{experiment.path or experiment.name}: lists no measurement ([[profile]] or "
                                  "[front])")
-        if spec is not None and options.get("weights") is None:
-            options["weights"] = {"profile": spec.weight_profile, "front": spec.weight_front}
+        given = dict(options.get("weights") or {})
+        filed = {"profile": spec.weight_profile, "front": spec.weight_front} if spec is not None else {}
+        if filed or given:
+            options["weights"] = {k: given[k] if given.get(k) is not None else filed.get(k, 1.0)
+                                  for k in ("profile", "front")}
         front = options.get("front")
-        if (front is not None and experiment.front is not None and experiment.front.correlation_time is not None
-                and not isinstance(front, FrontTarget)):
+        if front is not None and front_correlation_time is not None:
+            target = front if isinstance(front, FrontTarget) else FrontTarget.of(front)
+            options["front"] = dataclasses.replace(target, correlation_time=front_correlation_time)
+        elif (front is not None and experiment.front is not None and experiment.front.correlation_time is not None
+              and not isinstance(front, FrontTarget)):
             options["front"] = dataclasses.replace(FrontTarget.of(front),
                                                    correlation_time=experiment.front.correlation_time)
         return cls(experiment.scene(), keys, **options)

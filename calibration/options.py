@@ -18,7 +18,8 @@ from typing import Any
 
 from .uncertainty import GRID_DRAWS, ROUNDOFF_SAMPLES
 
-__all__ = ["FitOptions", "JudgeOptions", "OptionError", "FLAGS", "METHODS", "GRAD_MODES", "cli_steps"]
+__all__ = ["FitOptions", "JudgeOptions", "FitRequest", "OptionError", "FLAGS", "METHODS", "GRAD_MODES", "cli_steps",
+           "fit_request"]
 
 METHODS = ("lm", "adam")
 GRAD_MODES = ("fwd", "rev")
@@ -29,7 +30,7 @@ FLAGS: dict[str, str | None] = {
     "xtol": None, "ftol": None, "stat_tol": None, "max_rejections": None,
     "noise": "--noise", "uncertainty": None, "roundoff_samples": "--roundoff-samples",
     "sampling_seeds": "--sampling-seeds", "reference_noise": "--reference-noise", "threshold": "--threshold",
-    "grid_ratio": "--grid-check", "grid_draws": None,
+    "grid_ratio": "--grid-check", "grid_draws": None, "keys": "--fit", "init": "--init",
 }
 
 
@@ -171,3 +172,48 @@ def split_fields(fields: Mapping[str, Any]) -> tuple[dict[str, Any], dict[str, A
         raise TypeError(f"unexpected keyword arguments {unknown}")
     return ({k: v for k, v in fields.items() if k in run_names},
             {k: v for k, v in fields.items() if k in judge_names})
+
+
+@dataclasses.dataclass(frozen=True)
+class FitRequest:
+    """What to fit: the ``keys``, their starting values ``init`` (empty: the scene's values, or a
+    search) and the data's known ``noise`` (None: estimated)."""
+
+    keys: tuple[str, ...]
+    init: Mapping[str, float] = dataclasses.field(default_factory=dict)
+    noise: float | None = None
+
+    def __post_init__(self):
+        _require(bool(self.keys) and all(isinstance(k, str) and k for k in self.keys), "keys",
+                 "a non-empty sequence of parameter names", self.keys)
+        stray = sorted(set(self.init) - set(self.keys))
+        if stray:
+            raise OptionError("init", f"gives starting values for {stray}, which are not fitted "
+                                      f"({', '.join(self.keys)})")
+
+
+def fit_request(experiments=(), keys=None, init=None, noise=None) -> FitRequest:
+    """The ``FitRequest`` of a fit of ``experiments`` (``jaxmpm.Experiment``): ``keys``,
+    ``init`` and ``noise`` where given, else what every file's [fit] table agrees on (files that
+    disagree must be overruled)."""
+    specs = [e.fit for e in experiments if e.fit is not None]
+
+    def agreed(name, values):
+        if any(v != values[0] for v in values):
+            raise OptionError(name, f"differs between the experiment files' [fit] tables ({values}); give it")
+        return values[0] if values else None
+
+    if keys:
+        keys = tuple(keys)
+    elif specs:
+        if len(specs) < len(experiments):
+            raise OptionError("keys", "is required: not every experiment file has a [fit] table with its keys")
+        keys = agreed("keys", [tuple(s.keys) for s in specs])
+    else:
+        raise OptionError("keys", "is required (the keys to fit), or a [fit] table with keys in the experiment file")
+    init = dict(init or {})
+    if not init and specs:
+        init = dict(agreed("init", [dict(s.init) for s in specs]) or {})
+    if noise is None and specs:
+        noise = agreed("noise", [s.noise for s in specs])
+    return FitRequest(keys, init, noise)

@@ -5,7 +5,7 @@ import dataclasses
 
 import pytest
 
-from calibration.options import FLAGS, FitOptions, JudgeOptions, OptionError, split_fields
+from calibration.options import FLAGS, FitOptions, FitRequest, JudgeOptions, OptionError, fit_request, split_fields
 
 
 @pytest.mark.parametrize("field, value, what", [
@@ -63,7 +63,7 @@ def test_differences_cover_every_field_but_steps():
 
 
 def test_one_flag_table_for_every_field():
-    names = {f.name for f in dataclasses.fields(FitOptions)} | {f.name for f in dataclasses.fields(JudgeOptions)}
+    names = {f.name for cls in (FitOptions, JudgeOptions, FitRequest) for f in dataclasses.fields(cls)}
     assert set(FLAGS) == names
     assert str(OptionError("grid_ratio", "must be > 1, got 0.5").as_flag()) == "--grid-check must be > 1, got 0.5"
     assert str(OptionError("xtol", "must be >= 0").as_flag()) == "xtol must be >= 0"  # no flag: the field's name
@@ -74,3 +74,23 @@ def test_split_fields():
     assert run == {"steps": 3} and judge == {"grid_ratio": 1.5}
     with pytest.raises(TypeError, match="unexpected keyword arguments \\['stepz'\\]"):
         split_fields({"stepz": 3})
+
+
+def test_fit_request_from_the_files_and_over_them():
+    from jaxmpm.experiment import FitSpec
+
+    class E:  # the one field fit_request reads
+        def __init__(self, fit):
+            self.fit = fit
+
+    a, b = E(FitSpec(keys=("beta", "mu1"), init={"beta": 0.2}, noise=0.01)), E(FitSpec(keys=("beta", "mu1")))
+    assert fit_request([a]) == FitRequest(("beta", "mu1"), {"beta": 0.2}, 0.01)
+    assert fit_request([a], keys=("mu1",), init={"mu1": 0.4}).keys == ("mu1",)
+    with pytest.raises(OptionError, match="init differs between the experiment files"):
+        fit_request([a, b])
+    assert fit_request([a, b], init={"beta": 0.3}, noise=0.02) == FitRequest(("beta", "mu1"), {"beta": 0.3}, 0.02)
+    with pytest.raises(OptionError, match="keys is required.*not every experiment file"):
+        fit_request([a, E(None)])
+    with pytest.raises(OptionError, match="gives starting values for \\['xi'\\]") as info:
+        fit_request([], keys=("beta",), init={"xi": 40.0})
+    assert str(info.value.as_flag()).startswith("--init gives starting values")

@@ -25,7 +25,7 @@ from .incline import S1_PARAMS, bagnold_velocity, incline
 from .info import SceneInfo
 
 __all__ = [
-    "SCENE_NAMES", "is_experiment_file", "experiment_from_args", "scene_dtype", "OPTION_FIELDS",
+    "SCENE_NAMES", "is_experiment_file", "experiment_from_args", "scene_dtype", "experiments_dtype", "OPTION_FIELDS",
     "add_scene_arguments", "build_scene", "check_repeated_keys", "check_scene_args", "parse_set", "scene_from_args",
     "DEFAULT_PPC", "DEFAULT_SAMPLING", "S1_PARAMS", "bagnold_velocity", "incline", "S2_PARAMS", "S3_PARAMS",
     "S4_PARAMS", "S5_PARAMS", "S7_PARAMS", "Scene", "SceneInfo", "aluminium_bars", "aspect_ratio_collapse",
@@ -193,6 +193,18 @@ def scene_dtype(args) -> str:
 
         return Experiment.from_toml(args.scene).dtype or "float32"
     return "float32"
+
+
+def experiments_dtype(experiments, dtype: str | None = None) -> str:
+    """The one floating-point type that ``experiments`` (``jaxmpm.Experiment``) run in together:
+    ``dtype`` if given, else their files' (float32 where a file states none); files that
+    disagree must be overruled."""
+    if dtype:
+        return dtype
+    dtypes = sorted({e.dtype or "float32" for e in experiments})
+    if len(dtypes) > 1:
+        raise ValueError(f"the experiment files run in different dtypes ({dtypes}); give --dtype")
+    return dtypes[0] if dtypes else "float32"
 
 
 def scene_from_args(args, name: str | None = None, frames: int = 0):
