@@ -39,10 +39,10 @@ from .workers import Workers, available_cores
 __all__ = ["main", "build_parser"]
 
 
-def _keys(text: str) -> tuple[str, ...]:
+def _keys(text: str, option: str = "--fit") -> tuple[str, ...]:
     keys = tuple(k.strip() for k in text.split(",") if k.strip())
     if not keys:
-        raise ValueError(f"--fit: expected comma-separated parameter names, got {text!r}")
+        raise ValueError(f"{option}: expected comma-separated parameter names, got {text!r}")
     return keys
 
 
@@ -121,8 +121,9 @@ def _fit_request(args, experiments):
 
 def _scene_and_objective(args, keys, experiments=()):
     """(scene, objective): the named --scene with --data/--front, or each experiment file with its
-    measurements (several: one joint objective, ``CompositeObjective``, fitting the same keys;
-    the scene returned is the first's)."""
+    measurements (several: one joint objective, ``CompositeObjective``, fitting the same keys, or
+    with ``--shared`` those shared and the others per file, labelled by the file's name; the
+    scene returned is the first's)."""
     import jax
 
     from jaxmpm.scenes import experiments_dtype, scene_dtype, scene_from_args
@@ -153,7 +154,13 @@ def _scene_and_objective(args, keys, experiments=()):
                    "front": 1.0 if args.weight_front is None else args.weight_front}
         members.append(Objective(scene, keys, profile=profiles or None, front=front, weights=weights, **options))
         scenes.append(scene)
-    return scenes[0], (members[0] if len(members) == 1 else CompositeObjective(members))
+    if len(members) == 1:
+        return scenes[0], members[0]
+    shared = getattr(args, "shared", None)
+    if shared is None:
+        return scenes[0], CompositeObjective(members)
+    labels = [pathlib.Path(e.path).stem if e.path is not None else e.name for e in experiments]
+    return scenes[0], CompositeObjective.sharing(members, _keys(shared, "--shared"), labels)
 
 
 def _objective_from_args(values: dict, keys):
@@ -254,6 +261,8 @@ def _fit(args) -> int:
     keys, init, noise = request.keys, request.init, request.noise
     starts = _starts(args, init)
     scene, objective = _scene_and_objective(args, keys, experiments)
+    if getattr(objective, "shared", None) is not None:
+        init = objective.expand(init)  # a plain key's start for each experiment's own value
     options, judge = _fit_options_of(args, noise)
     steps = options.steps
     judging = {k: v for k, v in judge.kwargs().items() if k != "noise"}
@@ -702,6 +711,9 @@ def build_parser() -> argparse.ArgumentParser:
     _fit_options(fit, None)
     fit.add_argument("--init", action="append", default=[], metavar="KEY=VALUE", help="starting value")
     fit.add_argument("--lr", type=float, default=0.05, help="Adam learning rate (in the unconstrained variables)")
+    fit.add_argument("--shared", default=None, metavar="KEYS",
+                     help="with several experiment files: the fitted keys that are one value for all of them; every "
+                          "other fitted key is fitted per file, reported as KEY@FILE (default: all keys shared)")
     fit.add_argument("--jacobian", choices=("ad", "fd"), default="ad",
                      help="LM Jacobian: forward-mode autodiff, or central differences for long violent runs")
     fit.add_argument("--noise", type=float, default=None,
@@ -866,6 +878,13 @@ def _check_options(args) -> None:
         if hasattr(args, option):
             _pairs(getattr(args, option), f"--{option}")  # malformed or repeated keys
     if getattr(args, "command", None) == "fit":
+        if args.shared is not None:
+            shared = _keys(args.shared, "--shared")
+            if len(args.experiments) < 2:
+                raise ValueError("--shared needs two experiment files or more (the keys they share)")
+            if args.fit and sorted(set(shared) - set(_keys(args.fit))):
+                raise ValueError(f"--shared {','.join(sorted(set(shared) - set(_keys(args.fit))))}: not among the "
+                                 f"fitted keys (--fit {args.fit})")
         starts = _starts(args)  # --starts against the options that need a single start
         if args.coarse is not None:
             if not (math.isfinite(args.coarse) and args.coarse > 1):

@@ -697,33 +697,128 @@ class Objective:
                 "fixed": {k: float(v) for k, v in self._base.to_dict().items() if k not in self.keys}}
 
 
+def _shared_layout(members, shared: tuple[str, ...], labels) -> tuple[tuple[str, ...], list[np.ndarray]]:
+    """The composite's keys (the shared ones, then each member's own as ``key@label``) and where
+    each member's keys sit among them."""
+    labels = tuple(str(label) for label in (labels or ()))
+    if len(labels) != len(members) or len(set(labels)) != len(labels) or not all(labels):
+        raise ValueError(f"labels: one distinct, non-empty label per member is needed ({len(members)} members), "
+                         f"got {list(labels)}")
+    if len(set(shared)) != len(shared):
+        raise ValueError(f"shared: a key is repeated in {list(shared)}")
+    for i, m in enumerate(members):
+        missing = [k for k in shared if k not in m.keys]
+        if missing:
+            raise ValueError(f"shared: {missing} are not fitted by members[{i}] ({labels[i]}: {list(m.keys)})")
+    keys = list(shared)
+    index = []
+    for m, label in zip(members, labels):
+        idx = []
+        for k in m.keys:
+            if k not in shared:
+                keys.append(f"{k}@{label}")
+            idx.append(keys.index(k if k in shared else f"{k}@{label}"))
+        index.append(np.asarray(idx, int))
+    return tuple(keys), index
+
+
 class CompositeObjective:
     """Several objectives fitted together (e.g. one scene per aspect ratio): the residuals are
-    concatenated, so the loss is the sum of the members' losses. Members must fit the same keys."""
+    concatenated, so the loss is the sum of the members' losses.
 
-    def __init__(self, members: Sequence[Objective]):
+    By default the members fit the same keys, one value each for all. ``shared`` (with
+    ``labels``, one per member) lets keys differ by experiment: a key in ``shared`` is one value
+    for every member; any other key a member fits is that member's own, named ``key@label`` in
+    the composite's keys (``CompositeObjective.sharing``), and its residual blocks are named
+    ``label/block`` (else ``i/block``). The members' Jacobians are scattered into the
+    composite's columns; a member's column for another member's own key is zero."""
+
+    def __init__(self, members: Sequence[Objective], shared: Sequence[str] | None = None,
+                 labels: Sequence[str] | None = None):
         members = tuple(members)
         if not members:
             raise ValueError("members: at least one objective is needed")
-        keys = members[0].keys
-        for i, m in enumerate(members):
-            if m.keys != keys:
-                raise ValueError(f"members[{i}] fits {m.keys}, members[0] fits {keys}")
-        self.members, self.keys = members, keys
+        if shared is None:
+            keys = members[0].keys
+            for i, m in enumerate(members):
+                if m.keys != keys:
+                    raise ValueError(f"members[{i}] fits {m.keys}, members[0] fits {keys}; say which keys are "
+                                     "shared (shared=, --shared) to fit the others per experiment")
+            index = [np.arange(len(keys))] * len(members)
+            labels = None
+        else:
+            keys, index = _shared_layout(members, tuple(shared), labels)
+        self.members, self.keys, self.shared, self.labels = members, tuple(keys), shared, labels
+        self._index = tuple(np.asarray(i, int) for i in index)  # member i's keys at these composite positions
         # The box every member accepts (their bounds differ only where a scene's μ1 or μ2 narrowed them).
-        lower = np.max([m.bounds.lower for m in members], axis=0)
-        upper = np.min([m.bounds.upper for m in members], axis=0)
+        lower = np.full(len(self.keys), -np.inf)
+        upper = np.full(len(self.keys), np.inf)
+        for m, idx in zip(members, self._index):
+            lower[idx] = np.maximum(lower[idx], m.bounds.lower)
+            upper[idx] = np.minimum(upper[idx], m.bounds.upper)
         if np.any(lower >= upper):
             raise ValueError("members: their bounds do not overlap (each member's scene narrows mu1 or mu2 to keep "
                              "mu1 <= mu2); fit scenes with compatible friction coefficients")
-        self.bounds = Bounds(keys, tuple(float(v) for v in lower), tuple(float(v) for v in upper))
+        self.bounds = Bounds(self.keys, tuple(float(v) for v in lower), tuple(float(v) for v in upper))
         self.bound_notes = tuple(note for m in members for note in m.bound_notes)
         self.dtype = members[0].dtype
         offsets = np.cumsum([0] + [m.n_residuals for m in members])
         self.n_residuals = int(offsets[-1])
-        self.blocks = {f"{i}/{name}": slice(offsets[i] + s.start, offsets[i] + s.stop)
+        self._prefix = tuple(labels) if labels is not None else tuple(str(i) for i in range(len(members)))
+        self.blocks = {f"{self._prefix[i]}/{name}": slice(offsets[i] + s.start, offsets[i] + s.stop)
                        for i, m in enumerate(members) for name, s in m.blocks.items()}
         self.row_scale = np.concatenate([m.row_scale for m in members])
+
+    @classmethod
+    def sharing(cls, members: Sequence[Objective], shared: Sequence[str], labels: Sequence[str]):
+        """Members that share the keys in ``shared`` and fit the rest of their keys each for
+        itself (named ``key@label``)."""
+        return cls(members, shared=shared, labels=labels)
+
+    def expand(self, values: Mapping[str, float]) -> dict[str, float]:
+        """Values by plain key (``beta``) as values of the composite's keys: a shared key as it
+        is, a member's own key (``beta@label``) from the plain one; a composite key passes."""
+        out = {}
+        for k, v in values.items():
+            if k in self.keys:
+                out[k] = float(v)
+                continue
+            own = [c for c in self.keys if c.split("@")[0] == k]
+            if not own:
+                raise ValueError(f"{k!r} is not fitted (keys: {list(self.keys)})")
+            out.update({c: float(v) for c in own})
+        return out
+
+    def _member_theta(self, theta, i: int):
+        """Member ``i``'s θ (or z) from the composite's: θ itself when every member fits the same
+        keys, else its keys' entries (numpy stays numpy, a traced array stays traced)."""
+        if self.shared is None:
+            return theta
+        idx = self._index[i]
+        return theta[..., idx] if isinstance(theta, jax.Array) else np.asarray(theta)[..., idx]
+
+    def _member_bounds(self, i: int) -> Bounds:
+        if self.shared is None:
+            return self.bounds
+        idx = self._index[i]
+        return Bounds(self.members[i].keys, tuple(self.bounds.lower[j] for j in idx),
+                      tuple(self.bounds.upper[j] for j in idx))
+
+    def _scatter(self, jacobians):
+        """The members' Jacobians (rows × their own keys) stacked as the composite's (rows ×
+        keys), numpy in, numpy out."""
+        xp = np if all(isinstance(J, np.ndarray) for J in jacobians) else jnp
+        if self.shared is None:
+            return xp.concatenate(jacobians)
+        blocks = []
+        for J, idx in zip(jacobians, self._index):
+            full = np.zeros(J.shape[:-1] + (len(self.keys),), J.dtype)
+            if xp is np:
+                full[..., idx] = J
+            else:
+                full = jnp.zeros(J.shape[:-1] + (len(self.keys),), J.dtype).at[..., idx].set(J)
+            blocks.append(full)
+        return xp.concatenate(blocks)
 
     @property
     def dx(self) -> float:
@@ -736,18 +831,18 @@ class CompositeObjective:
 
     def coarsened(self, ratio: float) -> CompositeObjective:
         """Every member on a grid ``ratio`` times coarser (``Objective.coarsened``)."""
-        return CompositeObjective([m.coarsened(ratio) for m in self.members])
+        return CompositeObjective([m.coarsened(ratio) for m in self.members], self.shared, self.labels)
 
     def residuals_resampled(self, theta, seed: int):
         """The members' residuals at θ with every scene's particles drawn with ``seed``."""
-        outs = [m.residuals_resampled(theta, seed) for m in self.members]
+        outs = [m.residuals_resampled(self._member_theta(theta, i), seed) for i, m in enumerate(self.members)]
         status = jnp.bitwise_or.reduce(jnp.stack([jnp.asarray(o[1]["status"]) for o in outs]))
         return jnp.concatenate([jnp.asarray(o[0]) for o in outs]), {"status": status,
                                                                      "members": [o[1] for o in outs]}
 
     def residual_fn(self, theta):
         """Pure, unjitted θ -> (r, prediction), the members' concatenated: for ``jax.vmap``."""
-        outs = [m.residual_fn(theta) for m in self.members]
+        outs = [m.residual_fn(self._member_theta(theta, i)) for i, m in enumerate(self.members)]
         status = functools.reduce(jnp.bitwise_or, [o[1]["status"] for o in outs])
         return jnp.concatenate([o[0] for o in outs]), {"status": status, "members": [o[1] for o in outs]}
 
@@ -755,35 +850,38 @@ class CompositeObjective:
         """The residuals in metres by block (``Objective.in_metres`` of each member)."""
         r = np.asarray(r, float)
         offsets = np.cumsum([0] + [m.n_residuals for m in self.members])
-        return {f"{i}/{name}": v for i, m in enumerate(self.members)
+        return {f"{self._prefix[i]}/{name}": v for i, m in enumerate(self.members)
                 for name, v in m.in_metres(r[offsets[i]:offsets[i + 1]]).items()}
 
     def residuals(self, theta):
-        outs = [m.residuals(theta) for m in self.members]
+        outs = [m.residuals(self._member_theta(theta, i)) for i, m in enumerate(self.members)]
         status = jnp.bitwise_or.reduce(jnp.stack([o[1]["status"] for o in outs]))
         return jnp.concatenate([o[0] for o in outs]), {"status": status, "members": [o[1] for o in outs]}
 
     def residuals_and_jacobian_z(self, z):
         """(r, dr/dz, prediction) at the unconstrained z of the composite's bounds (every member
         maps z with the composite's bounds, not its own)."""
-        outs = [m.residuals_and_jacobian_z(z, self.bounds) for m in self.members]
+        outs = [m.residuals_and_jacobian_z(self._member_theta(z, i), self._member_bounds(i))
+                for i, m in enumerate(self.members)]
         status = jnp.bitwise_or.reduce(jnp.stack([o[2]["status"] for o in outs]))
-        return (jnp.concatenate([o[0] for o in outs]), jnp.concatenate([o[1] for o in outs]),
+        return (jnp.concatenate([o[0] for o in outs]), self._scatter([o[1] for o in outs]),
                 {"status": status, "members": [o[2] for o in outs]})
 
     def column_tasks_z(self, z) -> list[tuple]:
         """Every member's forward-mode passes at z (the composite's bounds), members in order."""
-        return [task for m in self.members for task in m.column_tasks_z(z, self.bounds)]
+        return [task for i, m in enumerate(self.members)
+                for task in m.column_tasks_z(self._member_theta(z, i), self._member_bounds(i))]
 
     def combine_columns_z(self, results) -> tuple:
-        n = len(self.keys)
-        outs = [Objective.combine_columns_z(results[i * n:(i + 1) * n]) for i in range(len(self.members))]
+        starts = np.cumsum([0] + [len(idx) for idx in self._index])
+        outs = [Objective.combine_columns_z(results[a:b]) for a, b in zip(starts[:-1], starts[1:])]
         status = np.bitwise_or.reduce(np.stack([np.asarray(o[2]["status"]) for o in outs]))
-        return (np.concatenate([o[0] for o in outs]), np.concatenate([o[1] for o in outs]),
+        return (np.concatenate([o[0] for o in outs]), self._scatter([np.asarray(o[1]) for o in outs]),
                 {"status": status, "members": [o[2] for o in outs]})
 
     def residual_tasks(self, thetas, seeds=None) -> list[tuple]:
-        return [task for m in self.members for task in m.residual_tasks(thetas, seeds)]
+        return [task for i, m in enumerate(self.members)
+                for task in m.residual_tasks(self._member_theta(thetas, i), seeds)]
 
     def combine_residuals(self, results, rows: int) -> list[tuple]:
         """Per row, the members' (r, prediction) of ``residual_tasks`` combined."""
@@ -795,29 +893,46 @@ class CompositeObjective:
         return out
 
     def residuals_and_jacobian(self, theta):
-        outs = [m.residuals_and_jacobian(theta) for m in self.members]
+        outs = [m.residuals_and_jacobian(self._member_theta(theta, i)) for i, m in enumerate(self.members)]
         status = jnp.bitwise_or.reduce(jnp.stack([o[2]["status"] for o in outs]))
-        return (jnp.concatenate([o[0] for o in outs]), jnp.concatenate([o[1] for o in outs]),
+        return (jnp.concatenate([o[0] for o in outs]), self._scatter([o[1] for o in outs]),
                 {"status": status, "members": [o[2] for o in outs]})
 
     def value_and_grad(self, theta):
-        outs = [m.value_and_grad(theta) for m in self.members]
+        outs = [m.value_and_grad(self._member_theta(theta, i)) for i, m in enumerate(self.members)]
         loss = sum(o[0][0] for o in outs)
         status = jnp.bitwise_or.reduce(jnp.stack([o[0][1]["status"] for o in outs]))
-        return (loss, {"status": status}), sum(o[1] for o in outs)
+        if self.shared is None:
+            return (loss, {"status": status}), sum(o[1] for o in outs)
+        grad = jnp.zeros(len(self.keys), jnp.result_type(outs[0][1]))
+        for (_, g), idx in zip(outs, self._index):
+            grad = grad.at[idx].add(g)
+        return (loss, {"status": status}), grad
 
     def loss(self, theta) -> float:
-        return sum(m.loss(theta) for m in self.members)
+        return sum(m.loss(self._member_theta(theta, i)) for i, m in enumerate(self.members))
 
     def initial(self) -> dict[str, float]:
-        return self.members[0].initial()
+        """Each composite key's scene value (a shared key's from the first member fitting it)."""
+        out = {}
+        for m, idx in zip(self.members, self._index):
+            values = m.initial()
+            for k, j in zip(m.keys, idx):
+                out.setdefault(self.keys[j], values[k])
+        return {k: out[k] for k in self.keys}
 
     def check_thetas(self, thetas, name: str = "thetas") -> None:
-        for member in self.members:
-            member.check_thetas(thetas, name)
+        for i, member in enumerate(self.members):
+            member.check_thetas(self._member_theta(thetas, i), name)
 
     def fingerprint(self) -> dict[str, Any]:
-        return {"members": [m.fingerprint() for m in self.members]}
+        out = {"members": [m.fingerprint() for m in self.members]}
+        if self.shared is not None:
+            out.update(shared=list(self.shared), labels=list(self.labels), keys=list(self.keys))
+        return out
 
     def describe(self) -> dict[str, Any]:
-        return {"members": [m.describe() for m in self.members], "keys": list(self.keys)}
+        out = {"members": [m.describe() for m in self.members], "keys": list(self.keys)}
+        if self.shared is not None:
+            out.update(shared=list(self.shared), labels=list(self.labels))
+        return out

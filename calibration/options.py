@@ -212,8 +212,8 @@ def fit_request(experiments=(), keys=None, init=None, noise=None) -> FitRequest:
     else:
         raise OptionError("keys", "is required (the keys to fit), or a [fit] table with keys in the experiment file")
     init = dict(init or {})
-    if not init and specs:
-        init = dict(agreed("init", [dict(s.init) for s in specs]) or {})
+    if not init and specs:  # the files' starts, of the keys fitted (keys given here may be fewer)
+        init = {k: v for k, v in (agreed("init", [dict(s.init) for s in specs]) or {}).items() if k in keys}
     if noise is None and specs:
         noise = agreed("noise", [s.noise for s in specs])
     return FitRequest(keys, init, noise)

@@ -208,6 +208,63 @@ def test_several_profiles_and_composite_objective(problem):
     assert other.loss(truth) > 0 and both.loss(truth) == 0.0  # same compiled run, each its own data
 
 
+@pytest.fixture(scope="module")
+def sharing():
+    """Two experiments of one scene at β 0.25 and 0.35 sharing μ1: (composite, a, b, μ1)."""
+    scene = tiny_scene()
+    mu1 = float(scene.params.mu1)
+    members = []
+    for beta in (0.25, 0.35):
+        profile, front = synthetic(scene, KEYS, np.array([beta, mu1]))
+        members.append(Objective(scene, KEYS, profile=profile, front=front))
+    return CompositeObjective.sharing(members, shared=("mu1",), labels=("A", "B")), *members, mu1
+
+
+def test_composite_with_keys_per_experiment(sharing):
+    """``CompositeObjective.sharing``: μ1 one value, β each experiment's own (``beta@label``).
+    Residuals, Jacobian and gradient are the members' own at their slices of θ, scattered into
+    the composite's columns (zero where a member does not fit a key)."""
+    comp, a, b, mu1 = sharing
+    assert comp.keys == ("mu1", "beta@A", "beta@B")
+    assert comp.initial() == {"mu1": mu1, "beta@A": 0.25, "beta@B": 0.25}
+    assert comp.expand({"beta": 0.2, "mu1": 0.4}) == {"beta@A": 0.2, "beta@B": 0.2, "mu1": 0.4}
+    theta = np.array([0.9 * mu1, 0.22, 0.31])
+    r, J, _ = comp.residuals_and_jacobian(theta)
+    ra, Ja, _ = a.residuals_and_jacobian(theta[[1, 0]])
+    rb, Jb, _ = b.residuals_and_jacobian(theta[[2, 0]])
+    na = a.n_residuals
+    np.testing.assert_allclose(np.asarray(r), np.concatenate([ra, rb]), rtol=1e-12)
+    J = np.asarray(J)
+    np.testing.assert_allclose(J[:na, [1, 0]], Ja, rtol=1e-12)
+    np.testing.assert_allclose(J[na:, [2, 0]], Jb, rtol=1e-12)
+    assert np.all(J[:na, 2] == 0) and np.all(J[na:, 1] == 0)
+    (loss, _), grad = comp.value_and_grad(theta)
+    assert float(loss) == pytest.approx(a.loss(theta[[1, 0]]) + b.loss(theta[[2, 0]]), rel=1e-10)
+    np.testing.assert_allclose(np.asarray(grad), 2 * J.T @ np.asarray(r), rtol=1e-6, atol=1e-12)
+    with pytest.raises(ValueError, match="shared: \\['xi'\\] are not fitted by members\\[0\\]"):
+        CompositeObjective.sharing([a, b], shared=("xi",), labels=("A", "B"))
+    with pytest.raises(ValueError, match="one distinct, non-empty label per member"):
+        CompositeObjective.sharing([a, b], shared=("mu1",), labels=("A", "A"))
+
+
+@pytest.mark.slow  # 60-100 s: two worker processes compile, then a fit of three keys
+def test_composite_with_keys_per_experiment_fits_and_spreads_columns(sharing):
+    """The workers' column tasks, scattered, are the traced Jacobian; a fit finds each
+    experiment's β and the shared μ1."""
+    from calibration.objective import jacobians_z
+    from calibration.workers import Workers
+
+    comp, _, _, mu1 = sharing
+    z = np.asarray(comp.bounds.to_unconstrained(np.array([0.9 * mu1, 0.22, 0.31])))
+    with Workers(2) as workers:
+        Jz_tasks = jacobians_z(comp, z[None], workers)[1][0]
+    _, Jz, _ = comp.residuals_and_jacobian_z(z)
+    np.testing.assert_allclose(np.asarray(Jz_tasks), np.asarray(Jz), rtol=1e-10, atol=1e-14)
+    result = fit(comp, {"beta@A": 0.2, "beta@B": 0.3, "mu1": mu1}, steps=20, uncertainty=False)
+    np.testing.assert_allclose([result.theta["beta@A"], result.theta["beta@B"], result.theta["mu1"]],
+                               [0.25, 0.35, mu1], rtol=2e-2)
+
+
 # ---- fitting ---------------------------------------------------------------------------
 
 def test_lm_recovers_the_truth(problem):

@@ -220,6 +220,14 @@ def test_bad_data_and_fit_requests(tmp_path, capsys):
     path.write_text(USER_TOML + '\n[fit]\nkeys = ["beta", "gamma"]\n')
     code, err = _main("calibration", ["fit", str(path)], capsys)
     assert code == 2 and "[fit] keys: unknown parameter(s) ['gamma']" in err
+    # --shared: several files, and keys among the fitted ones.
+    path.write_text(USER_TOML + '\n[[profile]]\nfile = "far.csv"\n[fit]\nkeys = ["beta", "mu1"]\n')
+    code, err = _main("calibration", ["fit", str(path), "--shared", "mu1"], capsys)
+    assert code == 2 and "--shared needs two experiment files or more" in err
+    code, err = _main("calibration", ["fit", str(path), str(path), "--fit", "beta,mu1", "--shared", "xi"], capsys)
+    assert code == 2 and "--shared xi: not among the fitted keys" in err
+    code, err = _main("calibration", ["fit", str(path), str(path), "--shared", ","], capsys)
+    assert code == 2 and "--shared: expected comma-separated parameter names" in err
     # A command-line option that does not fit the file names the option.
     path.write_text(USER_TOML)
     code, err = _main("jaxmpm", ["run", str(path), "--dx", "1"], capsys)

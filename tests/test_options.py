@@ -86,6 +86,7 @@ def test_fit_request_from_the_files_and_over_them():
     a, b = E(FitSpec(keys=("beta", "mu1"), init={"beta": 0.2}, noise=0.01)), E(FitSpec(keys=("beta", "mu1")))
     assert fit_request([a]) == FitRequest(("beta", "mu1"), {"beta": 0.2}, 0.01)
     assert fit_request([a], keys=("mu1",), init={"mu1": 0.4}).keys == ("mu1",)
+    assert fit_request([a], keys=("mu1",)) == FitRequest(("mu1",), {}, 0.01)  # the file's start of beta: not fitted
     with pytest.raises(OptionError, match="init differs between the experiment files"):
         fit_request([a, b])
     assert fit_request([a, b], init={"beta": 0.3}, noise=0.02) == FitRequest(("beta", "mu1"), {"beta": 0.3}, 0.02)
