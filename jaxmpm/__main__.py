@@ -118,29 +118,13 @@ def _run(args) -> int:
     if dtype == "float64":
         jax.config.update("jax_enable_x64", True)
     from . import io, tables
-    from .observables import deposit_profile, particle_volumes
     from .simulate import simulate
-    from .state import describe_status
 
     scene = scene_from_args(args, frames=frames)
     config, state, params = scene
     result = simulate(config, state, params, throw=False, progress=not args.no_progress, timed=True)
     x = np.asarray(result.state.x)
-    summary = {
-        "scene": scene.name,
-        "n_particles": int(state.n_particles),
-        "n_steps": int(result.state.steps),
-        "dx": config.grid.dx,
-        "t_end": config.t_end,
-        "x_min": float(x[:, 0].min()),
-        "x_max": float(x[:, 0].max()),
-        "y_max": float(x[:, 1].max()),
-        "runout": float(x[:, 0].max() - scene.info.front0),
-        "status": result.status,
-        "status_text": describe_status(result.status),
-        "compile_s": round(result.compile_s, 3),
-        "run_s": round(result.run_s, 3),
-    }
+    summary = scene.summary(result)
     meta = {"scene": scene.name, **scene.info.to_dict()}
     if scene.experiment is not None:  # the run can be made again from its file: Experiment.from_h5
         meta["experiment_toml"] = scene.experiment.to_toml()
@@ -166,11 +150,7 @@ def _run(args) -> int:
             if getattr(args, option[2:].replace("-", "_")):
                 errors[option] = "not written: the final positions are not finite (see status_text)"
     elif args.profile_csv or args.plot:
-        sigma = config.grid.dx / scene.info.ppc
-        xs = np.arange(x[:, 0].min() - 3 * sigma, x[:, 0].max() + 3 * sigma, sigma / 2)
-        h = np.asarray(deposit_profile(result.state.x, particle_volumes(result.state), xs, sigma,
-                                       width=scene.info.width, mirror=scene.back_face))
-        profile = (xs, h)
+        xs, h = profile = scene.final_profile(result.state)
         if args.profile_csv:
             output("--profile-csv", lambda: tables.write_profile_csv(args.profile_csv, xs, h, {
                 "experiment": f"{scene.name} (synthetic, jaxmpm {_version()})", "time_s": config.t_end,

@@ -15,10 +15,12 @@ import math
 from collections.abc import Callable
 from typing import Any
 
+import numpy as np
+
 from ..boundary import Wall
 from ..config import Config, Grid
 from ..materials.critical_state import CriticalState
-from ..observables import back_wall_x
+from ..observables import back_wall_x, deposit_profile, particle_volumes
 from ..params import Params
 from ..sampling import SAMPLINGS, particles_per_cell, seed_box
 from ..state import State, init_state
@@ -87,6 +89,34 @@ class Scene:
         without a fixed wall facing +x."""
         wall = back_wall_x(self.config.walls)
         return None if wall is None else wall + float(self.info.side_gap or 0.0)
+
+    def summary(self, result) -> dict:
+        """What a run of this scene ended with (``simulate``'s ``Result``): sizes, extents, the
+        runout beyond the body's initial front, the status and its meaning, the timings; what
+        ``python -m jaxmpm run`` prints."""
+        from ..state import describe_status
+
+        x = np.asarray(result.state.x)
+        return {
+            "scene": self.name, "n_particles": int(self.state.n_particles), "n_steps": int(result.state.steps),
+            "dx": self.config.grid.dx, "t_end": self.config.t_end,
+            "x_min": float(x[:, 0].min()), "x_max": float(x[:, 0].max()), "y_max": float(x[:, 1].max()),
+            "runout": float(x[:, 0].max() - self.info.front0),
+            "status": result.status, "status_text": describe_status(result.status),
+            "compile_s": None if result.compile_s is None else round(result.compile_s, 3),
+            "run_s": None if result.run_s is None else round(result.run_s, 3),
+        }
+
+    def final_profile(self, state) -> tuple[np.ndarray, np.ndarray]:
+        """(x, h): the deposit's height profile of ``state``, smoothed over one particle spacing,
+        sampled every half spacing from three spacings behind its rearmost particle to three
+        beyond its front, mirrored at the back wall (``jaxmpm.observables.deposit_profile``)."""
+        x = np.asarray(state.x)
+        sigma = self.config.grid.dx / self.info.ppc
+        xs = np.arange(x[:, 0].min() - 3 * sigma, x[:, 0].max() + 3 * sigma, sigma / 2)
+        h = np.asarray(deposit_profile(state.x, particle_volumes(state), xs, sigma, width=self.info.width,
+                                       mirror=self.back_face))
+        return xs, h
 
     def resampled(self, seed: int) -> State:
         """The initial state of this scene with its particles sampled with ``seed`` instead of its
