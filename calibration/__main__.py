@@ -32,6 +32,7 @@ import os
 import pathlib
 import sys
 
+from jaxmpm.precision import use_dtype
 from jaxmpm.threads import add_threads_argument, apply_threads
 
 from .workers import Workers, available_cores
@@ -124,7 +125,6 @@ def _scene_and_objective(args, keys, experiments=()):
     measurements (several: one joint objective, ``CompositeObjective``, fitting the same keys, or
     with ``--shared`` those shared and the others per file, labelled by the file's name; the
     scene returned is the first's)."""
-    import jax
 
     from jaxmpm.scenes import experiments_dtype, scene_dtype, scene_from_args
 
@@ -132,8 +132,7 @@ def _scene_and_objective(args, keys, experiments=()):
     from .objective import CompositeObjective, FrontTarget, Objective
 
     dtype = experiments_dtype(experiments, args.dtype) if experiments else scene_dtype(args)
-    if dtype == "float64":
-        jax.config.update("jax_enable_x64", True)
+    use_dtype(dtype)
     members, scenes = [], []
     for experiment in experiments or [None]:
         profiles, front = _load_data(args, experiment)
@@ -462,12 +461,10 @@ def _sweep_plot(directory, result, keys) -> list[str]:
 
 
 def _twin(args) -> int:
-    import jax
 
     from .twin import twin, twin_landscape
 
-    if args.dtype == "float64":
-        jax.config.update("jax_enable_x64", True)
+    use_dtype(args.dtype)
     if args.slope is not None or args.aspect is not None or args.dim not in (None, 2) or args.width is not None:
         raise ValueError("twin is the 2D S4 cohesive collapse: --slope, --aspect, --dim and --width do not apply")
     if args.sampling is not None or args.seed not in (None, 0):
@@ -536,14 +533,12 @@ def _variants(items) -> dict[str, dict[str, float]]:
 
 
 def _design(args) -> int:
-    import jax
 
     from jaxmpm.scenes import scene_dtype, scene_from_args
 
     from .design import design
 
-    if scene_dtype(args) == "float64":
-        jax.config.update("jax_enable_x64", True)
+    use_dtype(scene_dtype(args))
     keys = _keys(args.fit)
     if args.plot and len(keys) < 2:
         raise ValueError("--plot draws the first two keys' regions: give at least two keys in --fit")
@@ -629,12 +624,10 @@ def _law(args) -> int:
 
 
 def _bench(args) -> int:
-    import jax
 
     from .bench import bench
 
-    if args.dtype == "float64":
-        jax.config.update("jax_enable_x64", True)
+    use_dtype(args.dtype)
     kw = {"dx": 0.089 / 8, "t_end": 0.2} if args.quick else {"dx": args.dx}
     values = {k: float(v) for k, v in _pairs(args.set, "--set").items()}
     result = bench(_keys(args.fit), repeat=args.repeat, dtype=args.dtype, values=values, **kw)

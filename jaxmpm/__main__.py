@@ -9,6 +9,7 @@ import sys
 
 import numpy as np
 
+from .precision import use_dtype
 from .scenes import (
     SCENE_NAMES,
     add_scene_arguments,
@@ -98,7 +99,6 @@ def _output_writer(errors: dict):
 
 
 def _run(args) -> int:
-    import jax
 
     check_scene_args(args)
     if args.scene == "avalanche":
@@ -115,8 +115,7 @@ def _run(args) -> int:
                                                           (None if is_experiment_file(args.scene) else 0))
     _check_run_outputs(args, frames or 0)
     dtype = scene_dtype(args)
-    if dtype == "float64":
-        jax.config.update("jax_enable_x64", True)
+    use_dtype(dtype)
     from . import io, tables
     from .simulate import simulate
 
@@ -176,7 +175,6 @@ def _run(args) -> int:
 
 def _run_avalanche(args) -> int:
     """``run avalanche``: S6 on its terrain, the fields avalanche engineers use."""
-    import jax
 
     for option, value in (("--dim", args.dim not in (None, 2)), ("--width", args.width is not None),
                           ("--slope", args.slope is not None), ("--aspect", args.aspect is not None),
@@ -193,8 +191,7 @@ def _run_avalanche(args) -> int:
 
         Terrain.from_csv(args.terrain)  # a bad file fails here, before anything compiles
     _check_run_outputs(args, args.frames or 1)
-    if args.dtype == "float64":
-        jax.config.update("jax_enable_x64", True)
+    use_dtype(args.dtype)
     from . import io, tables
     from .avalanche import run_avalanche
     from .scenes.avalanche import avalanche
@@ -264,9 +261,8 @@ def _version() -> str:
 
 
 def _element(args) -> int:
-    import jax
 
-    jax.config.update("jax_enable_x64", True)  # a single point: double precision costs nothing
+    use_dtype("float64")  # a single point: double precision costs nothing
     from .element import element_test
     from .params import Params
 
@@ -385,9 +381,8 @@ def main(argv=None) -> int:
             return _element(args)
         if args.command == "validate":
             if args.dtype == "float64":
-                import jax
 
-                jax.config.update("jax_enable_x64", True)
+                use_dtype("float64")
             from .validate import run_study
 
             options = {}

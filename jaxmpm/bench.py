@@ -20,6 +20,7 @@ import time
 import jax
 import jax.numpy as jnp
 
+from .precision import use_dtype
 from .rollout import make_rollout
 from .scenes import falling_block, gates_collapse
 
@@ -151,8 +152,7 @@ def bench_gradient(quick=False, dim=2, dtype="float32", repeat=3, n_particles=No
 
 def main(args) -> dict:
     dtype = "float64" if args.dtype == "float64" else "float32"
-    if dtype == "float64":
-        jax.config.update("jax_enable_x64", True)
+    use_dtype(dtype)
     if args.grad:
         result = bench_gradient(args.quick, args.dim, dtype, args.repeat, args.particles, args.steps)
     else:

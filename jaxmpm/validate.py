@@ -28,6 +28,7 @@ import numpy as np
 from . import fidelity, scenes
 from .materials.base import invariants
 from .observables import deposit_profile, front_from_profile, particle_volumes
+from .precision import x64
 from .simulate import simulate
 
 __all__ = ["STUDIES", "run_study", "bagnold", "convergence", "aspect_ratio", "cohesion", "speed_accuracy",
@@ -368,13 +369,10 @@ def speed_accuracy(quick=False, plot_dir=None) -> dict:
     h_ref, front_ref, runout_ref = _s3_observe(ref_scene, ref.state, xs)
     rows = []
     for v in variants:
-        if v.get("dtype") == "float64":
-            jax.config.update("jax_enable_x64", True)
-        scene = _s3(t_end=t_end, **v)
-        result = simulate(*scene, throw=False, timed=True)  # compiled before the clock starts
-        if v.get("dtype") == "float64":
-            jax.config.update("jax_enable_x64", False)
-        h, front, runout = _s3_observe(scene, result.state, xs)
+        with x64(v.get("dtype") == "float64" or bool(jax.config.jax_enable_x64)):
+            scene = _s3(t_end=t_end, **v)
+            result = simulate(*scene, throw=False, timed=True)  # compiled before the clock starts
+            h, front, runout = _s3_observe(scene, result.state, xs)
         rows.append({
             "dx": v["dx"], "ppc": scene.info.ppc, "sampling": scene.info.sampling,
             "transfer": v.get("transfer", "aflip"), "xpic": v.get("xpic", 0),
