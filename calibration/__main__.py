@@ -33,6 +33,7 @@ import pathlib
 import sys
 
 from jaxmpm.precision import use_dtype
+from jaxmpm.scenes.collapse import S4_SIDE
 from jaxmpm.threads import add_threads_argument, apply_threads
 
 from .workers import Workers, available_cores
@@ -628,7 +629,7 @@ def _bench(args) -> int:
     from .bench import bench
 
     use_dtype(args.dtype)
-    kw = {"dx": 0.089 / 8, "t_end": 0.2} if args.quick else {"dx": args.dx}
+    kw = {"dx": S4_SIDE / 8, "t_end": 0.2} if args.quick else {"dx": args.dx}
     values = {k: float(v) for k, v in _pairs(args.set, "--set").items()}
     result = bench(_keys(args.fit), repeat=args.repeat, dtype=args.dtype, values=values, **kw)
     return 1 if _emit(result.to_json(), args.json) else 0
@@ -760,7 +761,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     be = sub.add_parser("bench", help="time a forward run, the forward-mode Jacobian and the reverse-mode gradient")
     be.add_argument("--fit", default="beta,mu1,mu2,I0,xi", metavar="KEYS", help="parameters (default all five)")
-    be.add_argument("--dx", type=float, default=0.089 / 16, help="grid spacing of the S4 scene, m")
+    be.add_argument("--dx", type=float, default=S4_SIDE / 16, help="grid spacing of the S4 scene, m")
     be.add_argument("--quick", action="store_true", help="dx = L/8 and 0.2 s")
     be.add_argument("--repeat", type=int, default=2)
     be.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",

@@ -21,6 +21,7 @@ import jax
 import numpy as np
 
 from jaxmpm.scenes import build_scene
+from jaxmpm.scenes.collapse import S4_SIDE
 
 from .objective import FrontTarget, Objective, ProfileTarget
 
@@ -104,7 +105,7 @@ class BenchResult:
         return out
 
 
-def bench(keys=("beta", "mu1", "mu2", "I0", "xi"), dx: float = 0.089 / 16, t_end: float = 0.5, repeat: int = 2,
+def bench(keys=("beta", "mu1", "mu2", "I0", "xi"), dx: float = S4_SIDE / 16, t_end: float = 0.5, repeat: int = 2,
           dtype=None, values=None) -> BenchResult:
     """Measure the S4 cohesive collapse at ``dx`` for ``t_end`` s, fitting ``keys``; ``repeat``
     timed calls after the first. ``values``: scene parameters by key over the bench's own (β = 0.25)."""

@@ -30,6 +30,7 @@ from typing import Any
 import numpy as np
 
 from jaxmpm.scenes import build_scene
+from jaxmpm.scenes.collapse import S4_SIDE
 
 from .fit import FitResult, fit
 from .objective import FrontTarget, Objective, ProfileTarget
@@ -142,7 +143,7 @@ def twin(*, quick: bool = False, noise: float = 0.0, keys: Sequence[str] = ("bet
     keys = tuple(keys)
     values = {**TWIN_TRUTH, **dict(values or {})}
     if dx is None:
-        dx = 0.089 / (8 if quick else 16)
+        dx = S4_SIDE / (8 if quick else 16)
     if t_end is not None and t_end < max(PROFILE_TIMES):
         raise ValueError(f"t_end must be >= {max(PROFILE_TIMES)} s (the last profile), got {t_end}")
     scene = build_scene("cohesive-collapse", dx=dx, ppc=ppc, t_end=t_end, dtype=dtype, values=values)

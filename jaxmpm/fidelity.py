@@ -27,6 +27,7 @@ import numpy as np
 
 from . import scenes
 from .observables import deposit_profile, front_from_profile, particle_volumes
+from .scenes.collapse import S4_SIDE
 from .simulate import simulate
 
 __all__ = ["REFERENCE_S2", "REFERENCE_SOURCE", "SIGMA", "cross_code", "observe", "resolution", "run_case"]
@@ -120,14 +121,14 @@ MATRIX = {
                  + [(0.001, 3, "jitter", 1), (0.001, 3, "jitter", 0)]),
     },
     "cohesive-collapse": {
-        "quick": [(0.089 / 12, 2, "lattice", 0), (0.089 / 16, 3, "jitter", 0), (0.089 / 24, 3, "jitter", 0)],
-        "full": (_grid([0.089 / n for n in (12, 16, 24, 32)], (2, 3, 4), "lattice")
-                 + _grid([0.089 / n for n in (12, 16, 24)], (2, 3, 4), "jitter")
-                 + _grid([0.089 / n for n in (16, 24)], (2.0, 2.45, 3.0), "poisson")
-                 + [(0.089 / 16, 3, "jitter", s) for s in (1, 2)] + [(0.089 / 16, 4, "jitter", s) for s in (1, 2)]
-                 + _grid((0.089 / 32,), (3, 4), "jitter")
-                 + [(0.089 / 40, 3, "jitter", 0), (0.089 / 48, 3, "jitter", 1)]
-                 + [(0.089 / 48, 3, "jitter", 0)]),
+        "quick": [(S4_SIDE / 12, 2, "lattice", 0), (S4_SIDE / 16, 3, "jitter", 0), (S4_SIDE / 24, 3, "jitter", 0)],
+        "full": (_grid([S4_SIDE / n for n in (12, 16, 24, 32)], (2, 3, 4), "lattice")
+                 + _grid([S4_SIDE / n for n in (12, 16, 24)], (2, 3, 4), "jitter")
+                 + _grid([S4_SIDE / n for n in (16, 24)], (2.0, 2.45, 3.0), "poisson")
+                 + [(S4_SIDE / 16, 3, "jitter", s) for s in (1, 2)] + [(S4_SIDE / 16, 4, "jitter", s) for s in (1, 2)]
+                 + _grid((S4_SIDE / 32,), (3, 4), "jitter")
+                 + [(S4_SIDE / 40, 3, "jitter", 0), (S4_SIDE / 48, 3, "jitter", 1)]
+                 + [(S4_SIDE / 48, 3, "jitter", 0)]),
     },
 }
 

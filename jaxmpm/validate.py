@@ -29,6 +29,7 @@ from . import fidelity, scenes
 from .materials.base import invariants
 from .observables import deposit_profile, front_from_profile, particle_volumes
 from .precision import x64
+from .scenes.collapse import S4_SIDE
 from .simulate import simulate
 
 __all__ = ["STUDIES", "run_study", "bagnold", "convergence", "aspect_ratio", "cohesion", "speed_accuracy",
@@ -300,10 +301,10 @@ def cohesion(quick=False, plot_dir=None) -> dict:
     """S4 with β = 0 and β = 0.25: runout and final height side by side."""
     rows, shown = [], []
     for beta in (0.0, 0.25):
-        scene = scenes.cohesive_collapse(beta, dx=0.089 / (12 if quick else 24))
+        scene = scenes.cohesive_collapse(beta, dx=S4_SIDE / (12 if quick else 24))
         result, wall = _timed(scene)
         x = np.asarray(result.state.x)
-        rows.append({"beta": beta, "runout": float(x[:, 0].max() - 0.089), "final_height": float(x[:, 1].max()),
+        rows.append({"beta": beta, "runout": float(x[:, 0].max() - S4_SIDE), "final_height": float(x[:, 1].max()),
                      "status": result.status, "wall_s": round(wall, 2)})
         shown.append((beta, x, np.asarray(invariants(result.state.tau)[0])))
     out = {"study": "cohesion", "runs": rows}
@@ -313,7 +314,7 @@ def cohesion(quick=False, plot_dir=None) -> dict:
         plt = _pyplot()
         fig, axes = plt.subplots(2, 1, figsize=(8, 5), sharex=True)
         for ax, (beta, x, p) in zip(axes, shown):
-            ax.plot([0, 0, 0.089, 0.089], [0, 0.089, 0.089, 0], "k:", lw=1)
+            ax.plot([0, 0, S4_SIDE, S4_SIDE], [0, S4_SIDE, S4_SIDE, 0], "k:", lw=1)
             # colour range from the 1st to the 99th percentile: a few particles pressed against a
             # wall carry p an order of magnitude above the rest and would wash the map out
             art = ax.scatter(x[:, 0], x[:, 1], c=p, s=2, lw=0, vmin=min(0.0, float(np.percentile(p, 1))),
@@ -450,8 +451,8 @@ def stability(quick=False, plot_dir=None) -> dict:
         ("stiff E = 1e8 at the dt of E = 1e6", dict(E=1e8, cfl_elastic=5.0)),
         ("tiny p_c0 = 1e-3 Pa (another material)", dict(pc0=1e-3)),
         ("beta = 0.5, free surface p̄ -> 0 (another material)", dict(beta=0.5)),
-        ("very coarse dx = L/4", dict(dx=0.089 / 4)),
-        ("fine dx = L/48", dict(dx=0.089 / 48)),
+        ("very coarse dx = L/4", dict(dx=S4_SIDE / 4)),
+        ("fine dx = L/48", dict(dx=S4_SIDE / 48)),
     ]
     if quick:
         cases = cases[:6]
@@ -459,7 +460,7 @@ def stability(quick=False, plot_dir=None) -> dict:
     for label, opts in cases:
         opts = dict(opts)
         dt_opts = {k: opts.pop(k) for k in ("cfl", "cfl_elastic", "alpha", "transfer") if k in opts}
-        scene = scenes.cohesive_collapse(opts.pop("beta", 0.0), dx=opts.pop("dx", 0.089 / 16), t_end=t_end, **opts)
+        scene = scenes.cohesive_collapse(opts.pop("beta", 0.0), dx=opts.pop("dx", S4_SIDE / 16), t_end=t_end, **opts)
         if dt_opts:
             scene = dataclasses.replace(scene, config=dataclasses.replace(scene.config, **dt_opts))
         rows.append(_stability_case(label, scene, None if "material" in label else baseline))

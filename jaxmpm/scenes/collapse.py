@@ -28,7 +28,8 @@ from ..step import step_budget
 from .info import SceneInfo
 
 __all__ = [
-    "DEFAULT_PPC", "DEFAULT_SAMPLING", "REST_SPEED", "REST_DURATION", "S2_DEFAULT_PPC", "Scene", "floor_lift",
+    "DEFAULT_PPC", "DEFAULT_SAMPLING", "REST_SPEED", "REST_DURATION", "S2_DEFAULT_PPC", "S4_SIDE", "Scene",
+    "floor_lift",
     "S2_PARAMS", "S3_PARAMS",
     "S4_PARAMS", "S5_PARAMS", "S7_PARAMS", "gates_collapse", "slope_collapse", "cohesive_collapse",
     "aspect_ratio_collapse", "aluminium_bars",
@@ -368,12 +369,16 @@ def slope_collapse(slope_deg: float = 10.0, dx: float = 0.01, ppc: float | None 
                     t_end=t_end, frames=frames, base_params=S3_PARAMS, **kw)
 
 
-def cohesive_collapse(beta: float = 0.0, dx: float = 0.089 / 16, ppc: float | None = None, dim: int = 2,
+#: S4's column: a square of this side (m), Gans et al. 2023 (docs/scenes.md S4).
+S4_SIDE = 0.089
+
+
+def cohesive_collapse(beta: float = 0.0, dx: float = S4_SIDE / 16, ppc: float | None = None, dim: int = 2,
                       width: float | None = None, t_end: float = 0.5, frames: int = 0, **kw) -> Scene:
     """S4 (Gans et al. 2023 set-up): a 0.089 m square column of coated beads on a no-slip floor
     against a slip-free back wall; the front gate is lifted at 50 m/s (practically instantly)."""
     kw.setdefault("runout", 0.25)  # β = 0 runs out ~0.16 m at dx = 5.6 mm
-    return collapse("cohesive-collapse", 0.089, 0.089, dx=dx, ppc=ppc, dim=dim, width=width,
+    return collapse("cohesive-collapse", S4_SIDE, S4_SIDE, dx=dx, ppc=ppc, dim=dim, width=width,
                     front_gate_speed=50.0, t_end=t_end, frames=frames, base_params=S4_PARAMS, beta=beta, **kw)
 
 
