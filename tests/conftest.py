@@ -16,12 +16,7 @@ os.environ.setdefault("XLA_FLAGS", SINGLE_THREAD_FLAGS)
 os.environ.setdefault("JAXMPM_WORKERS", "1")
 
 import jax  # noqa: E402  (after XLA_FLAGS, which the backend reads when it starts)
-import pytest
 
 jax.config.update("jax_enable_x64", True)
 jax.config.update("jax_numpy_dtype_promotion", "strict")
 
-
-@pytest.fixture(autouse=True)
-def _x64():
-    yield
