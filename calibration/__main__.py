@@ -137,7 +137,8 @@ def _scene_and_objective(args, keys, experiments=()):
     members, scenes = [], []
     for experiment in experiments or [None]:
         profiles, front = _load_data(args, experiment)
-        options = dict(front_threshold=args.front_threshold, jacobian=getattr(args, "jacobian", "ad"))
+        options = dict(front_threshold=args.front_threshold, jacobian=getattr(args, "jacobian", "ad"),
+                       weighting=args.weighting)
         if experiment is not None:
             member = Objective.from_experiment(
                 experiment, keys, profile=profiles or None, front=front,
@@ -664,6 +665,10 @@ def _common(p, data: bool = True) -> None:
                        help="weight of the profile misfit (default: the experiment file's, else 1)")
         p.add_argument("--weight-front", type=float, default=None,
                        help="weight of the front misfit (default: the experiment file's, else 1)")
+        p.add_argument("--weighting", choices=("block", "row"), default="block",
+                       help="block: each profile and the front history weigh their weight in total, whatever their "
+                            "length (the default); row: every point weighs it (the noise-weighted fit, most "
+                            "efficient when all points have the same relative noise)")
         p.add_argument("--front-threshold", type=float, default=None,
                        help="height (m) below which the deposit has ended, for the front (default dx/ppc/2)")
     add_scene_arguments(p, scene_choices=False)

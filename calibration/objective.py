@@ -137,6 +137,9 @@ class FrontTarget:
         return cls(np.asarray(data.t, float), np.asarray(data.x_front, float), getattr(data, "path", None))
 
 
+#: How a block's weight is shared by its rows (``Objective``'s ``weighting``).
+WEIGHTINGS = ("block", "row")
+
 #: Plausibility limits of data against the scene they are said to come from (``check_data``):
 #: no deposit is taller than 1.5 column heights or lower than 1 % of one, none holds more than
 #: twice the column's area L·H, and the measured material lies on the grid.
@@ -273,6 +276,11 @@ class Objective:
     profile: a ``ProfileTarget`` (or the loader's ``Profile``), or a list of them at several times.
     front: a ``FrontTarget`` (or the loader's ``FrontHistory``).
     weights: ``{"profile": w_h, "front": w_f}`` (default 1 each).
+    weighting: how the rows of a block share its weight: "block" (the default) gives each block
+        (a profile, a front history) its weight in total, whatever its length (row scale
+        sqrt(w / n)); "row" gives every row the weight (row scale sqrt(w)): the noise-weighted,
+        most efficient fit when every row's relative noise is the same, where "block" lets a
+        short block (a few top heights) count as much as a long profile.
     sigma: the width of the profile's smoothing kernel (m; default: the particle spacing).
     front_threshold: the height (m) below which the deposit counts as ended, for the front
         (default: half a particle spacing, below the height of one isolated particle).
@@ -289,13 +297,13 @@ class Objective:
     """
 
     def __init__(self, scene, keys: Sequence[str], *, profile=None, front=None,
-                 weights: Mapping[str, float] | None = None, sigma: float | None = None,
+                 weights: Mapping[str, float] | None = None, weighting: str = "block", sigma: float | None = None,
                  front_threshold: float | None = None, x_ref: float = 0.0,
                  bounds: Mapping[str, tuple[float, float]] | None = None, jacobian: str = "ad",
                  fd_step: float = 1e-2, check_data: bool = True, mirror: float | str | None = "back-wall"):
         keys = tuple(keys)
         # What the constructor was given beyond the scene: ``at_dx`` rebuilds from it.
-        self._options = dict(profile=profile, front=front, weights=weights, sigma=sigma,
+        self._options = dict(profile=profile, front=front, weights=weights, weighting=weighting, sigma=sigma,
                              front_threshold=front_threshold, x_ref=x_ref, bounds=bounds, jacobian=jacobian,
                              fd_step=fd_step, check_data=check_data, mirror=mirror)
         if jacobian not in ("ad", "fd"):
@@ -325,6 +333,9 @@ class Objective:
             if not (math.isfinite(w) and w >= 0):
                 raise ValueError(f"weights[{name!r}] must be finite and >= 0, got {w!r}")
         self.weights = weights
+        if weighting not in WEIGHTINGS:
+            raise ValueError(f"weighting must be one of {WEIGHTINGS}, got {weighting!r}")
+        self.weighting = weighting
         present = {"profile": bool(self.profiles), "front": self.front is not None}
         for name, there in present.items():
             if there and weights[name] == 0:
@@ -374,7 +385,7 @@ class Objective:
             t_prof = min(_at_run_precision(t_prof, self.dtype), t_end)
             self._profiles.append((xp, hp, float(hp.max()), t_prof))
             blocks[name] = slice(m, m + xp.size)
-            scales.append(np.full(xp.size, math.sqrt(weights["profile"] / xp.size)))
+            scales.append(np.full(xp.size, math.sqrt(weights["profile"] / (xp.size if weighting == "block" else 1))))
             m += xp.size
         if self.front is not None:
             tf = _check_array("front.t", self.front.t)
@@ -396,7 +407,7 @@ class Objective:
             self._front_phi = (np.zeros(tf.size) if tau is None
                                else np.concatenate([[0.0], np.exp(-np.diff(tf) / float(tau))]))
             blocks["front"] = slice(m, m + tf.size)
-            scales.append(np.full(tf.size, math.sqrt(weights["front"] / tf.size)))
+            scales.append(np.full(tf.size, math.sqrt(weights["front"] / (tf.size if weighting == "block" else 1))))
             m += tf.size
         self.blocks = blocks
         self.row_scale = np.concatenate(scales)
@@ -677,6 +688,7 @@ class Objective:
             "t_end": float(self.config.t_end),
             "fixed": {k: float(v) for k, v in self._base.to_dict().items() if k not in self.keys},
             "weights": {k: float(v) for k, v in self.weights.items()}, "sigma": self.sigma,
+            **({"weighting": self.weighting} if self.weighting != "block" else {}),  # older files: "block"
             "front_threshold": self.front_threshold, "x_ref": self.x_ref, "mirror": self.mirror,
             "bounds": {k: [lo, hi] for k, lo, hi in zip(self.keys, self.bounds.lower, self.bounds.upper)},
             "dtype": np.dtype(self.dtype).name, "jacobian": self.jacobian, "fd_step": self.fd_step,
@@ -690,7 +702,8 @@ class Objective:
         return {"scene": self.scene.name, "keys": list(self.keys), "times": list(self.times),
                 "n_profile": [int(p[0].size) for p in self._profiles],
                 "n_front": int(self._t_front.size) if self.front is not None else 0,
-                "weights": self.weights, "sigma": self.sigma, "front_threshold": self.front_threshold,
+                "weights": self.weights, "weighting": self.weighting, "sigma": self.sigma,
+                "front_threshold": self.front_threshold,
                 "dx": self.config.grid.dx, "n_particles": int(self._state.x.shape[0]),
                 "bounds": {k: [lo, hi] for k, lo, hi in zip(self.keys, self.bounds.lower, self.bounds.upper)},
                 "bound_notes": list(self.bound_notes),

@@ -208,6 +208,25 @@ def test_several_profiles_and_composite_objective(problem):
     assert other.loss(truth) > 0 and both.loss(truth) == 0.0  # same compiled run, each its own data
 
 
+def test_row_weighting_weighs_every_point_alike(problem):
+    """weighting="block" gives the profile (17 points) and the front (2 times) their weight in
+    total; "row" gives it to every point, so the loss is the plain sum of squared relative
+    residuals (the noise-weighted fit for equal relative noise)."""
+    scene, truth, objective = problem
+    rows = Objective(scene, KEYS, profile=objective.profiles[0], front=objective.front, weighting="row")
+    np.testing.assert_array_equal(rows.row_scale, 1.0)
+    n_prof = objective.blocks["profile"].stop - objective.blocks["profile"].start
+    np.testing.assert_allclose(objective.row_scale[objective.blocks["profile"]], np.sqrt(1 / n_prof))
+    theta = truth * np.array([1.2, 0.95])
+    r_block, _ = objective.residuals(theta)
+    r_row, _ = rows.residuals(theta)
+    np.testing.assert_allclose(np.asarray(r_row), np.asarray(r_block) / objective.row_scale, rtol=1e-12)
+    assert rows.fingerprint()["weighting"] == "row" and "weighting" not in objective.fingerprint()
+    assert rows.at_dx(rows.dx * 1.5).weighting == "row"
+    with pytest.raises(ValueError, match="weighting must be one of"):
+        Objective(scene, KEYS, profile=objective.profiles[0], weighting="points")
+
+
 @pytest.fixture(scope="module")
 def sharing():
     """Two experiments of one scene at β 0.25 and 0.35 sharing μ1: (composite, a, b, μ1)."""
