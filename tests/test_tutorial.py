@@ -45,3 +45,21 @@ def test_tutorial_fit_and_prediction_run_as_written(tmp_path):
     assert run.returncode == 0, run.stderr[-2000:]
     summary = json.loads(run.stdout)
     assert summary["status"] == 0 and np.isfinite(summary["runout"])
+
+
+def test_the_joint_fit_files_load_into_one_objective():
+    """docs/five_keys (docs/what_collapses_tell.md): three experiment files of one material, each
+    with four profiles and a front, checked against its geometry and joined as the command line
+    joins them (shared keys, and with --shared the others per file)."""
+    from calibration import CompositeObjective
+
+    folder = TUTORIAL.parent / "five_keys"
+    files = [folder / f"{name}.toml" for name in ("column", "slope20", "tall_slope20")]
+    experiments = [Experiment.from_toml(f) for f in files]
+    assert {e.fit.keys for e in experiments} == {("beta", "mu1", "mu2", "I0", "xi")}
+    members = [Objective.from_experiment(e, ("beta", "mu1", "mu2", "xi")) for e in experiments]
+    assert all(len(m.blocks) == 5 for m in members)  # four profiles and the front
+    joint = CompositeObjective(members)
+    assert joint.keys == ("beta", "mu1", "mu2", "xi") and joint.n_residuals == sum(m.n_residuals for m in members)
+    per_file = CompositeObjective.sharing(members, ("mu1", "mu2"), [f.stem for f in files])
+    assert per_file.keys[:2] == ("mu1", "mu2") and "beta@slope20" in per_file.keys and len(per_file.keys) == 8
