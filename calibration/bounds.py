@@ -16,7 +16,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-__all__ = ["DEFAULT_BOUNDS", "FIT_KEYS", "START_MARGIN", "Bounds"]
+__all__ = ["DEFAULT_BOUNDS", "FIT_KEYS", "START_MARGIN", "Bounds", "physical", "unconstrained", "dphysical_dz",
+           "log_jacobian"]
 
 #: The calibration targets of docs/model.md §4.
 FIT_KEYS = ("beta", "mu1", "mu2", "I0", "xi")
@@ -40,6 +41,33 @@ DEFAULT_BOUNDS: dict[str, tuple[float, float]] = {
     "d": (1e-5, 0.1),
     "mu_w": (0.0, 2.0),
 }
+
+
+# The map θ ↔ z itself, on arrays of bounds: the one place it is written. ``Bounds`` applies it
+# with its own bounds; traced code (``calibration.observe``, ``calibration.mcmc``) passes the
+# bounds as arrays, so that one compilation serves every box.
+
+def physical(z, lower, upper):
+    """θ = lower + (upper − lower) sigmoid(z), elementwise (traceable)."""
+    return lower + (upper - lower) * jax.nn.sigmoid(z)
+
+
+def unconstrained(theta, lower, upper) -> np.ndarray:
+    """z = logit((θ − lower) / (upper − lower)) (numpy; θ strictly inside, unchecked)."""
+    u = (np.asarray(theta, float) - lower) / (np.asarray(upper, float) - lower)
+    return np.log(u) - np.log1p(-u)
+
+
+def dphysical_dz(z, lower, upper):
+    """dθ/dz = (upper − lower) s (1 − s), s = sigmoid(z), elementwise (traceable)."""
+    s = jax.nn.sigmoid(z)
+    return (upper - lower) * s * (1.0 - s)
+
+
+def log_jacobian(z, lower, upper):
+    """log |dθ/dz| summed over the keys: the density of a flat prior in θ sampled in z."""
+    s = jax.nn.sigmoid(z)
+    return jnp.sum(jnp.log((upper - lower) * s * (1 - s)))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -79,23 +107,22 @@ class Bounds:
         return jnp.asarray(self.lower, dtype), jnp.asarray(self.upper, dtype)
 
     def to_physical(self, z):
-        """θ = lo + (hi − lo) sigmoid(z)."""
-        lo, hi = self._arrays(z)
-        return lo + (hi - lo) * jax.nn.sigmoid(z)
+        """θ = lo + (hi − lo) sigmoid(z) (``physical``)."""
+        return physical(z, *self._arrays(z))
 
     def to_unconstrained(self, theta):
-        """The inverse map; ``theta`` must lie strictly inside the bounds."""
+        """The inverse map (``unconstrained``); ``theta`` must lie strictly inside the bounds."""
         theta = np.asarray(theta, float)
-        lo, hi = np.asarray(self.lower), np.asarray(self.upper)
         self.check(theta, "theta")
-        u = (theta - lo) / (hi - lo)
-        return np.log(u) - np.log1p(-u)
+        return unconstrained(theta, np.asarray(self.lower), np.asarray(self.upper))
 
     def jacobian_diag(self, z):
-        """dθ/dz, elementwise."""
-        lo, hi = self._arrays(z)
-        s = jax.nn.sigmoid(z)
-        return (hi - lo) * s * (1.0 - s)
+        """dθ/dz, elementwise (``dphysical_dz``)."""
+        return dphysical_dz(z, *self._arrays(z))
+
+    def log_jacobian(self, z):
+        """log |dθ/dz| summed (``log_jacobian``)."""
+        return log_jacobian(z, *self._arrays(z))
 
     def check(self, theta, name: str = "init") -> None:
         theta = np.asarray(theta, float)

@@ -9,7 +9,7 @@ for one or two keys the two are a check on each other.
 How it samples (the choices, and why):
 
 - **Coordinates.** The chains move in w, the unconstrained z = logit((θ − lo)/(hi − lo)) of the
-  bounds (``calibration.observe.to_physical``) whitened by the fit's Gauss–Newton covariance
+  bounds (``calibration.bounds.physical``) whitened by the fit's Gauss–Newton covariance
   mapped to z: z = ẑ + L w. The flat prior in θ becomes the log-Jacobian Σ log dθ/dz, the bounds
   are never crossed, and where the Gauss–Newton picture holds the target is close to a standard
   normal, so an identity mass matrix is right and NUTS needs few leapfrog steps (typically 3) per
@@ -52,8 +52,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .bounds import log_jacobian, physical, unconstrained
 from .likelihood import _sigma
-from .observe import jacobian_by_columns, to_physical
+from .observe import jacobian_by_columns
 from .uncertainty import NOISE_FLOOR
 
 __all__ = ["McmcPosterior", "nuts_posterior", "posterior_predictive"]
@@ -238,7 +239,7 @@ def _log_density_fn(objective, weights, z_hat, L, lower, upper):
     dtype = z_hat.dtype
 
     def theta_of(w):
-        return to_physical(z_hat + L @ w, lower, upper)
+        return physical(z_hat + L @ w, lower, upper)
 
     def chi2_parts(w):
         r, pred = objective.residual_fn(theta_of(w))
@@ -262,8 +263,7 @@ def _log_density_fn(objective, weights, z_hat, L, lower, upper):
     chi2.defvjp(chi2_fwd, lambda grad, g: (g * grad,))
 
     def log_density(w):
-        s = jax.nn.sigmoid(z_hat + L @ w)
-        log_jac = jnp.sum(jnp.log((upper - lower) * s * (1 - s)))  # flat prior in θ, sampled in z
+        log_jac = log_jacobian(z_hat + L @ w, lower, upper)  # flat prior in θ, sampled in z
         return (-0.5 * chi2(w) + log_jac).astype(dtype)
 
     return log_density, theta_of
@@ -327,7 +327,7 @@ def nuts_posterior(objective, fit_result, *, chains: int | None = None, warmup: 
     dtheta_dz = (upper_np - lower_np) * s * (1 - s)
     cov_z = np.asarray(unc.cov, float) / np.outer(dtheta_dz, dtheta_dz)
     L = np.linalg.cholesky(cov_z)
-    z_hat = np.log(s) - np.log1p(-s)
+    z_hat = unconstrained(theta_hat, lower_np, upper_np)
     as_dtype = lambda a: jnp.asarray(a, dtype)  # noqa: E731
     log_density, theta_of = _log_density_fn(objective, as_dtype(_row_weights(objective, sigma)), as_dtype(z_hat),
                                             as_dtype(L), as_dtype(lower_np), as_dtype(upper_np))
@@ -459,9 +459,8 @@ def _summary(keys, samples):
 
 
 def _whitened(theta, z_hat, L, lower, upper):
-    """θ (n, k) -> w with θ = to_physical(ẑ + L w): the inverse of the chains' map."""
-    s = (np.asarray(theta, float) - lower) / (upper - lower)
-    return np.linalg.solve(L, (np.log(s) - np.log1p(-s) - z_hat).T).T
+    """θ (n, k) -> w with θ = physical(ẑ + L w): the inverse of the chains' map."""
+    return np.linalg.solve(L, (unconstrained(theta, lower, upper) - z_hat).T).T
 
 
 def _check_resume(resume, keys, fit_result, sigma):

@@ -29,7 +29,9 @@ from jaxmpm import make_rollout
 from jaxmpm.config import Config
 from jaxmpm.observables import deposit_profile, front_from_profile, particle_volumes
 
-__all__ = ["ModelFunctions", "Observations", "jacobian_by_columns", "model_functions", "to_physical"]
+from .bounds import physical
+
+__all__ = ["ModelFunctions", "Observations", "jacobian_by_columns", "model_functions"]
 
 #: Compiled (configuration, observations, keys) kept at once; each holds a compiled rollout.
 CACHE_SIZE = 4
@@ -134,11 +136,6 @@ def unwhiten_front(w, phi) -> np.ndarray:
     return e
 
 
-def to_physical(z, lower, upper):
-    """θ = lower + (upper − lower) sigmoid(z) (``calibration.bounds.Bounds.to_physical``)."""
-    return lower + (upper - lower) * jax.nn.sigmoid(z)
-
-
 def jacobian_by_columns(fn, x):
     """Forward-mode Jacobian of ``fn(x) -> (y, aux)`` (x a vector): ``(dy/dx, (y, aux))``.
 
@@ -160,7 +157,7 @@ class ModelFunctions(NamedTuple):
     """The pure functions of one (configuration, observations, keys). ``data`` is the dict of
     measured values and scales (``Objective.data``): ``h``, ``h_scale`` (profile points),
     ``front``, ``front_scale`` (front times), ``row_scale`` (every residual). θ: physical
-    values of ``keys``; z: unconstrained, with θ = ``to_physical(z, lower, upper)``.
+    values of ``keys``; z: unconstrained, with θ = ``calibration.bounds.physical(z, lower, upper)``.
 
     - ``predict(theta, state, base)``: {"status", "h", "front"} (unjitted); ``predictions``: jit(predict);
     - ``residual(theta, state, base, data)``: (r, prediction) (unjitted, for vmap and grad);
@@ -222,7 +219,7 @@ def _model_functions(config: Config, observations: Observations, keys: tuple[str
         return jnp.concatenate(parts) * data["row_scale"], pred
 
     def residual_z(z, lower, upper, state, base, data):
-        return residual(to_physical(z, lower, upper), state, base, data)
+        return residual(physical(z, lower, upper), state, base, data)
 
     def loss(theta, state, base, data):
         r, pred = residual(theta, state, base, data)

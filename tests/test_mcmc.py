@@ -230,9 +230,9 @@ def test_resume_refuses_another_fit_before_sampling():
 
 
 def test_whitening_round_trips():
-    """``_whitened`` inverts the chains' map θ = to_physical(ẑ + L w), near the bounds too."""
+    """``_whitened`` inverts the chains' map θ = physical(ẑ + L w), near the bounds too."""
+    from calibration.bounds import physical as to_physical
     from calibration.mcmc import _whitened
-    from calibration.observe import to_physical
 
     rng = np.random.default_rng(0)
     lower, upper = np.array([0.0, 0.1]), np.array([1.0, 0.9])
