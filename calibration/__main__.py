@@ -183,7 +183,8 @@ def _fit_options_of(args, noise=None):
                              sampling_seeds=getattr(args, "sampling_seeds", 0),
                              reference_noise=getattr(args, "reference_noise", 0.01),
                              threshold=getattr(args, "threshold", 0.1),
-                             grid_ratio=getattr(args, "grid_check", 0) or None)
+                             grid_ratio=getattr(args, "grid_check", 0) or None,
+                             grid_levels=getattr(args, "grid_levels", 1))
     except OptionError as err:
         raise err.as_flag() from None
     return options, judge
@@ -731,6 +732,10 @@ def build_parser() -> argparse.ArgumentParser:
                      help="the grid's share of the interval: the fit's objective rebuilt at RHO times the grid "
                           "spacing, two particle draws there at the end point (stderr_grid, grid; about two thirds "
                           "of one forward run in 2D; default 1.5; 0: not measured)")
+    fit.add_argument("--grid-levels", type=int, default=1, metavar="N",
+                     help="coarser grids for the grid term: 1 (RHO x dx; default) or 2 (also RHO^2 x dx, about a "
+                          "third of a forward run more in 2D): the order the three grids show, or a wider term "
+                          "where they oscillate")
     fit.add_argument("--profiles", type=int, default=0, metavar="N",
                      help="profile likelihood of every fitted key at N values over +-4 standard errors, the others "
                           "refitted at each (calibration.likelihood; default 0: off)")

@@ -30,7 +30,8 @@ FLAGS: dict[str, str | None] = {
     "xtol": None, "ftol": None, "stat_tol": None, "max_rejections": None,
     "noise": "--noise", "uncertainty": None, "roundoff_samples": "--roundoff-samples",
     "sampling_seeds": "--sampling-seeds", "reference_noise": "--reference-noise", "threshold": "--threshold",
-    "grid_ratio": "--grid-check", "grid_draws": None, "keys": "--fit", "init": "--init",
+    "grid_ratio": "--grid-check", "grid_draws": None, "grid_levels": "--grid-levels", "keys": "--fit",
+    "init": "--init",
 }
 
 
@@ -122,7 +123,8 @@ class JudgeOptions:
     compute intervals at all; ``roundoff_samples`` perturbed runs for the run's own scatter and
     ``sampling_seeds`` other particle draws (0, or 2 and more: 0 is not measured);
     ``reference_noise`` and ``threshold`` decide which parameters count as constrained;
-    ``grid_ratio`` (None: not measured, else > 1) and ``grid_draws``: the grid term."""
+    ``grid_ratio`` (None: not measured, else > 1), ``grid_draws`` and ``grid_levels`` (1 or 2
+    coarser grids): the grid term (``calibration.uncertainty.grid_shift``)."""
 
     noise: Mapping[str, float] | float | None = None
     uncertainty: bool = True
@@ -132,6 +134,7 @@ class JudgeOptions:
     threshold: float = 0.1
     grid_ratio: float | None = None
     grid_draws: int = GRID_DRAWS
+    grid_levels: int = 1
 
     def __post_init__(self):
         noise = self.noise
@@ -150,6 +153,8 @@ class JudgeOptions:
         _require(self.grid_ratio is None or (_is_number(self.grid_ratio) and self.grid_ratio > 1), "grid_ratio",
                  "off (None; 0 on the command line) or a finite factor > 1 of the grid spacing", self.grid_ratio)
         _require(_is_int(self.grid_draws) and self.grid_draws >= 1, "grid_draws", "an integer >= 1", self.grid_draws)
+        _require(_is_int(self.grid_levels) and self.grid_levels in (1, 2), "grid_levels", "1 or 2 (coarser grids)",
+                 self.grid_levels)
 
     def kwargs(self) -> dict[str, Any]:
         """The fields as keyword arguments (``judge_point``, ``search``)."""

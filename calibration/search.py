@@ -232,6 +232,7 @@ def search(objective, starts: int | np.ndarray = DEFAULT_STARTS, *, seed: int = 
            noise: Mapping[str, float] | float | None = None, uncertainty: bool = True, shrink: bool = True,
            roundoff_samples: int = ROUNDOFF_SAMPLES, sampling_seeds: int = 0, reference_noise: float = 0.01,
            threshold: float = 0.1, grid_ratio: float | None = None, grid_draws: int = GRID_DRAWS,
+           grid_levels: int = 1,
            progress: bool = False, workers=None) -> SearchResult:
     """Multi-start LM from ``starts`` design points (an int k) or from given physical starts
     ((k, n) array). ``init`` (physical values by key, as for ``fit``): one more start, placed
@@ -240,13 +241,14 @@ def search(objective, starts: int | np.ndarray = DEFAULT_STARTS, *, seed: int = 
     ``noise``: the known noise per block (None: estimated from the best point's residual
     structure). ``shrink``: evaluate only the active starts (padded to a power of two).
     ``roundoff_samples``, ``sampling_seeds``, ``reference_noise``, ``threshold``, ``grid_ratio``,
-    ``grid_draws``: for the best point's verdict and uncertainty, as in ``fit``. ``workers`` (an integer or a
+    ``grid_draws``, ``grid_levels``: for the best point's verdict and uncertainty, as in ``fit``.
+    ``workers`` (an integer or a
     ``calibration.workers.Workers``): with more than one, every iteration's forward-mode passes
     (each active start's, one per key) run in that many single-threaded processes instead of
     one vmapped batch, and so do the verdict's extra runs."""
     JudgeOptions(noise=noise, uncertainty=uncertainty, roundoff_samples=roundoff_samples,  # validated once,
                  sampling_seeds=sampling_seeds, reference_noise=reference_noise, threshold=threshold,  # as for fit
-                 grid_ratio=grid_ratio, grid_draws=grid_draws)
+                 grid_ratio=grid_ratio, grid_draws=grid_draws, grid_levels=grid_levels)
     with using(workers) as workers:
         clock0 = time.perf_counter()
         steps = _check_int("steps", steps, 1)
@@ -334,7 +336,7 @@ def search(objective, starts: int | np.ndarray = DEFAULT_STARTS, *, seed: int = 
                                    roundoff_samples=roundoff_samples if uncertainty else 0,
                                    sampling_seeds=sampling_seeds, reference_noise=reference_noise,
                                    threshold=threshold, grid_ratio=grid_ratio if uncertainty else None,
-                                   grid_draws=grid_draws, workers=workers)
+                                   grid_draws=grid_draws, grid_levels=grid_levels, workers=workers)
         wall = time.perf_counter() - clock0
         histories = [history.arrays(i) for i in range(k)]
         hist = histories[i_best]

@@ -320,6 +320,11 @@ class GridCheck:
     shift: np.ndarray  # θ(ρ dx) − θ(dx), to first order
     halfwidth: np.ndarray  # the grid convergence index: the 95 % half-width of θ's grid error
     wall_s: float
+    #: With a second coarser grid (``levels=2``): θ(ρ² dx) − θ(dx), the order the three grids
+    #: show along the shift (None: they do not converge monotonically) and how the index was made.
+    shift2: np.ndarray | None = None
+    order: float | None = None
+    method: str = "two grids: Roache's GCI with the order assumed 1 and safety factor 3"
 
     @property
     def ratio(self) -> float:
@@ -340,14 +345,45 @@ class GridCheck:
 
     def to_dict(self, keys: Sequence[str]) -> dict[str, Any]:
         by_key = lambda a: {k: float(v) for k, v in zip(keys, a)}  # noqa: E731
-        return {"dx": self.dx, "dx_coarse": self.dx_coarse, "ratio": round(self.ratio, 6), "draws": self.draws,
-                "shift": by_key(self.shift), "halfwidth95": by_key(self.halfwidth), "stderr": by_key(self.stderr),
-                "order_assumed": GRID_ORDER, "safety_factor": GCI_SAFETY, "wall_s": round(self.wall_s, 3)}
+        out = {"dx": self.dx, "dx_coarse": self.dx_coarse, "ratio": round(self.ratio, 6), "draws": self.draws,
+               "shift": by_key(self.shift), "halfwidth95": by_key(self.halfwidth), "stderr": by_key(self.stderr),
+               "method": self.method, "wall_s": round(self.wall_s, 3)}
+        if self.shift2 is None:
+            out.update(order_assumed=GRID_ORDER, safety_factor=GCI_SAFETY)
+        else:
+            out.update(levels=2, dx_coarse2=self.dx * self.ratio ** 2, shift2=by_key(self.shift2),
+                       order_observed=self.order)
+        return out
 
 
-def check_grid_options(ratio, draws) -> None:
+def three_grid_index(shift1, shift2, ratio: float) -> tuple[np.ndarray, float | None, str]:
+    """The grid convergence index from three grids (dx, ρ dx, ρ² dx) by the shifts of θ to the
+    two coarser ones: (95 % half-width per key, the observed order or None, how it was made).
+
+    With e21 = shift1 and e32 = shift2 − shift1, their ratio along e21, q = e32·e21 / |e21|²,
+    is ρ^p on a grid converging with order p. When q > 1 (the changes shrink as the grid is
+    refined) p = ln q / ln ρ, limited to [0.5, 2], and the index is Roache's three-grid one,
+    1.25 |e21| / (ρ^p − 1). Otherwise the grids oscillate or are not yet in the range where the
+    error shrinks (what the S4 study shows, docs/grid_convergence.md): the index is 3 max(|e21|,
+    |e32|) / (ρ − 1), the two-grid one on the larger change."""
+    e21 = np.asarray(shift1, float)
+    e32 = np.asarray(shift2, float) - e21
+    norm2 = float(e21 @ e21)
+    q = float(e32 @ e21) / norm2 if norm2 > 0 else math.inf
+    if norm2 > 0 and q > 1.0:
+        order = min(max(math.log(q) / math.log(ratio), 0.5), 2.0)
+        return (1.25 * np.abs(e21) / (ratio ** order - 1.0), order,
+                f"three grids converging with observed order {order:.2g}: Roache's GCI, safety factor 1.25")
+    kind = "oscillate" if q <= 0 else "do not yet converge (the finer change is the larger)"
+    return (GCI_SAFETY * np.maximum(np.abs(e21), np.abs(e32)) / (ratio - 1.0), None,
+            f"three grids {kind}: the larger change with the order assumed 1 and safety factor 3")
+
+
+def check_grid_options(ratio, draws, levels: int = 1) -> None:
     """Refuse a grid check that cannot be made (before anything runs): ``ratio`` None (no
-    check) or a number > 1, ``draws`` an integer >= 1."""
+    check) or a number > 1, ``draws`` an integer >= 1, ``levels`` 1 or 2 coarser grids."""
+    if levels not in (1, 2) or isinstance(levels, bool):
+        raise ValueError(f"grid_levels must be 1 or 2 (coarser grids), got {levels!r}")
     if ratio is not None and not (isinstance(ratio, (int, float)) and not isinstance(ratio, bool)
                                   and math.isfinite(ratio) and ratio > 1.0):
         raise ValueError(f"grid_ratio must be None (no grid check) or a number > 1 (the coarser grid's dx over "
@@ -356,15 +392,17 @@ def check_grid_options(ratio, draws) -> None:
         raise ValueError(f"grid_draws must be an integer >= 1, got {draws!r}")
 
 
-def grid_shift(objective, theta, J, *, ratio: float = GRID_RATIO, draws: int = GRID_DRAWS,
+def grid_shift(objective, theta, J, *, ratio: float = GRID_RATIO, draws: int = GRID_DRAWS, levels: int = 1,
                workers=None) -> GridCheck | None:
     """The grid term at the fit's θ (``J`` the objective's weighted Jacobian there): the
     objective rebuilt at ``ratio`` × its dx (``Objective.at_dx``), its residuals at θ averaged over
     ``draws`` particle draws (one, the scene's own, for a sampling with no seed), and the
-    Gauss–Newton shift −J⁺ r̄ (see the module docstring). Raises ``ValueError`` when the objective
-    cannot be rebuilt (a scene with no recipe, data outside the coarser grid); returns None when
-    no coarse run ran without status bits."""
-    check_grid_options(ratio, draws)
+    Gauss–Newton shift −J⁺ r̄ (see the module docstring). ``levels=2`` adds a second coarser grid,
+    ρ² dx, and the index from the three (``three_grid_index``): the order the grids show, or a
+    wider index where they oscillate. Raises ``ValueError`` when the objective cannot be rebuilt
+    (a scene with no recipe, data outside the coarser grid); returns None when no coarse run ran
+    without status bits."""
+    check_grid_options(ratio, draws, levels)
     if not hasattr(objective, "coarsened"):
         raise ValueError("this objective cannot be rebuilt at another dx")
     clock = time.perf_counter()
@@ -372,11 +410,18 @@ def grid_shift(objective, theta, J, *, ratio: float = GRID_RATIO, draws: int = G
     coarse, kept = coarse_residuals(objective, theta, ratio, draws, workers)
     if not kept:
         return None
-    r_mean = np.mean(kept, axis=0)
-    shift = -np.linalg.lstsq(np.asarray(J, float), r_mean, rcond=None)[0]
-    halfwidth = GCI_SAFETY * np.abs(shift) / (ratio ** GRID_ORDER - 1.0)
-    return GridCheck(dx, coarse.dx, len(kept), shift, halfwidth,
-                     time.perf_counter() - clock)
+    J = np.asarray(J, float)
+    shift = -np.linalg.lstsq(J, np.mean(kept, axis=0), rcond=None)[0]
+    if levels == 1:
+        halfwidth = GCI_SAFETY * np.abs(shift) / (ratio ** GRID_ORDER - 1.0)
+        return GridCheck(dx, coarse.dx, len(kept), shift, halfwidth, time.perf_counter() - clock)
+    _, kept2 = coarse_residuals(objective, theta, ratio * ratio, draws, workers)
+    if not kept2:
+        return None
+    shift2 = -np.linalg.lstsq(J, np.mean(kept2, axis=0), rcond=None)[0]
+    halfwidth, order, method = three_grid_index(shift, shift2, ratio)
+    return GridCheck(dx, coarse.dx, min(len(kept), len(kept2)), shift, halfwidth, time.perf_counter() - clock,
+                     shift2=shift2, order=order, method=method)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -676,10 +721,13 @@ def gauss_newton_uncertainty(
             lines.append(f"Not converged in the grid: a fit at {grid.ratio:.3g} × dx would move " + ", ".join(
                 f"{k} by {d:+.2g}" for k, d in zip(keys, grid.shift)) + "; the grid's share of the interval of "
                 + ", ".join(moved) + " exceeds the data's. At this dx that part of the answer is a property of "
-                "the grid, not of the material: refit at a finer dx.")
+                "the grid, not of the material: refit at a finer dx."
+                + ("" if grid.shift2 is None else f" Grid term from {grid.method}."))
         else:
-            lines.append(f"Converged in the grid as far as one coarser grid ({grid.ratio:.3g} × dx) can show: its "
-                         "share stays within the data's interval for every key.")
+            seen = (f"one coarser grid ({grid.ratio:.3g} × dx) can show" if grid.shift2 is None
+                    else f"two coarser grids ({grid.ratio:.3g} and {grid.ratio ** 2:.3g} × dx) show")
+            lines.append(f"Converged in the grid as far as {seen}: its share stays within the data's interval "
+                         "for every key.")
     elif grid_note:
         lines.append(f"The grid's share was not measured: {grid_note}.")
     return Uncertainty(keys, theta, stderr, cov, corr, ci95, used, estimated, se_ref, rel, constrained,
@@ -691,7 +739,7 @@ def judge_point(objective, r, J, theta, *, converged: bool, message: str,
                 noise: Mapping[str, float] | float | None = None, uncertainty: bool = True,
                 roundoff_samples: int = ROUNDOFF_SAMPLES, sampling_seeds: int = 0, reference_noise: float = 0.01,
                 threshold: float = 0.1, grid_ratio: float | None = None, grid_draws: int = GRID_DRAWS,
-                workers=None):
+                grid_levels: int = 1, workers=None):
     """The verdict on a fit's end point and, when ``uncertainty``, its Gauss–Newton uncertainty
     (intervals withheld unless the verdict is a fit): what ``fit`` and ``search`` report for
     their best point. ``roundoff_samples`` perturbed runs measure the run's own scatter there
@@ -701,7 +749,7 @@ def judge_point(objective, r, J, theta, *, converged: bool, message: str,
     that multiple of its dx for the grid's share (``grid_shift``, ``grid_draws`` draws there; None,
     the default: not measured). All go to ``workers`` (a ``calibration.workers.Workers``) when
     given. Returns ``(verdict, uncertainty or None)``."""
-    check_grid_options(grid_ratio, grid_draws)
+    check_grid_options(grid_ratio, grid_draws, grid_levels)
     J = np.asarray(J, float)
     scatter = None
     if roundoff_samples and np.all(np.isfinite(J)) and hasattr(objective, "residuals"):
@@ -717,7 +765,8 @@ def judge_point(objective, r, J, theta, *, converged: bool, message: str,
         grid, grid_note = None, ""
         if grid_ratio is not None and np.all(np.isfinite(J)):
             try:
-                grid = grid_shift(objective, theta, J, ratio=grid_ratio, draws=grid_draws, workers=workers)
+                grid = grid_shift(objective, theta, J, ratio=grid_ratio, draws=grid_draws, levels=grid_levels,
+                                  workers=workers)
             except ValueError as error:
                 grid_note = str(error)
             else:

@@ -72,6 +72,53 @@ def test_grid_shift_is_the_gauss_newton_step_to_the_coarse_minimum_and_its_gci()
     assert unc.grid_converged is True and "Converged in the grid" in unc.statement
 
 
+class _Graded(_Linear):
+    """An objective whose fit at grid spacing h would move θ by c ((h/dx)^p − 1): a grid error of
+    order p, as the coarse residual J a(h) with a(h) = −c ((h/dx)^p − 1) (``p=None``: a move of
+    +c at ρ dx and −c/2 at ρ² dx, alternating in sign)."""
+
+    def __init__(self, J, c, p, dx=0.01):
+        super().__init__(J, np.zeros_like(np.asarray(c, float)), dx)
+        self.c, self.p = np.asarray(c, float), p
+
+    def coarsened(self, ratio):
+        self.asked.append(ratio * self.dx)
+        h = ratio * self.dx
+        if self.p is None:
+            a = -self.c * (1.0 if ratio < 1.6 else -0.5)  # +c at ρ, −c/2 at ρ²: oscillating
+        else:
+            a = -self.c * ((h / self.dx) ** self.p - 1.0)
+        coarse = _Linear(self.J, a, h)
+        coarse.residuals = lambda theta: (self.J @ a, {"status": np.int32(0)})
+        return coarse
+
+
+@pytest.mark.parametrize("p", [1.0, 2.0])
+def test_three_grids_show_the_order_and_give_roaches_index(p):
+    rng = np.random.default_rng(1)
+    J, c = rng.standard_normal((30, 2)), np.array([0.02, -0.05])
+    objective = _Graded(J, c, p)
+    grid = grid_shift(objective, np.array([0.3, 0.4]), J, ratio=1.5, levels=2)
+    assert objective.asked == [pytest.approx(0.015), pytest.approx(0.0225)]
+    assert grid.order == pytest.approx(p, rel=1e-9)
+    np.testing.assert_allclose(grid.shift, c * (1.5 ** p - 1), rtol=1e-12)
+    np.testing.assert_allclose(grid.halfwidth, 1.25 * np.abs(grid.shift) / (1.5 ** p - 1), rtol=1e-9)
+    d = grid.to_dict(KEYS)
+    assert d["levels"] == 2 and d["order_observed"] == pytest.approx(p) and "observed order" in d["method"]
+
+
+def test_oscillating_grids_widen_the_index():
+    rng = np.random.default_rng(2)
+    J, c = rng.standard_normal((30, 2)), np.array([0.02, -0.05])
+    grid = grid_shift(_Graded(J, c, None), np.array([0.3, 0.4]), J, ratio=1.5, levels=2)
+    assert grid.order is None and "oscillate" in grid.method
+    e21, e32 = grid.shift, grid.shift2 - grid.shift
+    np.testing.assert_allclose(grid.halfwidth, GCI_SAFETY * np.maximum(abs(e21), abs(e32)) / 0.5, rtol=1e-12)
+    assert np.all(grid.halfwidth > GCI_SAFETY * np.abs(e21) / 0.5)  # wider than one coarser grid would say
+    with pytest.raises(ValueError, match="grid_levels must be 1 or 2"):
+        grid_shift(_Graded(J, c, 1.0), np.array([0.3, 0.4]), J, levels=3)
+
+
 @pytest.mark.parametrize("ratio, draws, match", [(1.0, 2, "grid_ratio"), (0.5, 2, "grid_ratio"),
                                                  (math.nan, 2, "grid_ratio"), (1.5, 0, "grid_draws")])
 def test_bad_grid_options_are_refused_before_anything_runs(ratio, draws, match, monkeypatch):

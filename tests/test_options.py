@@ -37,6 +37,7 @@ def test_fit_options_refuse_bad_values(field, value, what):
     ("grid_ratio", 1.0, "factor > 1"),
     ("grid_ratio", 0, "factor > 1"),
     ("grid_draws", 0, "an integer >= 1"),
+    ("grid_levels", 3, "1 or 2"),
 ])
 def test_judge_options_refuse_bad_values(field, value, what):
     with pytest.raises(OptionError, match=what):
