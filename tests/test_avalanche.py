@@ -3,11 +3,10 @@ answers are known; the scene's set-up; the command line's quick run and its refu
 
 import json
 import math
-import subprocess
-import sys
 
 import numpy as np
 import pytest
+from helpers import cli
 
 import jaxmpm as jm
 from jaxmpm.avalanche import path_fields
@@ -15,7 +14,7 @@ from jaxmpm.scenes.avalanche import SNOW, avalanche
 
 
 def _cli(*args, cwd=None):
-    return subprocess.run([sys.executable, "-m", "jaxmpm", *args], capture_output=True, text=True, cwd=cwd, timeout=600)
+    return cli("jaxmpm", *args, cwd=cwd)
 
 
 def test_path_fields_of_a_known_layer():

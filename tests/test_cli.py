@@ -3,18 +3,16 @@ documented JSON fields (timings are reported, never asserted)."""
 
 import json
 import pathlib
-import subprocess
-import sys
 
 import numpy as np
 import pytest
+from helpers import cli
 
 import jaxmpm as jm
 
 
 def _cli(*args, cwd=None):
-    out = subprocess.run([sys.executable, "-m", "jaxmpm", *args], capture_output=True, text=True, cwd=cwd, timeout=600)
-    return out
+    return cli("jaxmpm", *args, cwd=cwd)
 
 
 def test_run_writes_h5_csv_and_json(tmp_path):

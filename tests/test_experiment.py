@@ -8,6 +8,7 @@ import pathlib
 
 import numpy as np
 import pytest
+from helpers import main_exit
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
@@ -94,11 +95,7 @@ def test_user_experiment_equals_python_set_up(tmp_path):
     assert experiment.scene().experiment == experiment
 
 
-def _main(module, argv, capsys):
-    main = __import__(f"{module}.__main__", fromlist=["main"]).main
-    with pytest.raises(SystemExit) as exit_:
-        main(argv)
-    return exit_.value.code, capsys.readouterr().err
+_main = main_exit
 
 
 def test_user_experiment_runs_and_fits_from_the_file_as_from_python(tmp_path, capsys):

@@ -16,6 +16,7 @@ import shutil
 import h5py
 import numpy as np
 import pytest
+from helpers import strict_json
 
 from calibration import Bounds, fit, read_history
 from calibration.__main__ import main
@@ -33,13 +34,6 @@ WPD = ROOT / "experiments_data" / "examples" / "wpd_example.csv"
 TINY = ["--dx", str(0.089 / 6), "--no-progress", "--json"]
 FIT = ["fit", "--scene", "cohesive-collapse", "--fit", "beta"]
 SWEEP = ["sweep", "--scene", "cohesive-collapse"]
-
-
-def strict_json(text):
-    def refuse(name):
-        raise ValueError(f"invalid JSON constant {name}")
-
-    return json.loads(text, parse_constant=refuse)
 
 
 def call(argv):

@@ -10,6 +10,7 @@ import pathlib
 
 import numpy as np
 import pytest
+from helpers import strict_json
 
 import jaxmpm as jm
 from jaxmpm.__main__ import main
@@ -17,14 +18,6 @@ from jaxmpm.__main__ import main
 SIMULATE_MODULE = importlib.import_module("jaxmpm.simulate")  # jaxmpm.simulate is the function
 
 TINY = ["--dx", "0.02", "--t-end", "0.02", "--no-progress", "--json"]
-
-
-def strict_json(text):
-    """json.loads that refuses NaN and Infinity (which json.loads accepts by default)."""
-    def refuse(name):
-        raise ValueError(f"invalid JSON constant {name}")
-
-    return json.loads(text, parse_constant=refuse)
 
 
 @pytest.fixture
