@@ -1,6 +1,8 @@
 """All five keys from several filmed collapses of one material: a twin, fitted from the command line.
 
     python docs/scripts/five_keys_twin.py data     # writes docs/five_keys/: 3 experiment files + CSVs
+    python docs/scripts/five_keys_twin.py data --only column --fit beta,mu1 --no-start \
+        --fit-cells 16 --data-cells 24 --seed 11 --out heldout   # the defaults' held-out check
     python -m calibration fit docs/five_keys/column.toml docs/five_keys/slope20.toml \\
         docs/five_keys/tall_slope20.toml --json --workers 2 --plot docs/five_keys/figs > fit.json
 
@@ -55,12 +57,16 @@ def base(changes, fit_dx: float) -> Experiment:
     return s4.replace(material={**s4.material, **TRUTH}, dx=fit_dx, sources=sources, **changes)
 
 
-def make_data(seed: int = 7, fit_cells: int = FIT_CELLS, data_cells: int = DATA_CELLS):
-    OUT.mkdir(parents=True, exist_ok=True)
+def make_data(seed: int = 7, fit_cells: int = FIT_CELLS, data_cells: int = DATA_CELLS, out: pathlib.Path = OUT,
+              labels=tuple(EXPERIMENTS), fit_keys=tuple(TRUTH), start: bool = True):
+    """The experiment files and their data in ``out``: the ``labels`` of ``EXPERIMENTS``, each
+    file's [fit] asking for ``fit_keys`` (from ``INIT`` if ``start``, else a global search)."""
+    out.mkdir(parents=True, exist_ok=True)
     rng = np.random.default_rng(2026)
     keys = tuple(TRUTH)
     theta = np.array([TRUTH[k] for k in keys])
-    for label, changes in EXPERIMENTS.items():
+    for label in labels:
+        changes = EXPERIMENTS[label]
         experiment = base(changes, L / fit_cells).replace(name=f"five-keys-{label}", title=f"S4's material, {label}")
         data_scene = experiment.replace(dx=L / data_cells, seed=seed).scene()
         grid = data_scene.config.grid
@@ -82,17 +88,17 @@ def make_data(seed: int = 7, fit_cells: int = FIT_CELLS, data_cells: int = DATA_
             material = row > 0.01 * row.max()
             noisy = np.where(material, np.maximum(row + NOISE * row.max() * rng.standard_normal(row.shape), 0.0), 0.0)
             name = f"{label}_t{t:g}.csv"
-            (OUT / name).write_text("\n".join(header + [f"# time_s: {t}", f"# noise: {100 * NOISE:g} % of the peak",
+            (out / name).write_text("\n".join(header + [f"# time_s: {t}", f"# noise: {100 * NOISE:g} % of the peak",
                                                         "x_m,h_m"]
                                               + [f"{x:.5f},{y:.6f}" for x, y in zip(xs, noisy)]) + "\n")
-            profiles.append(ProfileMeasurement(OUT / name, time=t))
-        (OUT / f"{label}_front.csv").write_text("\n".join(
+            profiles.append(ProfileMeasurement(out / name, time=t))
+        (out / f"{label}_front.csv").write_text("\n".join(
             header + [f"# noise: {100 * NOISE:g} % of L", "t_s,xf_m"]
             + [f"{t:.4f},{x:.5f}" for t, x in zip(FRONT_TIMES, front)]) + "\n")
-        path = OUT / f"{label}.toml"
+        path = out / f"{label}.toml"
         experiment = dataclasses.replace(
-            experiment, profiles=tuple(profiles), front=FrontMeasurement(OUT / f"{label}_front.csv"),
-            fit=FitSpec(keys=keys, init=INIT), path=path)
+            experiment, profiles=tuple(profiles), front=FrontMeasurement(out / f"{label}_front.csv"),
+            fit=FitSpec(keys=tuple(fit_keys), init={k: INIT[k] for k in fit_keys} if start else {}), path=path)
         path.write_text(f"# {label}: a filmed collapse of S4's material, synthetic (docs/scripts/five_keys_twin.py)\n"
                         + experiment.to_toml())
         print(f"{label}: {data_scene.state.n_particles} particles in the data's run; wrote {path.name}")
@@ -104,8 +110,13 @@ def main():
     parser.add_argument("--seed", type=int, default=7, help="the data's particle draw")
     parser.add_argument("--fit-cells", type=int, default=FIT_CELLS, help="the files' dx = L/N (default 12)")
     parser.add_argument("--data-cells", type=int, default=DATA_CELLS, help="the data's dx = L/N (default 18)")
+    parser.add_argument("--only", default=",".join(EXPERIMENTS), help="the experiments to write (default: all)")
+    parser.add_argument("--fit", default=",".join(TRUTH), help="the keys each file's [fit] asks for (default: all five)")
+    parser.add_argument("--no-start", action="store_true", help="no [fit] init: the fit searches globally")
+    parser.add_argument("--out", type=pathlib.Path, default=OUT, help="the folder (default docs/five_keys)")
     args = parser.parse_args()
-    make_data(args.seed, args.fit_cells, args.data_cells)
+    make_data(args.seed, args.fit_cells, args.data_cells, args.out, tuple(args.only.split(",")),
+              tuple(args.fit.split(",")), not args.no_start)
 
 
 if __name__ == "__main__":
