@@ -111,7 +111,7 @@ def main():
     parser.add_argument("--fit-cells", type=int, default=FIT_CELLS, help="the files' dx = L/N (default 12)")
     parser.add_argument("--data-cells", type=int, default=DATA_CELLS, help="the data's dx = L/N (default 18)")
     parser.add_argument("--only", default=",".join(EXPERIMENTS), help="the experiments to write (default: all)")
-    parser.add_argument("--fit", default=",".join(TRUTH), help="the keys each file's [fit] asks for (default: all five)")
+    parser.add_argument("--fit", default=",".join(TRUTH), help="the keys each [fit] asks for (default: all five)")
     parser.add_argument("--no-start", action="store_true", help="no [fit] init: the fit searches globally")
     parser.add_argument("--out", type=pathlib.Path, default=OUT, help="the folder (default docs/five_keys)")
     args = parser.parse_args()
