@@ -775,7 +775,7 @@ def build_parser() -> argparse.ArgumentParser:
     be.add_argument("--quick", action="store_true", help="dx = L/8 and 0.2 s")
     be.add_argument("--repeat", type=int, default=2)
     be.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
-                    help="a scene parameter (issue 10's case: --set pc0=500 --set xi=50)")
+                    help="a scene parameter (e.g. --set pc0=500 --set xi=50)")
     be.add_argument("--dtype", choices=("float32", "float64"), default="float32")
     be.add_argument("--json", action="store_true", help="print one line of JSON")
 

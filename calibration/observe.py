@@ -141,7 +141,7 @@ def jacobian_by_columns(fn, x):
 
     The columns are ``jax.jvp`` passes in a ``lax.map``, one after the other, not ``jax.jacfwd``'s
     vmapped batch: on the CPU the batch carries every tangent through each scatter and gather of
-    the step together and costs more than the passes one at a time (at the S4 fit of issue 10,
+    the step together and costs more than the passes one at a time (at the S4 fit of docs/performance.md,
     dx = 4 mm, two parameters: jacfwd 7.2 forward runs, two passes 3.7). Each pass recomputes
     the primal, so the residuals come from the first."""
     def column(tangent):

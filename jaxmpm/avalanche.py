@@ -1,4 +1,4 @@
-"""What avalanche engineers measure (docs/scenes.md S6, issue 13), from an avalanche run's frames.
+"""What avalanche engineers measure (docs/scenes.md S6), from an avalanche run's frames.
 
 The fields are sampled on bins along x (``bin_width``, default 4 dx: a bin holds about 2 ppc
 particle columns, so that the thickness is not aliased by the particle spacing) and on the

@@ -34,14 +34,14 @@ __all__ = ["REFERENCE_S2", "REFERENCE_SOURCE", "SIGMA", "cross_code", "observe",
 
 #: The reference code's S2 observables at t = 0.4198 s (m): Matter (Blatny & Gaume, Geosci.
 #: Model Dev. 2025), 2D, float64, Poisson-disk sampling with about 6 particles per cell, the body
-#: half a cell above the floor; run by a project session on a 2-core machine and reported in
-#: the project's issue 9 (numbers the issue quotes, to four digits; not a measurement).
+#: half a cell above the floor; run by a project session on a 2-core machine when the return map
+#: was matched to that code's, and quoted to four digits (not a measurement made here).
 REFERENCE_S2 = {
     2.98e-3: {"left": 0.0731, "right": 0.0718, "top": 0.0354},
     1.50e-3: {"left": 0.0736, "right": 0.0736, "top": 0.0355},
 }
 REFERENCE_SOURCE = ("Matter (Blatny & Gaume 2025), C++, 2D, float64, Poisson-disk ~6 per cell; "
-                    "run reported in jaxmpm issue 9 (not a measurement)")
+                    "run quoted when the return map was matched (not a measurement made here)")
 
 #: Kernel width of the deposit profile in these studies (m): one width for every resolution.
 SIGMA = 2e-3

@@ -1,4 +1,4 @@
-"""A grid only where the material is (issue 13): the active nodes of a step, found from the
+"""A grid only where the material is: the active nodes of a step, found from the
 particles, in a fixed number of slots.
 
 The dense grid holds every node of the bounding box; a kilometre-long avalanche path with a

@@ -1,4 +1,4 @@
-"""The S6 avalanche (issue 13): the fields avalanche engineers use, checked on a layer whose
+"""The S6 avalanche: the fields avalanche engineers use, checked on a layer whose
 answers are known; the scene's set-up; the command line's quick run and its refusals."""
 
 import json

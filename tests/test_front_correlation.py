@@ -1,4 +1,4 @@
-"""Correlated front-history errors (issue 11): the whitening of FrontTarget.correlation_time is
+"""Correlated front-history errors: the whitening of FrontTarget.correlation_time is
 the exact Cholesky factor of the exponential (Ornstein–Uhlenbeck) covariance at any spacing, its
 inverse restores metres, and the estimator finds the correlation time of a known series."""
 

@@ -1,4 +1,4 @@
-"""Uncertainty beyond Gauss–Newton (issue 11): profile likelihoods, the grid posterior, a
+"""Uncertainty beyond Gauss–Newton: profile likelihoods, the grid posterior, a
 held-out prediction with its band and the NUTS sampler's plumbing through a real run, on a tiny
 S4 twin (dx = L/6, 0.1 s) with 2 % noise."""
 

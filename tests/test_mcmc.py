@@ -1,4 +1,4 @@
-"""The NUTS posterior (calibration.mcmc, issue 11) on targets whose answer is known: a linear
+"""The NUTS posterior (calibration.mcmc) on targets whose answer is known: a linear
 Gaussian model (exact mean and covariance), a posterior cut off by a bound (a truncated normal:
 the flat prior in θ sampled in logit coordinates needs the log-Jacobian right), and a tiny S4
 twin (in tests/test_likelihood.py, which fits it once for every check beyond Gauss–Newton)."""

@@ -944,7 +944,7 @@ def test_return_is_continuous_across_the_tension_tip(beta):
 
 
 def test_matches_the_reference_code_at_a_tension_state():
-    """The reference code's return (issue 9: its associative Newton solve, no tip branch) at one
+    """The reference code's return (its associative Newton solve, no tip branch) at one
     trial state beyond the tension tip, 2D, β = 0, E = 1e6, ν = 0.3, p_c0 = 100 Pa, ξ = 50,
     dt = 5e-5 s, d = 2 mm: (p_tr, q_tr) = (−5, 50) Pa returns to p = 19.94 Pa (the reference's
     figure, to its 4 digits). The quoted q = 16.55 Pa and γ̇ = 1.775 1/s cannot both hold with

@@ -1,4 +1,4 @@
-"""Reverse mode's layout (issue 28, item 5): planes split by ``unstack`` (whose transpose is one
+"""Reverse mode's layout: planes split by ``unstack`` (whose transpose is one
 stack, where indexing transposes into padded arrays summed element by element) give the values
 and gradients of the indexing-based reference to round-off (float64), and finite gradients at
 F = I."""

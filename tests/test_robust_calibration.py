@@ -1,4 +1,4 @@
-"""Issue 14 for ``python -m calibration``: a resume that refuses a different problem, no history
+"""Robust input for ``python -m calibration``: a resume that refuses a different problem, no history
 replaced without --overwrite, swept members validated like ``run --set``, data checked against
 the scene, outputs checked before the work and never lost after it, valid JSON only, messages
 that name the command-line options. Through the real entry point (``calibration.__main__.main``)
@@ -124,7 +124,7 @@ def test_a_failed_figure_keeps_the_json_and_the_history(history):
     (["--jacobian", "fd"], "jacobian (--jacobian): 'ad' in the file, 'fd' now"),
 ])
 def test_resume_refuses_a_different_problem(history, no_work, tmp_path, change, message):
-    """Issue 14 item 1: a resume with other data or another objective-changing option used to
+    """A resume with other data or another objective-changing option used to
     mix two problems in one history; it is refused, naming what differs and its option."""
     data = S4
     extra = []

@@ -1,4 +1,4 @@
-"""Issue 14 for ``python -m jaxmpm``: bad input refused before any compilation with a message
+"""Robust input for ``python -m jaxmpm``: bad input refused before any compilation with a message
 naming the option, outputs checked before the work (nothing left behind), valid JSON only, the
 element test finite at its defaults, and no spurious step-budget bit when particles leave the
 grid. Through the real entry point (``jaxmpm.__main__.main``) on tiny settings."""

@@ -1,4 +1,4 @@
-"""Property test (issue 14): the loaders fed random malformed files either return data that
+"""Property test: the loaders fed random malformed files either return data that
 satisfy their invariants or raise a ``ValueError`` that names the file; never another exception,
 never silently altered data. Files are built from fragments of what real exports contain
 (headers, column names, WebPlotDigitizer layouts, decimal commas, delimiters, blank cells, NaN,

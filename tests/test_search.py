@@ -1,4 +1,4 @@
-"""The batched global search (issue 10): multi-start LM in one vmapped batch that finds a twin's
+"""The batched global search: multi-start LM in one vmapped batch that finds a twin's
 truth from no start, the same steps as single-start fits, minima within the noise, the verdict
 "not a fit of the data" (no Gauss–Newton interval) at a bound or an unverified point, a scene
 default on a bound that no longer blocks a fit, and the command line's --starts. One tiny S4

@@ -1,4 +1,4 @@
-"""Terrain of any shape as a frictional boundary (docs/scenes.md S6, issue 13): the polyline's signed
+"""Terrain of any shape as a frictional boundary (docs/scenes.md S6): the polyline's signed
 distance and normal, a block sliding on a 30° polyline at the Coulomb speed, a block stopping on a
 hockey stick where a sliding point mass does (and near the energy line), independence from where
 the vertices fall, and the gradient with respect to the terrain's friction μ_w."""

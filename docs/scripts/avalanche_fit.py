@@ -1,4 +1,4 @@
-"""Calibration on terrain (issue 13, item 7): a smooth runout of the S6 avalanche, its gradient
+"""Calibration on terrain: a smooth runout of the S6 avalanche, its gradient
 with respect to β and μ_w through the whole run (release to deposit) against central differences
 in float64, and a fit of β to a given runout.
 

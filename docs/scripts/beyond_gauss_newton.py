@@ -1,4 +1,4 @@
-"""Uncertainty beyond Gauss–Newton (issue 11): profile likelihoods, the grid posterior and a
+"""Uncertainty beyond Gauss–Newton: profile likelihoods, the grid posterior and a
 held-out prediction, for the S4 twin and for S7 (Bui et al. 2008's aluminium bars).
 
     python docs/scripts/beyond_gauss_newton.py [s4|s7|both]

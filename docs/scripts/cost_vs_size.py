@@ -13,8 +13,8 @@ than to the Python process and the loaded libraries.
     python docs/scripts/cost_vs_size.py --quick           # 10^3 to 10^4 only, a minute
 
 writes docs/results/cost_vs_size[_1thread].json; ``--plot-only`` draws
-docs/figures/cost_vs_size.png from the results present, the step of issue 12
-(docs/results/cost_vs_size_issue12.json) beside today's.
+docs/figures/cost_vs_size.png from the results present, the step before its
+redesign (docs/results/cost_vs_size_issue12.json) beside today's.
 """
 
 from __future__ import annotations
@@ -38,7 +38,7 @@ SIZES = (1_000, 3_000, 10_000, 30_000, 100_000, 300_000, 1_000_000)
 
 
 RESULTS = {  # file: line style in the figure
-    "cost_vs_size_issue12.json": ("before (issue 12), all cores", ":"),
+    "cost_vs_size_issue12.json": ("the step before its redesign, all cores", ":"),
     "cost_vs_size.json": ("now, all cores", "-"),
     "cost_vs_size_1thread.json": ("now, one thread", "--"),
 }

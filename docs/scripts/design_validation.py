@@ -1,4 +1,4 @@
-"""Does the experiment designer tell the truth? (issue 29, item 2)
+"""Does the experiment designer tell the truth?
 
     python docs/scripts/design_validation.py [--seeds 10] [--cells 8] [--workers 2]
 

@@ -1,4 +1,4 @@
-"""The NUTS posterior (issue 11) of the S4 twin's (β, μ1) and of S7's μ1, checked against the
+"""The NUTS posterior of the S4 twin's (β, μ1) and of S7's μ1, checked against the
 quadrature of ``grid_posterior`` on the same target, with diagnostics and posterior predictives.
 
     python docs/scripts/nuts_posterior.py [s4|s7|both] [--draws N] [--warmup W]   (needs [bayes])

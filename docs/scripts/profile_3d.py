@@ -1,4 +1,4 @@
-"""Where a 3D step goes, against 2D at the same particle count (issue 28, item 6).
+"""Where a 3D step goes, against 2D at the same particle count.
 
 The case is the Hencky block of ``python -m jaxmpm bench --dim 2|3`` (float32, AFLIP), after
 0.05 s of flight, each phase of the step jitted on its own and timed beside the whole step in a

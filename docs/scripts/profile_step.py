@@ -1,4 +1,4 @@
-"""Where one step of the full model goes (issue 12): the S2 column of ``python -m jaxmpm bench
+"""Where one step of the full model goes: the S2 column of ``python -m jaxmpm bench
 --scene column`` (10,240 particles, float32, critical-state μ(I), AFLIP), each phase of the step
 jitted on its own and timed on the column's state after 0.02 s of flow, beside the whole step
 in a ``lax.scan``. A phase jitted alone loses its fusion with its neighbours, so the parts need

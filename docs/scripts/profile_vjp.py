@@ -1,4 +1,4 @@
-"""What a reverse-mode gradient costs, step by step and phase by phase (issue 12, goal 2).
+"""What a reverse-mode gradient costs, step by step and phase by phase.
 
 The case is ``python -m jaxmpm bench --grad``'s: the 2D Hencky block (2,500 particles, float32),
 whose gradient of the final mean height with respect to every parameter costs about 6.4 forward

@@ -1,4 +1,4 @@
-"""Where does the S4 deposit, and the (β, μ1) read from it, stop moving with the grid? (issue 29)
+"""Where does the S4 deposit, and the (β, μ1) read from it, stop moving with the grid?
 
     python docs/scripts/s4_converged.py [--observe final|time-resolved] [--deadline SECONDS] [--out FILE.json]
 

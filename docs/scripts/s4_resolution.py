@@ -1,4 +1,4 @@
-"""Does the calibrated (β, μ1) of the S4 twin move with the grid? (issue 11, item 4)
+"""Does the calibrated (β, μ1) of the S4 twin move with the grid?
 
     python docs/scripts/s4_resolution.py
 

@@ -1,4 +1,4 @@
-"""Sparse grid against dense grid (issue 13): the sparse grid's cost follows the particles, the
+"""Sparse grid against dense grid: the sparse grid's cost follows the particles, the
 dense grid's follows the bounding box.
 
 An elastic Hencky block (2 x 2 particles per cell, dx = 1/64 m, default parameters) falls half

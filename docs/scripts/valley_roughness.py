@@ -1,4 +1,4 @@
-r"""Roughness of the loss along the β–μ1 valley (issue 10, item 3): docs/results/valley_roughness.json
+r"""Roughness of the loss along the β–μ1 valley: docs/results/valley_roughness.json
 and docs/figures/calibration_valley_roughness.png.
 
 S4 with p_c0 = 500 Pa, ξ = 50, dx = L/8, one final profile (50 points) of the first far twin

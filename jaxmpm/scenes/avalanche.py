@@ -1,4 +1,4 @@
-"""S6: a snow avalanche on a terrain profile (docs/scenes.md S6, issue 13).
+"""S6: a snow avalanche on a terrain profile (docs/scenes.md S6).
 
 A 2D section along the path: the terrain is a polyline (x, z) read from a CSV (default: the
 ISeeSnow *CoulombOnly* centre line shipped in ``experiments_data/terrain/``), acting as a
