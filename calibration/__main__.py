@@ -266,8 +266,6 @@ def _fit(args) -> int:
     if getattr(objective, "shared", None) is not None:
         init = objective.expand(init)  # a plain key's start for each experiment's own value
     options, judge = _fit_options_of(args, noise)
-    steps = options.steps
-    judging = {k: v for k, v in judge.kwargs().items() if k != "noise"}
     found = None
     with Workers(_workers(args)) as workers:
         if starts > 1:
@@ -282,11 +280,11 @@ def _fit(args) -> int:
                     raise ValueError("--coarse takes one experiment (its dx); fit several without it")
                 _, coarse = _scene_and_objective(coarse_args, keys, _experiments(coarse_args))
                 found = coarse_to_fine(objective, coarse, starts, refine=args.refine, seed=args.search_seed,
-                                       init=init or None, steps=steps, noise=noise, progress=not args.no_progress,
-                                       workers=workers, **judging)
+                                       init=init or None, steps=options.steps, progress=not args.no_progress,
+                                       workers=workers, **judge.kwargs())
             else:
-                found = search(objective, starts, seed=args.search_seed, init=init or None, steps=steps,
-                               noise=noise, progress=not args.no_progress, workers=workers, **judging)
+                found = search(objective, starts, seed=args.search_seed, init=init or None, steps=options.steps,
+                               progress=not args.no_progress, workers=workers, **judge.kwargs())
             result = found.best
         else:
             result = fit(objective, init, options=options, judge=judge, out=args.out, resume=args.resume,
@@ -464,7 +462,6 @@ def _sweep_plot(directory, result, keys) -> list[str]:
 
 
 def _twin(args) -> int:
-
     from .twin import twin, twin_landscape
 
     use_dtype(args.dtype)
@@ -536,7 +533,6 @@ def _variants(items) -> dict[str, dict[str, float]]:
 
 
 def _design(args) -> int:
-
     from jaxmpm.scenes import scene_dtype, scene_from_args
 
     from .design import design
@@ -627,7 +623,6 @@ def _law(args) -> int:
 
 
 def _bench(args) -> int:
-
     from .bench import bench
 
     use_dtype(args.dtype)

@@ -16,7 +16,7 @@ import math
 from collections.abc import Mapping
 from typing import Any
 
-from .uncertainty import GRID_DRAWS, ROUNDOFF_SAMPLES
+from .uncertainty import GRID_DRAWS, ROUNDOFF_SAMPLES, check_grid_options
 
 __all__ = ["FitOptions", "JudgeOptions", "FitRequest", "OptionError", "FLAGS", "METHODS", "GRAD_MODES", "cli_steps",
            "fit_request"]
@@ -150,11 +150,7 @@ class JudgeOptions:
         for name in ("reference_noise", "threshold"):
             value = getattr(self, name)
             _require(_is_number(value) and value >= 0, name, "a finite number >= 0", value)
-        _require(self.grid_ratio is None or (_is_number(self.grid_ratio) and self.grid_ratio > 1), "grid_ratio",
-                 "off (None; 0 on the command line) or a finite factor > 1 of the grid spacing", self.grid_ratio)
-        _require(_is_int(self.grid_draws) and self.grid_draws >= 1, "grid_draws", "an integer >= 1", self.grid_draws)
-        _require(_is_int(self.grid_levels) and self.grid_levels in (1, 2), "grid_levels", "1 or 2 (coarser grids)",
-                 self.grid_levels)
+        check_grid_options(self.grid_ratio, self.grid_draws, self.grid_levels)
 
     def kwargs(self) -> dict[str, Any]:
         """The fields as keyword arguments (``judge_point``, ``search``)."""

@@ -381,15 +381,20 @@ def three_grid_index(shift1, shift2, ratio: float) -> tuple[np.ndarray, float | 
 
 def check_grid_options(ratio, draws, levels: int = 1) -> None:
     """Refuse a grid check that cannot be made (before anything runs): ``ratio`` None (no
-    check) or a number > 1, ``draws`` an integer >= 1, ``levels`` 1 or 2 coarser grids."""
-    if levels not in (1, 2) or isinstance(levels, bool):
-        raise ValueError(f"grid_levels must be 1 or 2 (coarser grids), got {levels!r}")
-    if ratio is not None and not (isinstance(ratio, (int, float)) and not isinstance(ratio, bool)
-                                  and math.isfinite(ratio) and ratio > 1.0):
-        raise ValueError(f"grid_ratio must be None (no grid check) or a number > 1 (the coarser grid's dx over "
-                         f"the fit's), got {ratio!r}")
+    check) or a number > 1, ``draws`` an integer >= 1, ``levels`` 1 or 2 coarser grids. The one
+    check of these options (``JudgeOptions`` calls it); an ``OptionError`` names the field."""
+    from .options import OptionError  # options imports this module's constants
+
+    def number(v):
+        return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+
+    if ratio is not None and not (number(ratio) and ratio > 1.0):
+        raise OptionError("grid_ratio", "must be off (None; 0 on the command line) or a finite factor > 1 of the "
+                                        f"grid spacing, got {ratio!r}")
     if not (isinstance(draws, int) and not isinstance(draws, bool) and draws >= 1):
-        raise ValueError(f"grid_draws must be an integer >= 1, got {draws!r}")
+        raise OptionError("grid_draws", f"must be an integer >= 1, got {draws!r}")
+    if isinstance(levels, bool) or levels not in (1, 2):
+        raise OptionError("grid_levels", f"must be 1 or 2 (coarser grids), got {levels!r}")
 
 
 def grid_shift(objective, theta, J, *, ratio: float = GRID_RATIO, draws: int = GRID_DRAWS, levels: int = 1,

@@ -16,19 +16,13 @@ import json
 
 import jax
 import jax.numpy as jnp
+from profile_step import timed, transfer_phases, whole_step  # the same phases, beside this script
 
-from jaxmpm.bench import _device, median_time
-from jaxmpm.boundary import apply_walls
-from jaxmpm.kernels import make_stencil
+from jaxmpm.bench import _device
 from jaxmpm.linalg import eigh_sym, mm, planes, sym_log, unplanes
 from jaxmpm.rollout import make_rollout
 from jaxmpm.scenes import falling_block
-from jaxmpm.step import make_step
-from jaxmpm.transfer import g2p_planes, grid_velocities, p2g
-
-
-def timed(fn, *args, repeat=30):
-    return median_time(fn, *args, repeat=repeat)
+from jaxmpm.transfer import g2p_planes
 
 
 def profile(dim, n_particles, repeat):
@@ -38,25 +32,8 @@ def profile(dim, n_particles, repeat):
     state = jax.jit(warm)(state, params)[0]
     grid = config.grid
     dt = jnp.asarray(float(state.dt), state.x.dtype)
-    step = make_step(config)
-    n = 50
-    scan = jax.jit(lambda s: jax.lax.scan(lambda c, _: (step(c, params), None), s, None, length=n)[0])
-    whole = timed(scan, state, repeat=max(3, repeat // 5)) / n
-
-    stencil_fn = jax.jit(lambda x: make_stencil(x, grid))
-    stencil = stencil_fn(state.x)
-    mass = params.rho * state.vol0
-    p2g_fn = jax.jit(lambda st, v, C, tau: p2g(st, mass, v, C, state.vol0, tau, grid.n_nodes))
-    fields = p2g_fn(stencil, state.v, state.C, state.tau)
-    node_x = jnp.asarray(grid.node_positions().T, state.x.dtype)
-    gravity = jnp.asarray(config.gravity, state.x.dtype)
-
-    def grid_update(f):
-        v_old, v_new = grid_velocities(f, dt, gravity)
-        return v_old, apply_walls(config.walls, v_new, node_x, state.t, dt, params, mass=f.mass)
-
-    grid_fn = jax.jit(grid_update)
-    v_old, (v_new, _) = grid_fn(fields)
+    whole = whole_step(config, state, params, n=50, repeat=max(3, repeat // 5))
+    stencil_fn, stencil, p2g_fn, fields, grid_fn, v_old, v_new = transfer_phases(config, state, params, dt)
     # planes in and out, as inside the step (stacking (N, d, d) arrays costs more than the phase)
     vp = [state.v[:, a] for a in range(dim)]
     g2p_fn = jax.jit(lambda st, a, b, v: g2p_planes(st, a, b, v, grid.dx, config.transfer, config.alpha))

@@ -246,6 +246,15 @@ def deposit_errors(result):
     return rows
 
 
+def _save(fig, path):
+    import matplotlib.pyplot as plt
+
+    fig.tight_layout()
+    pathlib.Path(path).parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
 def plot(result, path):
     if result.get("observe", "final") != "final":
         return plot_time_resolved(result, path)
@@ -286,10 +295,7 @@ def plot(result, path):
     ax.set(xlabel="cells per column length L", ylabel="value at the loss minimum",
            title=f"(β, μ1) read from the L/{result['data_cells_per_L']} deposit (dotted: truth)")
     ax.legend(fontsize=8)
-    fig.tight_layout()
-    pathlib.Path(path).parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    _save(fig, path)
 
 
 def plot_time_resolved(result, path, final_path="docs/results/s4_converged.json"):
@@ -334,10 +340,7 @@ def plot_time_resolved(result, path, final_path="docs/results/s4_converged.json"
         ax.set(xlabel="cells per column length L", ylabel=label,
                title=f"{label} at the loss minimum (bars: 95 % at 2 % noise)")
         ax.legend(fontsize=8)
-    fig.tight_layout()
-    pathlib.Path(path).parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    _save(fig, path)
 
 
 if __name__ == "__main__":
