@@ -33,7 +33,7 @@ from jaxmpm.scenes.collapse import S4_SIDE
 from jaxmpm.threads import add_threads_argument, apply_threads
 
 from . import cli
-from .plots import fit_figures, law_figures, sweep_figures, twin_landscape_figure
+from .plots import fit_figures, law_figures, likelihood_figures, sweep_figures, twin_landscape_figure
 from .workers import Workers
 
 __all__ = ["main", "build_parser"]
@@ -57,14 +57,7 @@ def _fit(args) -> int:
                                         refine=args.refine, seed=args.search_seed, out=args.out, resume=args.resume,
                                         overwrite=args.overwrite, progress=not args.no_progress,
                                         meta=cli.fit_meta(args, experiments), workers=workers)
-    out = fit_report(objective, result, found)
-    if found is None:
-        out["search"] = {"starts": 1, "why": f"a single start ({cli.single_start_reason(args, init) or '--starts 1'})"}
-    out["scene"] = scene.name
-    if experiments:
-        out["experiments"] = [str(e.path) for e in experiments]
-    if args.out:
-        out["out"] = str(args.out)
+    out = {**fit_report(objective, result, found), **cli.fit_fields(args, scene, experiments, init, found)}
     checks = posterior_checks(objective, result, profiles=args.profiles, posterior=args.posterior, nuts=args.nuts,
                               chains=args.chains, noise=args.noise, progress=not args.json)
     out.update(checks.report)
@@ -72,20 +65,15 @@ def _fit(args) -> int:
     if args.plot:
         out["figures"] = cli.guard(errors, "--plot", lambda: fit_figures(args.plot, objective, result))
         if checks.profiles:
-            from .plots import plot_profile_likelihoods
-
-            path = pathlib.Path(args.plot) / "fit_likelihood.png"
-            out["figures"] = (out["figures"] or []) + (cli.guard(errors, "--plot", lambda: [str(
-                plot_profile_likelihoods(checks.profiles, path, posterior=checks.posterior))]) or [])
+            out["figures"] = (out["figures"] or []) + (cli.guard(errors, "--plot", lambda: likelihood_figures(
+                args.plot, checks.profiles, posterior=checks.posterior)) or [])
     return cli.finish(out, args, errors)
 
 
 def _sweep(args) -> int:
     from .sweep import sweep, sweep_points, write_sweep
 
-    over = cli.parse_over(args.over, lhs=args.lhs is not None)
-    cli.check_sweep(args)
-    keys, thetas = sweep_points(over, args.lhs, seed=args.lhs_seed)
+    keys, thetas = sweep_points(cli.parse_over(args.over, lhs=args.lhs is not None), args.lhs, seed=args.lhs_seed)
     recipe = dict(vars(args))  # the recipe a cluster worker rebuilds the objective from
     scene, objective = cli.scene_and_objective(args, keys, cli.experiment_files(args))
     objective.check_thetas(thetas, "--over")  # every member, before anything compiles
@@ -119,16 +107,8 @@ def _twin(args) -> int:
     from .twin import twin, twin_landscape
 
     use_dtype(args.dtype)
-    if args.slope is not None or args.aspect is not None or args.dim not in (None, 2) or args.width is not None:
-        raise ValueError("twin is the 2D S4 cohesive collapse: --slope, --aspect, --dim and --width do not apply")
-    if args.sampling is not None or args.seed not in (None, 0):
-        raise ValueError("twin uses the S4 scene's default particle sampling: --sampling and --seed do not apply "
-                         "(--noise-seed seeds the noise)")
-    keys = cli.parse_keys(args.fit)
-    if args.landscape and len(keys) < 2:
-        raise ValueError("--landscape needs at least two fitted keys")
-    result = twin(quick=args.quick, noise=args.noise, keys=keys, method=args.method, steps=args.steps,
-                  seed=args.noise_seed, dx=args.dx, ppc=args.ppc, t_end=args.t_end,
+    result = twin(quick=args.quick, noise=args.noise, keys=cli.parse_keys(args.fit), method=args.method,
+                  steps=args.steps, seed=args.noise_seed, dx=args.dx, ppc=args.ppc, t_end=args.t_end,
                   values=cli.parse_pairs(args.set, "--set"), dtype=args.dtype or "float32", out=args.out,
                   resume=args.resume, overwrite=args.overwrite, progress=not args.no_progress,
                   reference_noise=args.reference_noise, threshold=args.threshold,
@@ -149,10 +129,6 @@ def _twin(args) -> int:
 def _coverage(args) -> int:
     from .coverage import coverage
 
-    if not 0 < args.noise < 1:
-        raise ValueError(f"--noise must be in (0, 1): coverage needs noisy data, got {args.noise}")
-    if args.seeds < 2:
-        raise ValueError(f"--seeds must be >= 2, got {args.seeds}")
     result = coverage(args.seeds, noise=args.noise, keys=cli.parse_keys(args.fit), quick=args.quick,
                       progress=not args.no_progress, dx=args.dx, values=cli.parse_pairs(args.set, "--set"),
                       steps=args.steps)
@@ -172,10 +148,7 @@ def _design(args) -> int:
     from .design import design
 
     use_dtype(scene_dtype(args))
-    keys = cli.parse_keys(args.fit)
-    if args.plot and len(keys) < 2:
-        raise ValueError("--plot draws the first two keys' regions: give at least two keys in --fit")
-    variants = cli.parse_variants(args.variant)
+    keys, variants = cli.parse_keys(args.fit), cli.parse_variants(args.variant)
     times = cli.parse_floats(args.times, "--times") if args.times else None
     scene = scene_from_args(args)
     with Workers(cli.worker_count(args)) as workers:

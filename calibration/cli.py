@@ -20,11 +20,11 @@ from jaxmpm.precision import use_dtype
 from .options import DataOptions, FitOptions, JudgeOptions, OptionError, cli_steps
 from .workers import available_cores
 
-__all__ = ["check_args", "check_options", "check_outputs", "check_sweep", "coarse_objective", "data_options",
-           "design_noise", "design_scene", "emit", "experiment_files", "finish", "fit_meta", "fit_options",
-           "fit_request", "guard", "load_data", "objective_from_args", "parse_floats", "parse_keys", "parse_over",
-           "parse_pairs", "parse_variants", "scene_and_objective", "single_start_reason", "start_count",
-           "worker_count"]
+__all__ = ["check_args", "check_command", "check_options", "check_outputs", "coarse_objective", "data_options",
+           "design_noise", "design_scene", "emit", "experiment_files", "finish", "fit_fields", "fit_meta",
+           "fit_options", "fit_request", "guard", "load_data", "objective_from_args", "parse_floats", "parse_keys",
+           "parse_over", "parse_pairs", "parse_variants", "scene_and_objective", "single_start_reason",
+           "start_count", "worker_count"]
 
 
 # ---- values -------------------------------------------------------------------------------------
@@ -211,6 +211,20 @@ def fit_meta(args, experiments) -> dict:
             "experiments": [e.to_toml() for e in experiments]}
 
 
+def fit_fields(args, scene, experiments, init, found) -> dict:
+    """The fields ``fit`` adds to the fit's report (``calibration.report.fit_report``): why
+    one start ran (without a search, ``found`` None), the scene, the experiment files and --out."""
+    out: dict = {}
+    if found is None:
+        out["search"] = {"starts": 1, "why": f"a single start ({single_start_reason(args, init) or '--starts 1'})"}
+    out["scene"] = scene.name
+    if experiments:
+        out["experiments"] = [str(e.path) for e in experiments]
+    if args.out:
+        out["out"] = str(args.out)
+    return out
+
+
 # ---- the objective ------------------------------------------------------------------------------
 def experiment_files(args) -> list:
     """The experiment files of ``fit``/``sweep`` (positional), with the command line's scene
@@ -299,7 +313,8 @@ def objective_from_args(values: dict, keys):
 def check_args(args) -> None:
     """Every check of the parsed options made before anything is read or compiles: counts and
     ranges, the options the library would check later or under its own names
-    (``check_options``), and the output paths (``check_outputs``)."""
+    (``check_options``), the output paths (``check_outputs``) and each command's own
+    (``check_command``)."""
     for name in ("steps", "chunk", "lhs", "starts"):
         value = getattr(args, name, None)
         if value is not None and value < 1:
@@ -323,6 +338,7 @@ def check_args(args) -> None:
         raise ValueError("--resume needs --out (the history file to continue)")
     check_options(args)
     check_outputs(args)
+    check_command(args)
 
 
 def check_options(args) -> None:
@@ -366,22 +382,40 @@ def check_options(args) -> None:
             raise ValueError(f"--refine must be an integer >= 1, got {args.refine}")
 
 
-def check_sweep(args) -> None:
-    """``sweep``'s own checks: its --over items, a figure only of one or two keys on a grid, and
-    --cluster's options."""
-    keys = tuple(parse_over(args.over, lhs=args.lhs is not None))
-    if args.plot and args.lhs:
-        raise ValueError("--plot draws the loss over a grid; a Latin hypercube (--lhs) is none: drop one of them")
-    if args.plot and len(keys) > 2:
-        raise ValueError(f"--plot draws the loss over one or two swept keys, got {len(keys)} ({', '.join(keys)})")
-    if args.cluster is not None:
-        from .cluster import parse_cluster
+def check_command(args) -> None:
+    """Each command's own checks: ``sweep``'s --over items, a figure only of one or two keys on
+    a grid, and --cluster's options; ``twin``'s scene options (the S4 scene's own); ``coverage``'s
+    noise and seeds; ``design``'s figure of two keys."""
+    command = getattr(args, "command", None)
+    if command == "sweep":
+        keys = tuple(parse_over(args.over, lhs=args.lhs is not None))
+        if args.plot and args.lhs:
+            raise ValueError("--plot draws the loss over a grid; a Latin hypercube (--lhs) is none: drop one of them")
+        if args.plot and len(keys) > 2:
+            raise ValueError(f"--plot draws the loss over one or two swept keys, got {len(keys)} ({', '.join(keys)})")
+        if args.cluster is not None:
+            from .cluster import parse_cluster
 
-        parse_cluster(args.cluster)  # a clear error before any worker starts
-        if args.mode != "auto":
-            raise ValueError(f"--mode {args.mode}: with --cluster every task is one vmapped chunk; drop --mode")
-        if args.retries < 0:
-            raise ValueError(f"--retries must be >= 0, got {args.retries}")
+            parse_cluster(args.cluster)  # a clear error before any worker starts
+            if args.mode != "auto":
+                raise ValueError(f"--mode {args.mode}: with --cluster every task is one vmapped chunk; drop --mode")
+            if args.retries < 0:
+                raise ValueError(f"--retries must be >= 0, got {args.retries}")
+    elif command == "twin":
+        if args.slope is not None or args.aspect is not None or args.dim not in (None, 2) or args.width is not None:
+            raise ValueError("twin is the 2D S4 cohesive collapse: --slope, --aspect, --dim and --width do not apply")
+        if args.sampling is not None or args.seed not in (None, 0):
+            raise ValueError("twin uses the S4 scene's default particle sampling: --sampling and --seed do not apply "
+                             "(--noise-seed seeds the noise)")
+        if args.landscape and len(parse_keys(args.fit)) < 2:
+            raise ValueError("--landscape needs at least two fitted keys")
+    elif command == "coverage":
+        if not 0 < args.noise < 1:
+            raise ValueError(f"--noise must be in (0, 1): coverage needs noisy data, got {args.noise}")
+        if args.seeds < 2:
+            raise ValueError(f"--seeds must be >= 2, got {args.seeds}")
+    elif command == "design" and args.plot and len(parse_keys(args.fit)) < 2:
+        raise ValueError("--plot draws the first two keys' regions: give at least two keys in --fit")
 
 
 def check_outputs(args) -> None:

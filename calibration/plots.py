@@ -10,9 +10,9 @@ import pathlib
 
 import numpy as np
 
-__all__ = ["fit_figures", "law_figures", "plot_coverage", "plot_fit", "plot_heldout", "plot_history", "plot_landscape",
-           "plot_loss_curve", "plot_nuts", "plot_posterior_predictive", "plot_profile_likelihoods", "plot_runout_law",
-           "sweep_figures", "twin_landscape_figure"]
+__all__ = ["fit_figures", "law_figures", "likelihood_figures", "plot_coverage", "plot_fit", "plot_heldout",
+           "plot_history", "plot_landscape", "plot_loss_curve", "plot_nuts", "plot_posterior_predictive",
+           "plot_profile_likelihoods", "plot_runout_law", "sweep_figures", "twin_landscape_figure"]
 
 
 def _plt():
@@ -442,6 +442,13 @@ def fit_figures(directory, objective, result, *, prefix: str = "fit", truth=None
     figs = [plot_fit(objective, result, d / f"{prefix}_profiles.png", initial_prediction=initial),
             plot_history(result.history, result.keys, d / f"{prefix}_history.png", truth=truth)]
     return [str(f) for f in figs]
+
+
+def likelihood_figures(directory, profiles, *, posterior=None) -> list[str]:
+    """A fit's profile likelihoods (and its grid posterior, where given) as
+    ``fit_likelihood.png`` in ``directory`` (``plot_profile_likelihoods``); its path in a list."""
+    return [str(plot_profile_likelihoods(profiles, pathlib.Path(directory) / "fit_likelihood.png",
+                                         posterior=posterior))]
 
 
 def sweep_figures(directory, result, keys) -> list[str]:
