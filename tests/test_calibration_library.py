@@ -186,3 +186,27 @@ def test_sweep_figures_draw_a_curve_or_a_landscape(tmp_path):
     two = plots.sweep_figures(tmp_path / "two", result(thetas, keys), keys)
     assert [pathlib.Path(f).name for f in one + two] == ["loss.png", "landscape.png"]
     assert all(pathlib.Path(f).stat().st_size > 5_000 for f in one + two)
+
+
+def test_the_twin_landscape_and_law_figures(tmp_path):
+    """The figure sets of ``twin --landscape --plot`` and ``law --plot``, from stand-in results."""
+    pytest.importorskip("matplotlib")
+    from calibration.twin import TwinLandscape
+
+    keys, thetas = grid_points({"beta": (0.1, 0.3), "mu1": (0.35, 0.45)}, 3)
+    swept = SweepResult(keys=keys, thetas=thetas, loss=np.linspace(1.0, 2.0, 9), status=np.zeros(9, np.int64),
+                        residuals=np.zeros((9, 2)), predictions=None, failed=np.zeros(0, np.int64), mode="loop",
+                        chunk=1, n_devices=1, wall_s=0.0, compile_s=0.0)
+    marks = {"true": (0.2, 0.4), "start": (0.15, 0.38), "fit": (0.21, 0.41)}
+    landscape = plots.twin_landscape_figure(tmp_path, TwinLandscape(keys, swept, marks))
+    assert landscape.name == "twin_landscape.png" and landscape.stat().st_size > 5_000
+
+    cases = [{"a": a, "law": 2.0 * a ** 0.5, "used_in_fit": a != 2.0, "model_start": 1.5 * a ** 0.5,
+              "model_fit": 2.1 * a ** 0.5} for a in (0.5, 1.0, 2.0, 4.0)]
+    history = {"loss": np.array([1.0, 0.5, 0.6]), "theta": np.array([[0.4, 0.6], [0.38, 0.62], [0.37, 0.6]]),
+               "accepted": np.array([True, True, False])}
+    result = SimpleNamespace(to_json=lambda: {"cases": cases}, law="a law",
+                             fit=SimpleNamespace(history=history, keys=("mu1", "mu2")))
+    figures = plots.law_figures(tmp_path / "law", result, law=lambda a: 2.0 * np.sqrt(a))
+    assert [pathlib.Path(f).name for f in figures] == ["law_runout.png", "law_history.png"]
+    assert all(pathlib.Path(f).stat().st_size > 5_000 for f in figures)
