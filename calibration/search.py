@@ -456,7 +456,7 @@ def fit_from_starts(objective, init: Mapping[str, float] | None = None, *, start
     (``JudgeOptions``) as for ``fit``. Returns the best point and the search (None for one
     start): what ``calibration.report.fit_report`` reports."""
     options, judge = options or FitOptions(), judge or JudgeOptions()
-    if starts == 1:
+    if _check_int("starts", starts, 1) == 1:
         from .fit import fit  # looked up at the call: the fit that runs is the module's
 
         return fit(objective, init, options=options, judge=judge, out=out, resume=resume, overwrite=overwrite,

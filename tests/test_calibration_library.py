@@ -101,6 +101,8 @@ def test_fit_from_starts_runs_one_start_a_search_or_two_stages(monkeypatch):
     search_module.fit_from_starts("obj", None, starts=3, coarse="coarse", refine=5, options=options, judge=judge)
     name, args, kw = calls[-1]
     assert name == "coarse_to_fine" and args == ("obj", "coarse", 3) and kw["refine"] == 5 and kw["steps"] == 7
+    with pytest.raises(ValueError, match="starts must be an integer >= 1, got 0"):
+        search_module.fit_from_starts("obj", starts=0)
 
 
 def test_posterior_checks_say_why_they_are_skipped():
