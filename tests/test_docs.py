@@ -199,6 +199,34 @@ def test_the_layout_page_lists_every_module():
         assert {n.rstrip("/") for n in named[package]} == {m.rstrip("/") for m in _modules(package)}, package
 
 
+def _resolves(dotted: str) -> bool:
+    parts = dotted.split(".")
+    for i in range(len(parts), 0, -1):
+        try:
+            obj = importlib.import_module(".".join(parts[:i]))
+        except ImportError:
+            continue
+        try:
+            for part in parts[i:]:
+                obj = getattr(obj, part)
+        except AttributeError:
+            return False
+        return True
+    return False
+
+
+def test_every_dotted_name_in_the_docs_exists():
+    """A module, class, function or constant a page names as ``jaxmpm.…`` or ``calibration.…``
+    exists under that name (a moved or renamed one leaves no stale name behind)."""
+    stale = {}
+    for page in PAGES:
+        for match in re.finditer(r"(?<![\w./-])((?:jaxmpm|calibration)(?:\.[A-Za-z_]\w*)+)", page.read_text()):
+            name = match.group(1)
+            if not name.endswith((".md", ".py", ".toml", ".csv", ".h5", ".json", ".png")) and not _resolves(name):
+                stale.setdefault(name, set()).add(str(page.relative_to(ROOT)))
+    assert stale == {}, f"names in the docs that do not exist: {stale}"
+
+
 def test_no_doc_runs_a_file_outside_the_repository():
     """A command in a doc runs inside the repository: no ``../`` in a code block or code span."""
     found = []
