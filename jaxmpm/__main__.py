@@ -160,11 +160,11 @@ def _run(args) -> int:
                 "scene": scene.info.to_dict(), "status": result.status,
             }))
     if args.plot and profile is not None:
-        from .plots import plot_run
+        from .studies.plots import plot_run
 
         output("--plot", lambda: plot_run(scene, result, args.plot, profile=profile))
     if args.gif:
-        from .plots import animate_run
+        from .studies.plots import animate_run
 
         output("--gif", lambda: animate_run(scene, result, args.gif))
     if errors:
@@ -193,9 +193,9 @@ def _run_avalanche(args) -> int:
     _check_run_outputs(args, args.frames or 1)
     use_dtype(args.dtype)
     from . import io, tables
-    from .avalanche import run_avalanche
     from .scenes.avalanche import avalanche
     from .state import describe_status
+    from .studies.avalanche import run_avalanche
 
     t_end = args.t_end if args.t_end is not None else (20.0 if args.quick else 100.0)
     frames = args.frames if args.frames is not None else max(2, int(round(t_end)))
@@ -234,7 +234,7 @@ def _run_avalanche(args) -> int:
             "source": "python -m jaxmpm run " + " ".join(sys.argv[2:]), "t_end_s": config.t_end,
             "peaks": "over the frames", "summary": fields.summary(), "status": result.status}))
     if args.plot or args.gif:
-        from .plots import animate_avalanche, plot_avalanche
+        from .studies.plots import animate_avalanche, plot_avalanche
 
         if args.plot:
             output("--plot", lambda: plot_avalanche(fields, args.plot, title=f"S6 avalanche, {args.snow} snow, "
@@ -263,8 +263,8 @@ def _version() -> str:
 def _element(args) -> int:
 
     use_dtype("float64")  # a single point: double precision costs nothing
-    from .element import element_test
     from .params import Params
+    from .studies.element import element_test
 
     check_repeated_keys(args.set, "--set")
     if args.plot:
@@ -290,7 +290,7 @@ def _element(args) -> int:
                               f"{float(np.max(error)):.3g} Pa (step {int(np.argmax(error))})")
     bad = print_json(final, args.json)
     if args.plot and not failed:
-        from .plots import plot_stress_path
+        from .studies.plots import plot_stress_path
 
         plot_stress_path(history, params, args.plot, title=f"{args.test}, rate {args.rate:g} 1/s")
     return 1 if (failed or bad) else 0
@@ -383,7 +383,7 @@ def main(argv=None) -> int:
             if args.dtype == "float64":
 
                 use_dtype("float64")
-            from .validate import run_study
+            from .studies.validation import run_study
 
             options = {}
             for key in ("xpic", "slopes", "divisions"):
@@ -403,7 +403,7 @@ def main(argv=None) -> int:
             out = run_study(args.study, quick=args.quick, plot_dir=args.plot, alpha=args.alpha, **options)
             print(json.dumps(out) if args.json else json.dumps(out, indent=2))
             return 0
-        from . import bench
+        from .studies import bench
 
         bench.main(args)
         return 0

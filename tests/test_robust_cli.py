@@ -121,9 +121,9 @@ def test_element_refuses_a_start_beyond_the_yield_surface(capsys):
 
 
 def test_element_exits_non_zero_with_null_on_a_non_finite_result(capsys, monkeypatch):
-    import jaxmpm.element
+    import jaxmpm.studies.element
 
-    real = jaxmpm.element.element_test
+    real = jaxmpm.studies.element.element_test
 
     def broken(*args, **kwargs):
         history = real(*args, **kwargs)
@@ -131,7 +131,7 @@ def test_element_exits_non_zero_with_null_on_a_non_finite_result(capsys, monkeyp
         p[7:] = np.nan
         return type(history)(**{**vars(history), "p": p})
 
-    monkeypatch.setattr(jaxmpm.element, "element_test", broken)
+    monkeypatch.setattr(jaxmpm.studies.element, "element_test", broken)
     code = main(["element", "isotropic", "--json", "--steps", "20"])
     out = strict_json(capsys.readouterr().out)
     assert code == 1

@@ -199,8 +199,8 @@ def run_avalanche(scene, station: float | None = None, progress: bool = False, t
     ``simulate`` result (``throw=False``: its status says whether the run is trusted; timed) and
     the ``PathFields`` on its frames. ``station`` defaults to the obstacle's where the scene has
     one, else half way along the flow's reach."""
-    from .scenes.avalanche import OBSTACLE
-    from .simulate import simulate
+    from ..scenes.avalanche import OBSTACLE
+    from ..simulate import simulate
 
     config, state, params = scene
     result = simulate(config, state, params, observer=_observer, throw=False, progress=progress, timed=not progress)

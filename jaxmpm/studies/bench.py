@@ -20,9 +20,9 @@ import time
 import jax
 import jax.numpy as jnp
 
-from .precision import use_dtype
-from .rollout import make_rollout
-from .scenes import falling_block, gates_collapse
+from ..precision import use_dtype
+from ..rollout import make_rollout
+from ..scenes import falling_block, gates_collapse
 
 __all__ = ["bench_forward", "bench_gradient", "main", "median_time"]
 

@@ -25,12 +25,13 @@ import time
 import jax
 import numpy as np
 
-from . import fidelity, scenes
-from .materials.base import invariants
-from .observables import deposit_profile, front_from_profile, particle_volumes
-from .precision import x64
-from .scenes.collapse import S4_SIDE
-from .simulate import simulate
+from .. import scenes
+from ..materials.base import invariants
+from ..observables import deposit_profile, front_from_profile, particle_volumes
+from ..precision import x64
+from ..scenes.collapse import S4_SIDE
+from ..simulate import simulate
+from . import fidelity
 
 __all__ = ["STUDIES", "run_study", "bagnold", "convergence", "aspect_ratio", "cohesion", "speed_accuracy",
            "stability", "avalanche"]
@@ -416,7 +417,7 @@ def speed_accuracy(quick=False, plot_dir=None) -> dict:
 
 
 def _stability_case(label, scene, baseline_runout):
-    from .state import describe_status
+    from ..state import describe_status
 
     clock = time.perf_counter()
     result = simulate(*scene, throw=False)
@@ -477,8 +478,8 @@ AVALANCHE_STATION = 3800.0  # on the run-out plain, where the study's obstacle s
 
 
 def _avalanche_row(label, dx, snow="dry", obstacle=None, **values):
+    from ..scenes.avalanche import avalanche as make
     from .avalanche import run_avalanche
-    from .scenes.avalanche import avalanche as make
 
     scene = make(dx=dx, snow=snow, t_end=100.0, frames=100, obstacle=obstacle, **values)
     clock = time.perf_counter()

@@ -25,10 +25,10 @@ import pathlib
 
 import numpy as np
 
-from . import scenes
-from .observables import deposit_profile, front_from_profile, particle_volumes
-from .scenes.collapse import S4_SIDE
-from .simulate import simulate
+from .. import scenes
+from ..observables import deposit_profile, front_from_profile, particle_volumes
+from ..scenes.collapse import S4_SIDE
+from ..simulate import simulate
 
 __all__ = ["REFERENCE_S2", "REFERENCE_SOURCE", "SIGMA", "cross_code", "observe", "resolution", "run_case"]
 
@@ -293,7 +293,7 @@ def run_logged(names, log_path, quick=False):
     return analyse_resolution(rows)
 
 
-if __name__ == "__main__":  # python -m jaxmpm.fidelity LOG.jsonl [quick] [SCENE ...]
+if __name__ == "__main__":  # python -m jaxmpm.studies.fidelity LOG.jsonl [quick] [SCENE ...]
     import json
     import sys
 

@@ -49,7 +49,7 @@ def plot_run(scene, result, path, profile=None):
     the deposit profile h(x) if given."""
     plt = _pyplot()
     x = np.asarray(result.state.x)
-    from .materials.base import invariants
+    from ..materials.base import invariants
 
     p = np.asarray(invariants(result.state.tau)[0])
     fig, ax = plt.subplots(figsize=(8, 3.2))
@@ -105,7 +105,7 @@ def animate_run(scene, result, path, fps=15):
 def plot_avalanche(fields, path, title="S6 avalanche", n_times=6):
     """The avalanche in three panels: the terrain with the front at several times and the
     runout; the flow thickness along the path at those times; the peak thickness, speed and
-    pressure along the path (``fields`` from ``jaxmpm.avalanche.path_fields``)."""
+    pressure along the path (``fields`` from ``jaxmpm.studies.avalanche.path_fields``)."""
     plt = _pyplot()
     fig, axes = plt.subplots(3, 1, figsize=(9, 9), sharex=True, constrained_layout=True)
     picks = np.unique(np.linspace(0, len(fields.times) - 1, n_times).round().astype(int))

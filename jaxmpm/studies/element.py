@@ -25,10 +25,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .linalg import det, mm, safe_div
-from .materials.base import Material, invariants
-from .materials.critical_state import CriticalState, bulk_modulus
-from .params import Params, validate_params
+from ..linalg import det, mm, safe_div
+from ..materials.base import Material, invariants
+from ..materials.critical_state import CriticalState, bulk_modulus
+from ..params import Params, validate_params
 
 __all__ = ["TESTS", "ElementHistory", "drive", "element_test"]
 
