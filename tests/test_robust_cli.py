@@ -14,6 +14,7 @@ from helpers import strict_json
 
 import jaxmpm as jm
 from jaxmpm.__main__ import main
+from jaxmpm.cli import json_safe
 
 SIMULATE_MODULE = importlib.import_module("jaxmpm.simulate")  # jaxmpm.simulate is the function
 
@@ -96,7 +97,7 @@ def test_output_paths_are_checked_before_the_run(capsys, no_simulation, tmp_path
 # ---- JSON ------------------------------------------------------------------------------------------
 def test_json_safe_replaces_non_finite_numbers_and_names_them():
     obj = {"loss": float("nan"), "stderr": {"beta": np.inf, "mu1": 0.1}, "x": np.array([1.0, -np.inf]), "n": 3}
-    safe, bad = jm.io.json_safe(obj)
+    safe, bad = json_safe(obj)
     assert safe == {"loss": None, "stderr": {"beta": None, "mu1": 0.1}, "x": [1.0, None], "n": 3}
     assert bad == ["loss", "stderr.beta", "x[1]"]
     json.dumps(safe, allow_nan=False)

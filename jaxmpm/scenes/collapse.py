@@ -93,8 +93,8 @@ class Scene:
 
     def summary(self, result) -> dict:
         """What a run of this scene ended with (``simulate``'s ``Result``): sizes, extents, the
-        runout beyond the body's initial front, the status and its meaning, the timings; what
-        ``python -m jaxmpm run`` prints."""
+        runout beyond the body's initial front, the status and its meaning, the timings, and the
+        experiment file it was built from; what ``python -m jaxmpm run`` prints."""
         from ..state import describe_status
 
         x = np.asarray(result.state.x)
@@ -106,6 +106,34 @@ class Scene:
             "status": result.status, "status_text": describe_status(result.status),
             "compile_s": None if result.compile_s is None else round(result.compile_s, 3),
             "run_s": None if result.run_s is None else round(result.run_s, 3),
+            **({} if self.experiment is None else {
+                "experiment": str(self.experiment.path) if self.experiment.path else self.experiment.name}),
+        }
+
+    def run_attrs(self) -> dict:
+        """The root attributes that record a run of this scene in its HDF5 file (``write_h5``'s
+        ``attrs``): the scene's name and facts and, for a scene built from an experiment file, the
+        file's TOML (``Experiment.from_h5`` makes the run again from it) and its path."""
+        attrs = {"scene": self.name, **self.info.to_dict()}
+        if self.experiment is not None:
+            attrs["experiment_toml"] = self.experiment.to_toml()
+            if self.experiment.path is not None:
+                attrs["experiment_path"] = str(self.experiment.path.resolve())
+        return attrs
+
+    def profile_header(self, result, source: str) -> dict:
+        """The header of this scene's final deposit profile as CSV (``tables.write_profile_csv``):
+        a synthetic profile made by ``source`` (the command that ran it), with the run's time,
+        parameters, scene facts and status."""
+        from .._version import __version__
+
+        float32 = np.asarray(self.state.x).dtype == np.float32
+        return {
+            "experiment": f"{self.name} (synthetic, jaxmpm {__version__})", "time_s": self.config.t_end,
+            "units": "m", "synthetic": True, "source": source,
+            # float32 leaves printed to the precision they hold (0.3, not 0.30000001192092896)
+            "parameters": {k: float(f"{v:.7g}") if float32 else v for k, v in self.params.to_dict().items()},
+            "scene": self.info.to_dict(), "status": result.status,
         }
 
     def final_profile(self, state) -> tuple[np.ndarray, np.ndarray]:

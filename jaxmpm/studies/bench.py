@@ -9,7 +9,6 @@ without the checkpointed blocks. Timings are medians over ``--repeat`` runs.
 from __future__ import annotations
 
 import dataclasses
-import json
 import math
 import os
 import platform
@@ -24,7 +23,7 @@ from ..precision import use_dtype
 from ..rollout import make_rollout
 from ..scenes import falling_block, gates_collapse
 
-__all__ = ["bench_forward", "bench_gradient", "main", "median_time"]
+__all__ = ["bench_forward", "bench_gradient", "median_time", "run_bench"]
 
 
 def _device() -> str:
@@ -150,13 +149,12 @@ def bench_gradient(quick=False, dim=2, dtype="float32", repeat=3, n_particles=No
     return out
 
 
-def main(args) -> dict:
-    dtype = "float64" if args.dtype == "float64" else "float32"
+def run_bench(grad=False, quick=False, dim=2, dtype="float32", repeat=3, n_particles=None, scene="block",
+              steps=None, active_nodes=None) -> dict:
+    """The benchmark ``python -m jaxmpm bench`` runs: ``bench_gradient`` with ``grad`` (which
+    takes neither ``scene`` nor ``active_nodes``), else ``bench_forward``; float64 turns JAX's
+    64-bit mode on first (``precision.use_dtype``)."""
     use_dtype(dtype)
-    if args.grad:
-        result = bench_gradient(args.quick, args.dim, dtype, args.repeat, args.particles, args.steps)
-    else:
-        result = bench_forward(args.quick, args.dim, dtype, args.repeat, args.particles, args.scene,
-                               steps=args.steps, active_nodes=args.active_nodes)
-    print(json.dumps(result) if args.json else json.dumps(result, indent=2))
-    return result
+    if grad:
+        return bench_gradient(quick, dim, dtype, repeat, n_particles, steps)
+    return bench_forward(quick, dim, dtype, repeat, n_particles, scene, steps=steps, active_nodes=active_nodes)
