@@ -29,7 +29,7 @@ import numpy as np
 from .. import scenes
 from ..materials.base import invariants
 from ..observables import deposit_profile, front_from_profile, particle_volumes
-from ..precision import x64
+from ..precision import x64, x64_enabled
 from ..scenes.collapse import S4_SIDE
 from ..simulate import simulate
 from . import fidelity
@@ -271,7 +271,7 @@ def speed_accuracy(quick=False, plot_dir=None) -> dict:
     h_ref, front_ref, runout_ref = _s3_observe(ref_scene, ref.state, xs)
     rows = []
     for v in variants:
-        with x64(v.get("dtype") == "float64" or bool(jax.config.jax_enable_x64)):
+        with x64(v.get("dtype") == "float64" or x64_enabled()):
             scene = _s3(t_end=t_end, **v)
             result = simulate(*scene, throw=False, timed=True)  # compiled before the clock starts
             h, front, runout = _s3_observe(scene, result.state, xs)
