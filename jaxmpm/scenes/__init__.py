@@ -3,10 +3,18 @@
 from .collapse import (
     DEFAULT_PPC,
     DEFAULT_SAMPLING,
+    S2_HEIGHT,
+    S2_LENGTH,
     S2_PARAMS,
+    S3_HEIGHT,
+    S3_LENGTH,
     S3_PARAMS,
     S4_PARAMS,
+    S4_SIDE,
+    S5_LENGTH,
     S5_PARAMS,
+    S7_HEIGHT,
+    S7_LENGTH,
     S7_PARAMS,
     Scene,
     aluminium_bars,
@@ -19,13 +27,14 @@ from .collapse import (
     slope_collapse,
 )
 from .elastic import falling_block
-from .incline import S1_PARAMS, bagnold_velocity, incline
+from .incline import S1_DEPTH, S1_PARAMS, bagnold_velocity, incline
 from .info import SceneInfo
 
 __all__ = [
     "SCENE_NAMES", "is_experiment_file", "experiments_dtype", "build_scene",
-    "DEFAULT_PPC", "DEFAULT_SAMPLING", "S1_PARAMS", "bagnold_velocity", "incline", "S2_PARAMS", "S3_PARAMS",
-    "S4_PARAMS", "S5_PARAMS", "S7_PARAMS", "Scene", "SceneInfo", "aluminium_bars", "aspect_ratio_collapse",
+    "DEFAULT_PPC", "DEFAULT_SAMPLING", "S1_DEPTH", "S1_PARAMS", "bagnold_velocity", "incline", "S2_HEIGHT",
+    "S2_LENGTH", "S2_PARAMS", "S3_HEIGHT", "S3_LENGTH", "S3_PARAMS", "S4_PARAMS", "S4_SIDE", "S5_LENGTH", "S5_PARAMS",
+    "S7_HEIGHT", "S7_LENGTH", "S7_PARAMS", "Scene", "SceneInfo", "aluminium_bars", "aspect_ratio_collapse",
     "cohesive_collapse",
     "collapse", "falling_block", "gates_collapse", "height_law", "runout_law", "slope_collapse",
 ]

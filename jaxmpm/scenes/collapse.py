@@ -28,7 +28,8 @@ from ..step import step_budget
 from .info import SceneInfo
 
 __all__ = [
-    "DEFAULT_PPC", "DEFAULT_SAMPLING", "REST_SPEED", "REST_DURATION", "S2_DEFAULT_PPC", "S4_SIDE", "Scene",
+    "DEFAULT_PPC", "DEFAULT_SAMPLING", "REST_SPEED", "REST_DURATION", "S2_DEFAULT_PPC", "S2_HEIGHT", "S2_LENGTH",
+    "S3_HEIGHT", "S3_LENGTH", "S4_SIDE", "S5_LENGTH", "S7_HEIGHT", "S7_LENGTH", "Scene",
     "floor_lift",
     "S2_PARAMS", "S3_PARAMS",
     "S4_PARAMS", "S5_PARAMS", "S7_PARAMS", "gates_collapse", "slope_collapse", "cohesive_collapse",
@@ -370,6 +371,8 @@ def collapse(
 #: S2's own default particles per cell: with dx = 1.5 mm, the cheapest setting whose runouts, top
 #: and deposit profile all lie within 2 % of the converged answer (docs/validation.md §1).
 S2_DEFAULT_PPC = 4
+#: S2's column (docs/scenes.md S2), m.
+S2_LENGTH, S2_HEIGHT = 0.08, 0.05
 
 
 def gates_collapse(dx: float = 0.0015, ppc: float | None = None, dim: int = 2, width: float | None = None,
@@ -381,9 +384,13 @@ def gates_collapse(dx: float = 0.0015, ppc: float | None = None, dim: int = 2, w
     ppc = S2_DEFAULT_PPC if ppc is None else ppc
     kw.setdefault("runout", 0.09)
     kw.setdefault("backward_runout", kw["runout"])
-    return collapse("gates-collapse", 0.08, 0.05, dx=dx, ppc=ppc, dim=dim, width=width, back_wall=False,
+    return collapse("gates-collapse", S2_LENGTH, S2_HEIGHT, dx=dx, ppc=ppc, dim=dim, width=width, back_wall=False,
                     front_gate_speed=0.45, back_gate_speed=0.45, t_end=t_end, frames=frames,
                     base_params=S2_PARAMS, **kw)
+
+
+#: S3's column (docs/scenes.md S3, Mangeney et al. 2010), m.
+S3_LENGTH, S3_HEIGHT = 0.20, 0.14
 
 
 def slope_collapse(slope_deg: float = 10.0, dx: float = 0.01, ppc: float | None = None, dim: int = 2,
@@ -392,8 +399,8 @@ def slope_collapse(slope_deg: float = 10.0, dx: float = 0.01, ppc: float | None 
     on a no-slip bed inclined at ``slope_deg``, released at t = 0 with no gate."""
     t_end = t_end if t_end is not None else (1.0 if slope_deg < 15 else 1.5)
     # Runout estimate: the flat-bed law 1.2 a L (a = 0.7) grows on a slope; generous factors.
-    kw.setdefault("runout", 0.2 * (1.2 * 0.7) * 2.0 * (1.0 + max(slope_deg, 0.0) / 8.0))
-    return collapse("slope-collapse", 0.20, 0.14, dx=dx, ppc=ppc, dim=dim, width=width, slope_deg=slope_deg,
+    kw.setdefault("runout", S3_LENGTH * (1.2 * 0.7) * 2.0 * (1.0 + max(slope_deg, 0.0) / 8.0))
+    return collapse("slope-collapse", S3_LENGTH, S3_HEIGHT, dx=dx, ppc=ppc, dim=dim, width=width, slope_deg=slope_deg,
                     t_end=t_end, frames=frames, base_params=S3_PARAMS, **kw)
 
 
@@ -437,7 +444,11 @@ def height_law(a):
     return np.where(a <= 0.7, a, a ** (1.0 / 3.0))
 
 
-def aspect_ratio_collapse(a: float = 1.0, L0: float = 0.05, dx: float | None = None, ppc: float | None = None,
+#: S5's default column length L0 (docs/scenes.md S5), m.
+S5_LENGTH = 0.05
+
+
+def aspect_ratio_collapse(a: float = 1.0, L0: float = S5_LENGTH, dx: float | None = None, ppc: float | None = None,
                           dim: int = 2, width: float | None = None, t_end: float | None = None,
                           frames: int = 0, **kw) -> Scene:
     """S5: a column L0 × a L0 on a horizontal no-slip floor against a slip-free back wall,
@@ -455,6 +466,9 @@ def aspect_ratio_collapse(a: float = 1.0, L0: float = 0.05, dx: float | None = N
         remake=lambda **c: aspect_ratio_collapse(**{"a": a, "L0": L0, "dx": dx, "ppc": ppc, "dim": dim, "width": width,
                                                     "t_end": t_end, "frames": frames, **kw, **c}))
 
+
+#: S7's column (docs/scenes.md S7), m.
+S7_LENGTH, S7_HEIGHT = 0.20, 0.10
 
 #: S7 aluminium bars (Bui, Fukagawa, Sako & Ohno 2008), every value with its source
 #: (experiments_data/experiments/S7_aluminium_bars.toml holds the same with longer notes):
@@ -484,9 +498,7 @@ def aspect_ratio_collapse(a: float = 1.0, L0: float = 0.05, dx: float | None = N
 #: - xi = 50: the reference code's scenes' value (S2, S4), a modelling choice.
 S7_PARAMS = {"mu1": math.tan(math.radians(19.8)), "mu2": math.tan(math.radians(32.76)), "I0": 0.279,
              "beta": 0.0, "rho": 2650.0, "rho_s": 2700.0, "E": 0.84e6, "nu": 0.3, "d": 1.2e-3,
-             "pc0": round(2650.0 * G * 0.10), "xi": 50.0}
-#: S7's column (docs/scenes.md S7), m.
-S7_LENGTH, S7_HEIGHT = 0.20, 0.10
+             "pc0": round(2650.0 * G * S7_HEIGHT), "xi": 50.0}
 
 
 def aluminium_bars(dx: float = S7_HEIGHT / 16, ppc: float | None = None, dim: int = 2, width: float | None = None,

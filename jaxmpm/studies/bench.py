@@ -21,7 +21,7 @@ import jax.numpy as jnp
 
 from ..precision import use_dtype
 from ..rollout import make_rollout
-from ..scenes import falling_block, gates_collapse
+from ..scenes import S2_HEIGHT, S2_LENGTH, falling_block, gates_collapse
 
 __all__ = ["bench_forward", "bench_gradient", "median_time", "run_bench"]
 
@@ -62,7 +62,7 @@ def _scene(scene: str, quick: bool, dim: int, dtype, n_particles=None):
         # ~10,240 particles at dx = 1.25 mm (2x2 per cell); the first 0.05 s (~2,000 steps).
         dx = 0.0025 if quick else 0.00125
         if n_particles:
-            dx = math.sqrt(0.08 * 0.05 / n_particles * 4)
+            dx = math.sqrt(S2_LENGTH * S2_HEIGHT / n_particles * 4)
         # A fixed 2 x 2 lattice, whatever the scenes' default sampling: the benchmark's particle
         # count (and so its throughput) stays comparable over time and with the Taichi reference.
         return gates_collapse(dx=dx, t_end=0.01 if quick else 0.05, dtype=dtype, ppc=2, sampling="lattice")

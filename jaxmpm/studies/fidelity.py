@@ -27,7 +27,7 @@ import numpy as np
 
 from .. import scenes
 from ..observables import deposit_profile, front_from_profile, particle_volumes
-from ..scenes.collapse import S4_SIDE
+from ..scenes import S4_SIDE
 from ..simulate import simulate
 
 __all__ = ["REFERENCE_S2", "REFERENCE_SOURCE", "SIGMA", "cross_code", "observe", "resolution", "run_case"]

@@ -8,8 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..scenes import bagnold_velocity, height_law, runout_law
-from ..scenes.collapse import S4_SIDE
+from ..scenes import S1_DEPTH, S4_SIDE, bagnold_velocity, height_law, runout_law
 
 __all__ = ["animate_avalanche", "animate_run", "plot_aspect_ratio", "plot_avalanche", "plot_bagnold",
            "plot_bagnold_from_rest", "plot_cohesion", "plot_convergence", "plot_obstacle_force", "plot_resolution",
@@ -226,7 +225,7 @@ def plot_bagnold_from_rest(out, path):
     a1.plot(out["analytic"], z, "k--", lw=1.5, label="Bagnold (docs/model.md §6)")
     a1.set_xlabel("v (m/s)")
     a1.set_ylabel("height above bed (mm)")
-    a1.set_title(f"S1, θ = {out['slope_deg']:g}° from rest, dx = h/{round(0.038 / out['dx'])}, {out['dtype']}"
+    a1.set_title(f"S1, θ = {out['slope_deg']:g}° from rest, dx = h/{round(S1_DEPTH / out['dx'])}, {out['dtype']}"
                  + (f", XPIC({out['xpic']})" if out["xpic"] else ""), fontsize=9)
     a1.legend(fontsize=7)
     t = [s["t"] for s in out["snapshots"]]

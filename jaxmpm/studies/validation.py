@@ -30,7 +30,7 @@ from .. import scenes
 from ..materials.base import invariants
 from ..observables import deposit_profile, front_from_profile, particle_volumes
 from ..precision import x64, x64_enabled
-from ..scenes.collapse import S4_SIDE
+from ..scenes import S1_DEPTH, S3_LENGTH, S4_SIDE, S5_LENGTH
 from ..simulate import simulate
 from . import fidelity
 
@@ -67,7 +67,7 @@ def bagnold(quick=False, plot_dir=None, alpha=0.95, slopes=(22.0, 24.0, 26.0, 28
     cases, profiles = [], {}
     for slope in slopes:
         for div in divisions:
-            scene = scenes.incline(slope, dx=0.038 / div, t_end=t_end, frames=16, alpha=alpha, critical_start=True)
+            scene = scenes.incline(slope, dx=S1_DEPTH / div, t_end=t_end, frames=16, alpha=alpha, critical_start=True)
             if xpic:
                 scene = dataclasses.replace(scene, config=dataclasses.replace(scene.config, xpic=xpic))
             gap = scene.info.wall_gap
@@ -78,7 +78,7 @@ def bagnold(quick=False, plot_dir=None, alpha=0.95, slopes=(22.0, 24.0, 26.0, 28
             late = range(12, 16)
             v_s, v_a, prof = [], [], []
             row = scene.config.grid.cells[0] * scene.info.ppc
-            v_max = float(scenes.bagnold_velocity(0.038, 0.038, slope, scene.params))
+            v_max = float(scenes.bagnold_velocity(S1_DEPTH, S1_DEPTH, slope, scene.params))
             for k in late:
                 vx, z, vol = frames["vx"][k], frames["y"][k] - gap, frames["vol"][k]
                 h = vol.sum() / scene.info.length
@@ -117,24 +117,24 @@ def bagnold_from_rest(quick=False, plot_dir=None, alpha=0.95, slope=24.0, divisi
     v/(g cos θ μ'(I) I) (about 4 s at 24°), so the run lasts several of them."""
     t_end = (2.0 if quick else 12.0) if t_end is None else t_end
     frames = 24 if not quick else 8
-    scene = scenes.incline(slope, dx=0.038 / division, t_end=t_end, frames=frames, alpha=alpha,
+    scene = scenes.incline(slope, dx=S1_DEPTH / division, t_end=t_end, frames=frames, alpha=alpha,
                            critical_start=True, start_from_analytic=False)
     if xpic:
         scene = dataclasses.replace(scene, config=dataclasses.replace(scene.config, xpic=xpic))
     gap = scene.info.wall_gap
     result, wall = _timed(scene, _profile_observer)
     fr = {k: np.asarray(v) for k, v in result.frames.items()}
-    v_max = float(scenes.bagnold_velocity(0.038, 0.038, slope, scene.params))
-    edges = np.linspace(0.0, 0.038, 20)
+    v_max = float(scenes.bagnold_velocity(S1_DEPTH, S1_DEPTH, slope, scene.params))
+    edges = np.linspace(0.0, S1_DEPTH, 20)
     mid = 0.5 * (edges[1:] + edges[:-1])
-    analytic_mid = scenes.bagnold_velocity(mid, 0.038, slope, scene.params)
+    analytic_mid = scenes.bagnold_velocity(mid, S1_DEPTH, slope, scene.params)
     row = scene.config.grid.cells[0] * scene.info.ppc
     snapshots = []
     for k, t in enumerate(result.frame_times):
         vx, z = fr["vx"][k], fr["y"][k] - gap
         which = np.digitize(z, edges) - 1
         prof = np.array([vx[which == b].mean() if np.any(which == b) else np.nan for b in range(len(mid))])
-        analytic = scenes.bagnold_velocity(z, 0.038, slope, scene.params)
+        analytic = scenes.bagnold_velocity(z, S1_DEPTH, slope, scene.params)
         top = np.argsort(z)[-row:]
         snapshots.append({"t": float(t), "v_surface": float(vx[top].mean()),
                           "surface_rel": float(vx[top].mean() / v_max),
@@ -195,12 +195,13 @@ def aspect_ratio(quick=False, plot_dir=None) -> dict:
     ratios = (0.5, 1.0, 2.0) if quick else (0.5, 1.0, 2.0, 4.0, 8.0)
     rows = []
     for a in ratios:
-        scene = scenes.aspect_ratio_collapse(a, L0=0.05, dx=0.05 / (6 if quick else 10))
+        scene = scenes.aspect_ratio_collapse(a, L0=S5_LENGTH, dx=S5_LENGTH / (6 if quick else 10))
         result, wall = _timed(scene)
         x = np.asarray(result.state.x)
-        rows.append({"a": a, "runout_over_L0": float((x[:, 0].max() - 0.05) / 0.05),
+        rows.append({"a": a, "runout_over_L0": float((x[:, 0].max() - S5_LENGTH) / S5_LENGTH),
                      "law_runout_over_L0": float(scenes.runout_law(a)),
-                     "height_over_L0": float(x[:, 1].max() / 0.05), "law_height_over_L0": float(scenes.height_law(a)),
+                     "height_over_L0": float(x[:, 1].max() / S5_LENGTH),
+                     "law_height_over_L0": float(scenes.height_law(a)),
                      "status": result.status, "wall_s": round(wall, 2)})
     out = {"study": "aspect-ratio", "laws": "Lajeunesse et al. 2005 via Kumar (secondary)", "runs": rows}
     if plot_dir:
@@ -244,8 +245,8 @@ S3_FRONT_THRESHOLD = 3e-3
 
 def _s3_observe(scene, state, xs):
     h = np.asarray(deposit_profile(state.x, particle_volumes(state), xs, S3_SIGMA))
-    front = float(front_from_profile(xs, h, S3_FRONT_THRESHOLD, x_ref=0.0)) - 0.2
-    return h, front, float(np.asarray(state.x)[:, 0].max()) - 0.2
+    front = float(front_from_profile(xs, h, S3_FRONT_THRESHOLD, x_ref=0.0)) - S3_LENGTH
+    return h, front, float(np.asarray(state.x)[:, 0].max()) - S3_LENGTH
 
 
 def speed_accuracy(quick=False, plot_dir=None) -> dict:
