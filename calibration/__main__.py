@@ -32,9 +32,10 @@ import os
 import pathlib
 import sys
 
+from jaxmpm.cli import add_threads_argument
 from jaxmpm.precision import use_dtype
 from jaxmpm.scenes.collapse import S4_SIDE
-from jaxmpm.threads import add_threads_argument, apply_threads
+from jaxmpm.threads import apply_threads
 
 from .workers import Workers, available_cores
 

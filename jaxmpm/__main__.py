@@ -11,6 +11,7 @@ import numpy as np
 
 from .cli import (
     add_scene_arguments,
+    add_threads_argument,
     check_figure_file,
     check_repeated_keys,
     check_run_outputs,
@@ -23,7 +24,7 @@ from .cli import (
 )
 from .precision import use_dtype
 from .scenes import SCENE_NAMES, is_experiment_file
-from .threads import add_threads_argument, apply_threads
+from .threads import apply_threads
 
 
 def _source() -> str:

@@ -20,10 +20,11 @@ import jax
 import numpy as np
 
 from .scenes import SCENE_NAMES, build_scene, is_experiment_file
+from .threads import THREAD_CHOICES
 
-__all__ = ["OPTION_FIELDS", "add_scene_arguments", "check_figure_file", "check_output_dir", "check_output_file",
-           "check_repeated_keys", "check_run_outputs", "check_scene_args", "experiment_from_args", "json_safe",
-           "output_writer", "parse_set", "print_json", "scene_dtype", "scene_from_args"]
+__all__ = ["OPTION_FIELDS", "add_scene_arguments", "add_threads_argument", "check_figure_file", "check_output_dir",
+           "check_output_file", "check_repeated_keys", "check_run_outputs", "check_scene_args", "experiment_from_args",
+           "json_safe", "output_writer", "parse_set", "print_json", "scene_dtype", "scene_from_args"]
 
 
 # ---- the scene options -------------------------------------------------------------------------
@@ -148,6 +149,14 @@ def _scene_argument(text: str) -> str:
         return text
     raise argparse.ArgumentTypeError(f"must be one of {', '.join(SCENE_NAMES)} or an experiment file (.toml), "
                                      f"got {text!r}")
+
+
+def add_threads_argument(parser) -> None:
+    """The command lines' ``--threads {1,all}`` (default 1, unless XLA_FLAGS is set), applied by
+    ``jaxmpm.threads.apply_threads``."""
+    parser.add_argument("--threads", choices=THREAD_CHOICES, default=None,
+                        help="XLA's CPU threads: 1 (the default; faster below about 1e5 particles, "
+                             "docs/performance.md) or all (XLA's own choice); an XLA_FLAGS you set is kept")
 
 
 # ---- outputs, checked before any work ------------------------------------------------------------
