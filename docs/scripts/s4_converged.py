@@ -41,9 +41,9 @@ import numpy as np
 from calibration.observe import Observations, model_functions
 from jaxmpm.observables import deposit_profile, particle_volumes
 from jaxmpm.rollout import make_rollout
-from jaxmpm.scenes import cohesive_collapse
+from jaxmpm.scenes import S4_SIDE, cohesive_collapse
 
-L = 0.089
+L = S4_SIDE
 TRUTH = (0.25, 0.38)
 SLOPE = -1.2  # dμ1/dβ along the valley (docs/twin.md: the fits' pairs lie near this line)
 T_END = 0.5
