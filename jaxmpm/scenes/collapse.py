@@ -371,8 +371,10 @@ def collapse(
 #: S2's own default particles per cell: with dx = 1.5 mm, the cheapest setting whose runouts, top
 #: and deposit profile all lie within 2 % of the converged answer (docs/validation.md §1).
 S2_DEFAULT_PPC = 4
-#: S2's column (docs/scenes.md S2), m.
-S2_LENGTH, S2_HEIGHT = 0.08, 0.05
+#: S2's column length (docs/scenes.md S2), m.
+S2_LENGTH = 0.08
+#: S2's column height, m.
+S2_HEIGHT = 0.05
 
 
 def gates_collapse(dx: float = 0.0015, ppc: float | None = None, dim: int = 2, width: float | None = None,
@@ -389,8 +391,10 @@ def gates_collapse(dx: float = 0.0015, ppc: float | None = None, dim: int = 2, w
                     base_params=S2_PARAMS, **kw)
 
 
-#: S3's column (docs/scenes.md S3, Mangeney et al. 2010), m.
-S3_LENGTH, S3_HEIGHT = 0.20, 0.14
+#: S3's column length (docs/scenes.md S3, Mangeney et al. 2010), m.
+S3_LENGTH = 0.20
+#: S3's column height, m.
+S3_HEIGHT = 0.14
 
 
 def slope_collapse(slope_deg: float = 10.0, dx: float = 0.01, ppc: float | None = None, dim: int = 2,
@@ -467,8 +471,10 @@ def aspect_ratio_collapse(a: float = 1.0, L0: float = S5_LENGTH, dx: float | Non
                                                     "t_end": t_end, "frames": frames, **kw, **c}))
 
 
-#: S7's column (docs/scenes.md S7), m.
-S7_LENGTH, S7_HEIGHT = 0.20, 0.10
+#: S7's column length (docs/scenes.md S7), m.
+S7_LENGTH = 0.20
+#: S7's column height, m.
+S7_HEIGHT = 0.10
 
 #: S7 aluminium bars (Bui, Fukagawa, Sako & Ohno 2008), every value with its source
 #: (experiments_data/experiments/S7_aluminium_bars.toml holds the same with longer notes):
