@@ -28,9 +28,10 @@ import functools
 import pathlib
 import sys
 
+from jaxmpm.cli import add_threads_argument
 from jaxmpm.precision import use_dtype
 from jaxmpm.scenes.collapse import S4_SIDE
-from jaxmpm.threads import add_threads_argument, apply_threads
+from jaxmpm.threads import apply_threads
 
 from . import cli
 from .plots import fit_figures, law_figures, likelihood_figures, sweep_figures, twin_landscape_figure
@@ -143,7 +144,7 @@ def _coverage(args) -> int:
 
 
 def _design(args) -> int:
-    from jaxmpm.scenes import scene_dtype, scene_from_args
+    from jaxmpm.cli import scene_dtype, scene_from_args
 
     from .design import design
 
@@ -194,7 +195,8 @@ def _bench(args) -> int:
 
 
 def _common(p, data: bool = True) -> None:
-    from jaxmpm.scenes import SCENE_NAMES, add_scene_arguments
+    from jaxmpm.cli import add_scene_arguments
+    from jaxmpm.scenes import SCENE_NAMES
 
     if data:
         p.add_argument("experiments", nargs="*", metavar="EXPERIMENT.toml",
@@ -401,7 +403,7 @@ def build_parser() -> argparse.ArgumentParser:
     tw = sub.add_parser("twin", help="fit synthetic S4 data made with known parameters")
     _common(tw, data=False)
     _fit_options(tw, "beta,mu1,xi")
-    tw.add_argument("--quick", action="store_true", help="a coarse grid (dx = L/8): about a minute")
+    tw.add_argument("--quick", action="store_true", help="a coarse grid (dx = L/8): about three minutes")
     tw.add_argument("--noise", type=float, default=0.0, help="Gaussian noise, fraction of the peak height")
     tw.add_argument("--noise-seed", type=int, default=0, help="seed of the noise")
     tw.add_argument("--landscape", type=int, default=None, metavar="N",

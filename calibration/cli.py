@@ -38,7 +38,7 @@ def parse_keys(text: str, option: str = "--fit") -> tuple[str, ...]:
 
 def parse_pairs(items, option: str) -> dict[str, float]:
     """``KEY=VALUE`` items as {key: value}; a malformed or repeated key is an error naming ``option``."""
-    from jaxmpm.scenes import parse_set
+    from jaxmpm.cli import parse_set
 
     out = {}
     for item in items:
@@ -229,7 +229,7 @@ def fit_fields(args, scene, experiments, init, found) -> dict:
 def experiment_files(args) -> list:
     """The experiment files of ``fit``/``sweep`` (positional), with the command line's scene
     options over their values; [] for a named --scene."""
-    from jaxmpm.scenes import experiment_from_args
+    from jaxmpm.cli import experiment_from_args
 
     files = list(getattr(args, "experiments", None) or [])
     if files and args.scene:
@@ -270,7 +270,8 @@ def scene_and_objective(args, keys, experiments=()):
     data's last time), or each experiment file with its measurements (several: one joint
     objective, with --shared labelled by the files' names; the scene returned is the first's);
     ``calibration.problem.objective_of``."""
-    from jaxmpm.scenes import experiments_dtype, scene_dtype, scene_from_args
+    from jaxmpm.cli import scene_dtype, scene_from_args
+    from jaxmpm.scenes import experiments_dtype
 
     from .data import data_end_time
     from .objective import CompositeObjective
@@ -343,7 +344,7 @@ def check_args(args) -> None:
 
 def check_options(args) -> None:
     """Checks the library would make later, or with its own argument names."""
-    from jaxmpm.scenes import check_scene_args
+    from jaxmpm.cli import check_scene_args
 
     if hasattr(args, "sampling"):  # the scene options of add_scene_arguments
         check_scene_args(args)
@@ -422,7 +423,7 @@ def check_outputs(args) -> None:
     """Every output path is checked before the data are read or anything compiles: a file for
     --out (which must exist for --resume, and must not, unless --overwrite, otherwise), a folder
     for --plot. Nothing is created here."""
-    from jaxmpm.io import check_output_dir, check_output_file
+    from jaxmpm.cli import check_output_dir, check_output_file
 
     out = getattr(args, "out", None)
     resume, overwrite = getattr(args, "resume", False), getattr(args, "overwrite", False)
@@ -457,7 +458,7 @@ def check_outputs(args) -> None:
 def emit(obj, compact: bool) -> list[str]:
     """Print ``obj`` as valid JSON (NaN and infinities as null, their paths under "nonfinite");
     return those paths."""
-    from jaxmpm.io import json_safe
+    from jaxmpm.cli import json_safe
 
     obj, bad = json_safe(obj)
     if bad:

@@ -26,13 +26,14 @@ from calibration import (
 )
 from jaxmpm import scenes
 from jaxmpm.observables import deposit_profile, front_from_profile
+from jaxmpm.scenes import S4_SIDE
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 KEYS = ("beta", "mu1")
 
 
 def tiny_scene(t_end=0.1, **values):
-    return scenes.cohesive_collapse(dx=0.089 / 6, t_end=t_end, **{"beta": 0.25, **values})
+    return scenes.cohesive_collapse(dx=S4_SIDE / 6, t_end=t_end, **{"beta": 0.25, **values})
 
 
 def synthetic(scene, keys, theta, xs=None, times=(0.05, 0.1)):
@@ -376,7 +377,7 @@ def test_killed_command_line_fit_resumes(tmp_path):
     resumed run keeps them and finishes with the same history as an uninterrupted one."""
     data = ROOT / "experiments_data" / "synthetic" / "S4_beta0.25.csv"
     args = [sys.executable, "-m", "calibration", "fit", "--scene", "cohesive-collapse", "--data", str(data),
-            "--fit", "beta,mu1", "--init", "beta=0.15", "--dx", str(0.089 / 6),
+            "--fit", "beta,mu1", "--init", "beta=0.15", "--dx", str(S4_SIDE / 6),
             "--steps", "4", "--roundoff-samples", "0", "--grid-check", "0", "--no-progress", "--json"]
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
     out = tmp_path / "fit.h5"

@@ -7,11 +7,12 @@ import numpy as np
 import pytest
 
 from calibration.__main__ import main
+from jaxmpm.scenes import S4_SIDE
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 S4 = str(ROOT / "experiments_data" / "synthetic" / "S4_beta0.25.csv")
 WPD = str(ROOT / "experiments_data" / "examples" / "wpd_example.csv")
-TINY = ["--dx", str(0.089 / 6), "--no-progress", "--json"]
+TINY = ["--dx", str(S4_SIDE / 6), "--no-progress", "--json"]
 
 
 def run(capsys, *argv):
@@ -128,7 +129,7 @@ def test_fit_with_profiles_and_posterior_draws_them(capsys, tmp_path):
     from jaxmpm.__main__ import main as run_main
 
     profile = tmp_path / "p.csv"
-    assert run_main(["run", "cohesive-collapse", "--dx", str(0.089 / 6), "--set", "beta=0.25", "--t-end", "0.3",
+    assert run_main(["run", "cohesive-collapse", "--dx", str(S4_SIDE / 6), "--set", "beta=0.25", "--t-end", "0.3",
                      "--profile-csv", str(profile), "--no-progress", "--json"]) == 0
     capsys.readouterr()
     from calibration import load_profile

@@ -10,6 +10,7 @@ import pytest
 from calibration import FrontTarget, Objective, ProfileTarget, fit
 from calibration.likelihood import DELTA_CHI2_95, grid_posterior, predict_heldout, profile_likelihood
 from jaxmpm import scenes
+from jaxmpm.scenes import S4_SIDE
 
 KEYS = ("beta", "mu1")
 TRUTH = np.array([0.25, 0.38])
@@ -19,7 +20,7 @@ XS = np.linspace(0.0, 0.16, 17)
 
 @pytest.fixture(scope="module")
 def twin():
-    scene = scenes.cohesive_collapse(dx=0.089 / 6, t_end=0.1, beta=0.25)
+    scene = scenes.cohesive_collapse(dx=S4_SIDE / 6, t_end=0.1, beta=0.25)
     gen = Objective(scene, KEYS, profile=ProfileTarget(XS, np.ones_like(XS)), check_data=False)  # placeholder
     h = np.asarray(gen.predict(TRUTH)["h"])
     noisy = h + NOISE * h.max() * np.random.default_rng(3).standard_normal(h.shape)

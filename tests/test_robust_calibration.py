@@ -24,6 +24,7 @@ from calibration.data import load_profile
 from calibration.objective import Objective
 from calibration.sweep import SweepResult, write_sweep
 from jaxmpm import LEFT_GRID, scenes
+from jaxmpm.scenes import S4_SIDE
 
 FIT_MODULE = importlib.import_module("calibration.fit")  # calibration.fit is also the function
 SWEEP_MODULE = importlib.import_module("calibration.sweep")
@@ -31,7 +32,7 @@ SEARCH_MODULE = importlib.import_module("calibration.search")
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 S4 = ROOT / "experiments_data" / "synthetic" / "S4_beta0.25.csv"
 WPD = ROOT / "experiments_data" / "examples" / "wpd_example.csv"
-TINY = ["--dx", str(0.089 / 6), "--no-progress", "--json"]
+TINY = ["--dx", str(S4_SIDE / 6), "--no-progress", "--json"]
 FIT = ["fit", "--scene", "cohesive-collapse", "--fit", "beta"]
 SWEEP = ["sweep", "--scene", "cohesive-collapse"]
 
@@ -117,7 +118,7 @@ def test_a_failed_figure_keeps_the_json_and_the_history(history):
 
 @pytest.mark.parametrize("change, message", [
     ("data", "data (--data/--front: their content)"),
-    (["--dx", str(0.089 / 5)], "dx (--dx): 0.0148"),
+    (["--dx", str(S4_SIDE / 5)], "dx (--dx): 0.0148"),
     (["--set", "pc0=400"], "fixed.pc0 (--set): 500.0 in the file, 400.0 now"),
     (["--weight-profile", "2"], "weights.profile (--weight-profile/--weight-front): 1.0 in the file, 2.0 now"),
     (["--t-end", "0.6"], "t_end (--t-end): 0.5 in the file, 0.6 now"),
@@ -379,7 +380,7 @@ def test_a_failed_start_names_its_status():
 
 
 def test_objective_refuses_a_zero_weight_and_invalid_starts():
-    scene = scenes.cohesive_collapse(dx=0.089 / 6, t_end=0.5, beta=0.25)
+    scene = scenes.cohesive_collapse(dx=S4_SIDE / 6, t_end=0.5, beta=0.25)
     from calibration.objective import ProfileTarget
 
     target = ProfileTarget(S4_X, S4_H, 0.5, source="S4.csv")

@@ -11,6 +11,7 @@ from calibration.objective import Objective, ProfileTarget, jacobians_z, residua
 from calibration.search import search
 from calibration.workers import Workers, as_workers
 from jaxmpm import scenes
+from jaxmpm.scenes import S4_SIDE
 
 KEYS = ("beta", "mu1")
 TRUTH = np.array([0.2, 0.4])
@@ -18,7 +19,7 @@ TRUTH = np.array([0.2, 0.4])
 
 @pytest.fixture(scope="module")
 def objective():
-    scene = scenes.cohesive_collapse(dx=0.089 / 4, t_end=0.1)
+    scene = scenes.cohesive_collapse(dx=S4_SIDE / 4, t_end=0.1)
     xs = np.linspace(0.0, 0.2, 25)
     gen = Objective(scene, KEYS, profile=ProfileTarget(xs, np.ones_like(xs)), check_data=False)
     _, pred = gen.residuals(TRUTH)
