@@ -73,8 +73,8 @@ from jaxmpm import tables
 from jaxmpm.datasets import DatasetInfo, data_dir, dataset_path, list_datasets  # the one finder, re-exported
 
 __all__ = [
-    "UNITS", "DatasetInfo", "FrontHistory", "Profile", "RunoutLaw", "data_dir", "data_end_time", "dataset_path",
-    "list_datasets",
+    "UNITS", "DatasetInfo", "FrontHistory", "Profile", "RunoutLaw", "check_run_status", "data_dir", "data_end_time",
+    "dataset_path", "list_datasets", "load_data",
     "load_front_history", "load_measurements", "load_profile", "load_scaling_law", "load_setup", "read_table",
 ]
 
@@ -584,6 +584,32 @@ def load_measurements(experiment, *, sort: bool = False, clip_noise: bool = Fals
         front = load_front_history(experiment.front.file, units=experiment.front.units,
                                    time_units=experiment.front.time_units, sort=sort)
     return profiles, front
+
+
+def check_run_status(datasets) -> None:
+    """Refuse any of ``datasets`` (profiles, front histories; None is skipped) whose header
+    records a run that failed (a nonzero ``status``, as ``python -m jaxmpm run --profile-csv``
+    writes it): such a file is not a result of its scene."""
+    from jaxmpm import describe_status
+
+    for data in datasets:
+        status = data.meta.get("status") if data is not None else None
+        if status not in (None, 0):
+            raise ValueError(f"{data.path}: written by a run that failed (status {status}: "
+                             f"{'; '.join(describe_status(int(status)))}); it is not a result of its scene")
+
+
+def load_data(profiles=(), front=None, *, units: str | None = None, time_units: str | None = None,
+              dataset: str | None = None, sort: bool = False, clip_noise: bool = False) -> tuple[list, Any]:
+    """(profiles, front history or None) read from the profile CSVs ``profiles`` and the
+    front-history CSV ``front`` (None: none) as ``load_profile`` and ``load_front_history`` read
+    them (``units``, ``time_units``, ``dataset``, ``sort``, ``clip_noise``); a file written by a
+    run that failed is refused (``check_run_status``)."""
+    loaded = [load_profile(p, units=units, dataset=dataset, sort=sort, clip_noise=clip_noise) for p in profiles]
+    history = (load_front_history(front, units=units, time_units=time_units, dataset=dataset, sort=sort)
+               if front else None)
+    check_run_status([*loaded, history])
+    return loaded, history
 
 
 def load_setup(name: str | os.PathLike) -> dict[str, Any]:

@@ -116,6 +116,19 @@ class DesignResult:
                 "recommended": None if self.recommended is None else one(self.recommended),
                 "statement": self.statement, "notes": list(self.notes), "wall_s": round(self.wall_s, 2)}
 
+    def lines(self) -> list[str]:
+        """The ranking as text: one line per candidate, by cost (the recommended one starred),
+        with every key's relative 95 % half-width and its data-only and noise-weighted parts,
+        then the statement and the notes."""
+        out = []
+        for c in self.candidates:
+            widths = ", ".join(f"{k} ±{100 * r:.3g} % (data alone ±{100 * d / max(abs(t), 1e-12):.3g} %, "
+                               f"noise-weighted ±{100 * b / max(abs(t), 1e-12):.3g} %)"
+                               for k, r, d, b, t in zip(self.keys, c.relative, c.halfwidth_data,
+                                                        c.halfwidth_weighted, self.theta))
+            out.append(f"{'*' if c is self.recommended else ' '} cost {c.cost:g}  {c.name}: {widths}")
+        return [*out, self.statement, *(f"note: {note}" for note in self.notes)]
+
     @property
     def statement(self) -> str:
         first = self.candidates[0]

@@ -1,5 +1,5 @@
-"""A fit's options, validated once: how it runs (``FitOptions``) and how its end point is judged
-(``JudgeOptions``).
+"""A fit's options, validated once: how it runs (``FitOptions``), how its end point is judged
+(``JudgeOptions``) and how its objective reads and weighs the data (``DataOptions``).
 
 Both are frozen dataclasses whose ``__post_init__`` refuses a bad value with an ``OptionError``
 naming the field. The command line builds the same objects from its flags and reports the error
@@ -18,11 +18,13 @@ from typing import Any
 
 from .uncertainty import GRID_DRAWS, ROUNDOFF_SAMPLES, check_grid_options
 
-__all__ = ["FitOptions", "JudgeOptions", "FitRequest", "OptionError", "FLAGS", "METHODS", "GRAD_MODES", "cli_steps",
-           "fit_request"]
+__all__ = ["FitOptions", "JudgeOptions", "DataOptions", "FitRequest", "OptionError", "FLAGS", "METHODS", "GRAD_MODES",
+           "WEIGHTINGS", "cli_steps", "fit_request"]
 
 METHODS = ("lm", "adam")
 GRAD_MODES = ("fwd", "rev")
+WEIGHTINGS = ("block", "row")
+JACOBIANS = ("ad", "fd")
 
 #: Library field -> command-line flag (None: the command line does not set it).
 FLAGS: dict[str, str | None] = {
@@ -31,7 +33,9 @@ FLAGS: dict[str, str | None] = {
     "noise": "--noise", "uncertainty": None, "roundoff_samples": "--roundoff-samples",
     "sampling_seeds": "--sampling-seeds", "reference_noise": "--reference-noise", "threshold": "--threshold",
     "grid_ratio": "--grid-check", "grid_draws": None, "grid_levels": "--grid-levels", "keys": "--fit",
-    "init": "--init",
+    "init": "--init", "weighting": "--weighting", "weight_profile": "--weight-profile",
+    "weight_front": "--weight-front", "front_threshold": "--front-threshold",
+    "front_correlation_time": "--front-correlation-time", "jacobian": "--jacobian",
 }
 
 
@@ -161,6 +165,41 @@ class JudgeOptions:
         if isinstance(self.noise, Mapping):
             out["noise"] = dict(self.noise)
         return out
+
+
+@dataclasses.dataclass(frozen=True)
+class DataOptions:
+    """How an objective reads and weighs its data (``calibration.problem.objective_of``).
+    ``weighting``: "block" (each profile and the front history weigh their weight in total) or
+    "row" (every point weighs it); ``weight_profile``, ``weight_front``: the blocks' weights
+    (None: an experiment file's, else 1); ``front_threshold``: the height (m) below which the
+    deposit has ended (None: dx/ppc/2); ``front_correlation_time``: the front's errors are
+    exponentially correlated over this time, s (None: an experiment file's, else independent);
+    ``jacobian``: "ad" (forward-mode autodiff) or "fd" (central differences)."""
+
+    weighting: str = "block"
+    weight_profile: float | None = None
+    weight_front: float | None = None
+    front_threshold: float | None = None
+    front_correlation_time: float | None = None
+    jacobian: str = "ad"
+
+    def __post_init__(self):
+        _require(self.weighting in WEIGHTINGS, "weighting", f"one of {WEIGHTINGS}", self.weighting)
+        _require(self.jacobian in JACOBIANS, "jacobian", f"one of {JACOBIANS}", self.jacobian)
+        for name in ("front_threshold", "front_correlation_time"):
+            value = getattr(self, name)
+            if value is not None:
+                _require(_is_number(value) and value > 0, name, "a finite number > 0", value)
+        for name in ("weight_profile", "weight_front"):
+            value = getattr(self, name)
+            if value is not None:
+                _require(_is_number(value) and value >= 0, name, "a finite number >= 0", value)
+
+    def weights(self, default: float | None = 1.0) -> dict[str, float | None]:
+        """The blocks' weights by block name, ``default`` where none is given."""
+        return {"profile": default if self.weight_profile is None else self.weight_profile,
+                "front": default if self.weight_front is None else self.weight_front}
 
 
 def split_fields(fields: Mapping[str, Any]) -> tuple[dict[str, Any], dict[str, Any]]:

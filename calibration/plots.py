@@ -10,8 +10,9 @@ import pathlib
 
 import numpy as np
 
-__all__ = ["plot_coverage", "plot_fit", "plot_heldout", "plot_history", "plot_landscape", "plot_loss_curve",
-           "plot_nuts", "plot_posterior_predictive", "plot_profile_likelihoods", "plot_runout_law"]
+__all__ = ["fit_figures", "law_figures", "likelihood_figures", "plot_coverage", "plot_fit", "plot_heldout",
+           "plot_history", "plot_landscape", "plot_loss_curve", "plot_nuts", "plot_posterior_predictive",
+           "plot_profile_likelihoods", "plot_runout_law", "sweep_figures", "twin_landscape_figure"]
 
 
 def _plt():
@@ -425,3 +426,61 @@ def plot_design(result, path, *, title: str | None = None, data_only: bool = Fal
            title=title or f"expected 95 % regions of ({keys[0]}, {keys[1]}) before measuring")
     ax.legend(fontsize=7, loc="best")
     return _save(plt, fig, path, 120)
+
+
+# ---- the figure sets of the command line's studies ----------------------------------------------
+def _folder(directory) -> pathlib.Path:
+    d = pathlib.Path(directory)
+    d.mkdir(parents=True, exist_ok=True)
+    return d
+
+
+def fit_figures(directory, objective, result, *, prefix: str = "fit", truth=None, initial=None) -> list[str]:
+    """A fit's figures in ``directory`` (made if missing): ``PREFIX_profiles.png`` (``plot_fit``)
+    and ``PREFIX_history.png`` (``plot_history``, ``truth`` drawn where given); their paths."""
+    d = _folder(directory)
+    figs = [plot_fit(objective, result, d / f"{prefix}_profiles.png", initial_prediction=initial),
+            plot_history(result.history, result.keys, d / f"{prefix}_history.png", truth=truth)]
+    return [str(f) for f in figs]
+
+
+def likelihood_figures(directory, profiles, *, posterior=None) -> list[str]:
+    """A fit's profile likelihoods (and its grid posterior, where given) as
+    ``fit_likelihood.png`` in ``directory`` (``plot_profile_likelihoods``); its path in a list."""
+    return [str(plot_profile_likelihoods(profiles, pathlib.Path(directory) / "fit_likelihood.png",
+                                         posterior=posterior))]
+
+
+def sweep_figures(directory, result, keys) -> list[str]:
+    """A sweep's figure in ``directory`` (made if missing): ``loss.png``, the loss over one swept
+    key, or ``landscape.png``, the landscape over the first two (a grid), with the lowest member
+    and the failed ones marked; its path in a list."""
+    d = _folder(directory)
+    best = result.best() if result.ok.any() else None
+    if len(keys) == 1:
+        return [str(plot_loss_curve(result.thetas[:, 0], result.loss, keys[0], d / "loss.png",
+                                    best=best[keys[0]] if best else None))]
+    xs, ys, loss = result.landscape(keys[0], keys[1])
+    failed = list(result.failed)
+    fx = np.asarray(result.thetas)[failed, 0] if failed else np.zeros(0)
+    fy = np.asarray(result.thetas)[failed, 1] if failed else np.zeros(0)
+    marks = {"lowest": (best[keys[0]], best[keys[1]])} if best else None
+    return [str(plot_landscape(xs, ys, loss, keys[0], keys[1], d / "landscape.png", marks=marks, failed=(fx, fy)))]
+
+
+def twin_landscape_figure(directory, landscape) -> pathlib.Path:
+    """A twin's loss landscape (``calibration.twin.TwinLandscape``) as ``twin_landscape.png`` in
+    ``directory``, the truth, the start and the fit marked; its path."""
+    kx, ky = landscape.keys
+    xs, ys, loss = landscape.grid()
+    return plot_landscape(xs, ys, loss, kx, ky, pathlib.Path(directory) / "twin_landscape.png",
+                          marks=landscape.marks, title=f"twin loss over ({kx}, {ky}), others at truth")
+
+
+def law_figures(directory, result, law) -> list[str]:
+    """A runout-law fit's figures (``calibration.scaling.LawResult``) in ``directory`` (made if
+    missing): ``law_runout.png`` (``plot_runout_law`` against ``law``) and ``law_history.png``;
+    their paths."""
+    d = _folder(directory)
+    return [str(plot_runout_law(result.to_json()["cases"], d / "law_runout.png", law=law, title=result.law)),
+            str(plot_history(result.fit.history, result.fit.keys, d / "law_history.png"))]

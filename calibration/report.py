@@ -1,12 +1,14 @@
-"""What a fit reports: its JSON, built from the result and the objective it fitted."""
+"""What a fit reports: its JSON, built from the result and the objective it fitted, and the
+checks beyond Gauss–Newton run on its point."""
 
 from __future__ import annotations
 
+import dataclasses
 from typing import Any
 
 import numpy as np
 
-__all__ = ["fit_report"]
+__all__ = ["PosteriorChecks", "fit_report", "posterior_checks"]
 
 
 def fit_report(objective, result, search=None) -> dict[str, Any]:
@@ -32,3 +34,50 @@ def fit_report(objective, result, search=None) -> dict[str, Any]:
     if near:
         out["warning"] = f"{near} ended at a bound: the data push them outside the physical range"
     return out
+
+
+@dataclasses.dataclass(frozen=True)
+class PosteriorChecks:
+    """The checks beyond Gauss–Newton on a fit's point: ``report``, the JSON blocks they add
+    to the fit's ("profile_likelihood", "posterior", "nuts", or why one was skipped);
+    ``profiles``, the ``ProfileLikelihood`` of every key scanned; ``posterior``, the
+    ``GridPosterior`` (None where not computed)."""
+
+    report: dict[str, Any] = dataclasses.field(default_factory=dict)
+    profiles: list = dataclasses.field(default_factory=list)
+    posterior: Any = None
+
+
+def posterior_checks(objective, result, *, profiles: int = 0, posterior: int = 0, nuts: int = 0, chains: int = 4,
+                     noise=None, progress: bool = False) -> PosteriorChecks:
+    """The profile likelihood of every fitted key at ``profiles`` points, the grid posterior of
+    one or two keys at ``posterior`` points per key and a NUTS posterior of ``nuts`` draws per
+    chain on ``chains`` chains (each 0: off) around ``result``, a fit of ``objective``
+    (``noise``: the data's known noise, None: estimated). Skipped, with the reason in the
+    report, where the point has no interval to scan around; the grid posterior also for more
+    than two keys. What ``python -m calibration fit --profiles N --posterior N --nuts N`` adds."""
+    if not (profiles or posterior or nuts):
+        return PosteriorChecks()
+    if result.uncertainty is None or result.uncertainty.withheld:
+        return PosteriorChecks({"profile_likelihood_skipped": "the point is not a fit of the data: no interval to "
+                                                              "scan around"})
+    report: dict[str, Any] = {}
+    if nuts:
+        from .mcmc import nuts_posterior
+
+        found = nuts_posterior(objective, result, chains=chains, warmup=max(20, nuts // 2), draws=nuts, noise=noise,
+                               progress=progress)
+        report["nuts"] = {k: v for k, v in found.to_json().items() if k != "draws"}
+    from .likelihood import grid_posterior, profile_likelihood
+
+    scans = [profile_likelihood(objective, result, k, n=profiles, noise=noise) for k in result.keys] if profiles else []
+    if scans:
+        report["profile_likelihood"] = {p.key: p.to_json() for p in scans}
+    grid = None
+    if posterior:
+        if len(result.keys) > 2:
+            report["posterior_skipped"] = f"{len(result.keys)} keys: the grid posterior is for one or two"
+        else:
+            grid = grid_posterior(objective, result, n=posterior, noise=noise)
+            report["posterior"] = grid.to_json()
+    return PosteriorChecks(report, scans, grid)

@@ -15,6 +15,7 @@ ratio); its ``to_json()`` is what ``python -m calibration law --json`` prints.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import time
 from collections.abc import Callable, Mapping, Sequence
 from typing import Any
@@ -26,7 +27,7 @@ from jaxmpm.scenes import aspect_ratio_collapse, runout_law
 from .fit import FitResult, fit
 from .objective import CompositeObjective, FrontTarget, Objective
 
-__all__ = ["LawCase", "LawResult", "runout_objective", "fit_runout_law", "law_from_table"]
+__all__ = ["LawCase", "LawResult", "runout_objective", "fit_runout_law", "law_from_table", "named_law"]
 
 
 def law_from_table(table) -> Callable:
@@ -45,6 +46,20 @@ def law_from_table(table) -> Callable:
 
     law.__name__ = f"table:{table.experiment}"
     return law
+
+
+def named_law(path=None, *, sand: bool = False) -> tuple[Callable, str]:
+    """(law, label): the scaling-law table at ``path`` (``calibration.data.load_scaling_law``,
+    ``law_from_table``) labelled by its experiment and source, else the glass-bead law of
+    Lajeunesse et al. 2005 or with ``sand`` the sand law of Lube et al. 2005 (both secondary)."""
+    if path:
+        from .data import load_scaling_law
+
+        table = load_scaling_law(path)
+        return law_from_table(table), (f"{table.experiment} ({'secondary' if table.secondary else 'primary'}: "
+                                       f"{table.source})")
+    law = functools.partial(runout_law, sand=True) if sand else runout_law
+    return law, ("sand (Lube et al. 2005" if sand else "glass beads (Lajeunesse et al. 2005") + ", secondary)"
 
 
 def runout_objective(a: float, keys: Sequence[str], law: Callable = runout_law, L0: float = 0.05,

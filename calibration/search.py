@@ -53,7 +53,7 @@ from .uncertainty import (
 from .workers import using
 
 __all__ = ["COARSE_OPTIONS", "DEFAULT_STARTS", "DESIGNS", "WITHIN_NOISE_P", "Minimum", "SearchResult",
-           "coarse_to_fine", "design_starts", "search"]
+           "coarse_to_fine", "design_starts", "fit_from_starts", "search"]
 
 DESIGNS = ("sobol", "lhs")
 #: Starts of a search when none are asked for (the command line's default without --init).
@@ -442,3 +442,27 @@ def coarse_to_fine(objective, coarse, starts: int | np.ndarray = DEFAULT_STARTS,
             result.start_note = f"{result.start_note}; {note}" if result.start_note else note
         result.wall_s += first.wall_s
         return result
+
+
+def fit_from_starts(objective, init: Mapping[str, float] | None = None, *, starts: int = 1,
+                    options: FitOptions | None = None, judge: JudgeOptions | None = None, coarse=None, refine: int = 2,
+                    seed: int = 0, out=None, resume: bool = False, overwrite: bool = False, progress: bool = False,
+                    meta: Mapping[str, Any] | None = None, workers=None) -> tuple[FitResult, SearchResult | None]:
+    """The judged fit of ``objective`` from ``starts`` starts: one start (``calibration.fit.fit``
+    from ``init``, with its history ``out``, ``resume``, ``overwrite`` and ``meta``), else the
+    global search (``search``, ``init`` one more start, ``seed`` its design's), in two stages
+    (``coarse_to_fine``, refining ``refine`` minima) when ``coarse`` (the objective on a coarser
+    grid) is given. ``options`` (``FitOptions``; the search takes its ``steps``) and ``judge``
+    (``JudgeOptions``) as for ``fit``. Returns the best point and the search (None for one
+    start): what ``calibration.report.fit_report`` reports."""
+    options, judge = options or FitOptions(), judge or JudgeOptions()
+    if _check_int("starts", starts, 1) == 1:
+        from .fit import fit  # looked up at the call: the fit that runs is the module's
+
+        return fit(objective, init, options=options, judge=judge, out=out, resume=resume, overwrite=overwrite,
+                   progress=progress, meta=meta, workers=workers), None
+    common = dict(seed=seed, init=init or None, steps=options.steps, progress=progress, workers=workers,
+                  **judge.kwargs())
+    found = (coarse_to_fine(objective, coarse, starts, refine=refine, **common) if coarse is not None
+             else search(objective, starts, **common))
+    return found.best, found

@@ -41,7 +41,8 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from jaxmpm import describe_status
 
-__all__ = ["SweepResult", "sweep", "grid_points", "latin_hypercube", "write_sweep", "MODES", "DEFAULT_CHUNK"]
+__all__ = ["SweepResult", "sweep", "grid_points", "latin_hypercube", "sweep_points", "write_sweep", "MODES",
+           "DEFAULT_CHUNK"]
 
 MODES = ("auto", "vmap", "shard", "loop")
 #: Members per device in a trial chunk (the chunk used when the memory analysis is unavailable).
@@ -112,6 +113,17 @@ def latin_hypercube(ranges: Mapping[str, tuple[float, float]], n: int, seed: int
     rng = np.random.default_rng(int(seed))
     u = np.stack([(rng.permutation(n) + rng.random(n)) / n for _ in keys], axis=-1)
     return keys, lo + (hi - lo) * u
+
+
+def sweep_points(over: Mapping[str, tuple[float, float, int]], lhs: int | None = None,
+                 seed: int = 0) -> tuple[tuple[str, ...], np.ndarray]:
+    """The members of a sweep over ``over`` ({key: (lo, hi, n)}): the grid of n values per key
+    (``grid_points``), or with ``lhs`` that many Latin-hypercube samples over the ranges
+    (``latin_hypercube``, ``seed``; the counts unused). Returns (keys, thetas)."""
+    ranges = {k: (lo, hi) for k, (lo, hi, _) in over.items()}
+    if lhs:
+        return latin_hypercube(ranges, lhs, seed=seed)
+    return grid_points(ranges, {k: n for k, (_, _, n) in over.items()})
 
 
 # ---- the result -------------------------------------------------------------------------------

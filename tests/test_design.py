@@ -136,3 +136,12 @@ def test_command_line_errors_name_the_option(argv, message, capsys):
     with pytest.raises(SystemExit) as stop:
         main(["design", *TINY, *argv])
     assert stop.value.code == 2 and message in capsys.readouterr().err
+
+
+def test_the_command_line_prints_the_librarys_ranking_as_text(tiny, capsys):
+    """Without --json, ``design`` prints ``DesignResult.lines()`` of the library's call."""
+    code = main(["design", *TINY, "--fit", "beta,mu1", "--at", "beta=0.25", "--tolerance", "0.5", "--grid-check", "0",
+                 "--workers", "1"])
+    text = capsys.readouterr().out
+    assert code == 0 and text.splitlines() == tiny.lines()
+    assert text.splitlines()[len(tiny.candidates)] == tiny.statement

@@ -143,7 +143,8 @@ def test_user_experiment_runs_and_fits_from_the_file_as_from_python(tmp_path, ca
 def test_several_experiments_make_one_joint_objective(tmp_path):
     import argparse
 
-    from calibration.__main__ import _experiments, _fit_request, _scene_and_objective, build_parser
+    from calibration.__main__ import build_parser
+    from calibration.cli import experiment_files, fit_request, scene_and_objective
     from calibration.objective import CompositeObjective
 
     for name, slope in (("a", 0), ("b", 8)):
@@ -152,10 +153,10 @@ def test_several_experiments_make_one_joint_objective(tmp_path):
         (tmp_path / f"{name}.csv").write_text("# units: m\n# time_s: 0.1\nx_m,h_m\n0,0.05\n0.05,0.04\n0.1,0\n")
     args = build_parser().parse_args(["fit", str(tmp_path / "a.toml"), str(tmp_path / "b.toml")])
     assert isinstance(args, argparse.Namespace)
-    experiments = _experiments(args)
-    request = _fit_request(args, experiments)
+    experiments = experiment_files(args)
+    request = fit_request(args, experiments)
     assert request.keys == ("mu1",) and request.init == {} and request.noise is None
-    scene, objective = _scene_and_objective(args, request.keys, experiments)
+    scene, objective = scene_and_objective(args, request.keys, experiments)
     assert isinstance(objective, CompositeObjective) and len(objective.members) == 2
     assert [m.scene.info.slope_deg for m in objective.members] == [0.0, 8.0]
     coarse = objective.coarsened(1.5)  # the grid term of a joint fit coarsens every member

@@ -5,7 +5,16 @@ import dataclasses
 
 import pytest
 
-from calibration.options import FLAGS, FitOptions, FitRequest, JudgeOptions, OptionError, fit_request, split_fields
+from calibration.options import (
+    FLAGS,
+    DataOptions,
+    FitOptions,
+    FitRequest,
+    JudgeOptions,
+    OptionError,
+    fit_request,
+    split_fields,
+)
 
 
 @pytest.mark.parametrize("field, value, what", [
@@ -44,6 +53,26 @@ def test_judge_options_refuse_bad_values(field, value, what):
         JudgeOptions(**{field: value})
 
 
+@pytest.mark.parametrize("field, value, what", [
+    ("weighting", "point", "one of"),
+    ("jacobian", "cd", "one of"),
+    ("front_threshold", 0.0, "a finite number > 0"),
+    ("front_correlation_time", float("inf"), "a finite number > 0"),
+    ("weight_profile", -1.0, "a finite number >= 0"),
+    ("weight_front", float("nan"), "a finite number >= 0"),
+])
+def test_data_options_refuse_bad_values(field, value, what):
+    with pytest.raises(OptionError, match=what) as info:
+        DataOptions(**{field: value})
+    assert str(info.value.as_flag()).startswith(FLAGS[field] + " must be")
+
+
+def test_data_options_weights():
+    assert DataOptions().weights() == {"profile": 1.0, "front": 1.0}
+    assert DataOptions(weight_front=2.0).weights(None) == {"profile": None, "front": 2.0}
+    assert DataOptions(weight_profile=0.0).weights() == {"profile": 0.0, "front": 1.0}
+
+
 def test_options_are_frozen_and_defaults_valid():
     options, judge = FitOptions(), JudgeOptions()
     with pytest.raises(dataclasses.FrozenInstanceError):
@@ -64,7 +93,7 @@ def test_differences_cover_every_field_but_steps():
 
 
 def test_one_flag_table_for_every_field():
-    names = {f.name for cls in (FitOptions, JudgeOptions, FitRequest) for f in dataclasses.fields(cls)}
+    names = {f.name for cls in (FitOptions, JudgeOptions, FitRequest, DataOptions) for f in dataclasses.fields(cls)}
     assert set(FLAGS) == names
     assert str(OptionError("grid_ratio", "must be > 1, got 0.5").as_flag()) == "--grid-check must be > 1, got 0.5"
     assert str(OptionError("xtol", "must be >= 0").as_flag()) == "xtol must be >= 0"  # no flag: the field's name

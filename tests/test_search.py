@@ -185,14 +185,14 @@ def test_bad_search_options_are_refused_before_any_work(monkeypatch, tmp_path, c
 
 
 def test_the_default_is_a_search_without_init_and_one_start_with_it():
-    from calibration.__main__ import _starts
+    from calibration.cli import start_count
 
     base = ["fit", "--scene", "cohesive-collapse", "--data", str(S4), "--fit", "beta"]
     parse = build_parser().parse_args
-    assert _starts(parse(base)) == SEARCH_MODULE.DEFAULT_STARTS
-    assert _starts(parse([*base, "--init", "beta=0.2"])) == 1
-    assert _starts(parse([*base, "--out", "f.h5"])) == 1
-    assert _starts(parse([*base, "--init", "beta=0.2", "--starts", "3"])) == 3
+    assert start_count(parse(base)) == SEARCH_MODULE.DEFAULT_STARTS
+    assert start_count(parse([*base, "--init", "beta=0.2"])) == 1
+    assert start_count(parse([*base, "--out", "f.h5"])) == 1
+    assert start_count(parse([*base, "--init", "beta=0.2", "--starts", "3"])) == 3
 
 
 @pytest.mark.slow  # 45 s on 2 cores; the search from no start runs by default
