@@ -38,15 +38,17 @@ import numpy as np
 from .sweep import sweep
 from .uncertainty import NOISE_FLOOR, chi2_of, chi2_quantile
 
-__all__ = ["GridPosterior", "HeldOut", "ProfileLikelihood", "grid_posterior", "predict_heldout",
+__all__ = ["GridPosterior", "HeldOut", "ProfileLikelihood", "grid_posterior", "noise_levels", "predict_heldout",
            "profile_likelihood"]
 
 #: Δχ² of a 95 % interval of one parameter (Wilks' theorem).
 DELTA_CHI2_95 = chi2_quantile(0.95, 1)
 
 
-def _sigma(objective, fit_result, noise) -> dict[str, float]:
-    """σ by block: the given ``noise`` (a float: every block), else the fit's."""
+def noise_levels(objective, fit_result, noise) -> dict[str, float]:
+    """σ by block of ``objective``: the given ``noise`` (a float: every block; a mapping: by
+    block name), else the fit's (``fit_result.uncertainty.noise``). Raises ``ValueError`` when a
+    block has no level. The scale of every χ² here and in ``calibration.mcmc``."""
     if noise is not None:
         sigma = ({name: float(noise) for name in objective.blocks} if not isinstance(noise, Mapping)
                  else {k: float(v) for k, v in noise.items()})
@@ -179,7 +181,7 @@ def profile_likelihood(objective, fit_result, key: str, *, span: float = 4.0, n:
     if key not in keys:
         raise ValueError(f"key: {key!r} is not a fitted key {keys}")
     _check_span(span, n)
-    sigma = _sigma(objective, fit_result, noise)
+    sigma = noise_levels(objective, fit_result, noise)
     j = keys.index(key)
     theta_hat = np.array([fit_result.theta[k] for k in keys], float)
     lo_b, hi_b = objective.bounds.lower[j], objective.bounds.upper[j]
@@ -307,7 +309,7 @@ def grid_posterior(objective, fit_result, *, span: float = 4.0, n: int = 21,
     if len(keys) > 2:
         raise ValueError(f"grid_posterior: {len(keys)} keys; quadrature is for one or two (sample more with MCMC)")
     _check_span(span, n)
-    sigma = _sigma(objective, fit_result, noise)
+    sigma = noise_levels(objective, fit_result, noise)
     theta_hat = np.array([fit_result.theta[k] for k in keys], float)
     unc = getattr(fit_result, "uncertainty", None)
     se = _stderr(fit_result)

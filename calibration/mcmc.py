@@ -53,11 +53,11 @@ import jax.numpy as jnp
 import numpy as np
 
 from .bounds import log_jacobian, physical, unconstrained
-from .likelihood import _sigma
+from .likelihood import noise_levels
 from .observe import jacobian_by_columns
 from .uncertainty import NOISE_FLOOR
 
-__all__ = ["McmcPosterior", "nuts_posterior", "posterior_predictive"]
+__all__ = ["McmcPosterior", "log_density_fn", "nuts_posterior", "posterior_predictive", "whitened"]
 
 #: The fields ``_summary`` computes, in its order.
 _SUMMARY = ("mean", "sd", "ci95", "rhat", "ess_bulk", "ess_tail")
@@ -234,8 +234,11 @@ def _support(objective, theta):
     return params.mu2 >= params.mu1
 
 
-def _log_density_fn(objective, weights, z_hat, L, lower, upper):
-    """w -> log p(w) (up to a constant) with a forward-mode gradient; see the module docstring."""
+def log_density_fn(objective, weights, z_hat, L, lower, upper):
+    """``(log_density, theta_of)`` of the chains' coordinates w, θ = physical(ẑ + L w, lower,
+    upper): log p(w) = −χ²(θ)/2 + log |dθ/dz| up to a constant, χ² = Σ ``weights`` r², with a
+    forward-mode gradient (a ``jax.custom_vjp``); −∞ where the run fails or θ leaves the
+    support. See the module docstring."""
     dtype = z_hat.dtype
 
     def theta_of(w):
@@ -312,7 +315,7 @@ def nuts_posterior(objective, fit_result, *, chains: int | None = None, warmup: 
     if unc is None or unc.withheld:
         raise ValueError("fit_result: no Gauss-Newton covariance (not a fit of the data, or fitted without "
                          "uncertainty); the sampler needs one to precondition the chains")
-    sigma = _sigma(objective, fit_result, noise)
+    sigma = noise_levels(objective, fit_result, noise)
     if resume is not None:
         _check_resume(resume, keys, fit_result, sigma)
     clock = time.perf_counter()
@@ -329,7 +332,7 @@ def nuts_posterior(objective, fit_result, *, chains: int | None = None, warmup: 
     L = np.linalg.cholesky(cov_z)
     z_hat = unconstrained(theta_hat, lower_np, upper_np)
     as_dtype = lambda a: jnp.asarray(a, dtype)  # noqa: E731
-    log_density, theta_of = _log_density_fn(objective, as_dtype(_row_weights(objective, sigma)), as_dtype(z_hat),
+    log_density, theta_of = log_density_fn(objective, as_dtype(_row_weights(objective, sigma)), as_dtype(z_hat),
                                             as_dtype(L), as_dtype(lower_np), as_dtype(upper_np))
     k = len(keys)
     inverse_mass = jnp.ones(k, dtype)
@@ -366,7 +369,7 @@ def nuts_posterior(objective, fit_result, *, chains: int | None = None, warmup: 
         # chains go on in one process or in several (``McmcPosterior.take`` and ``join``)
         key = jax.random.fold_in(key, resume.draws.shape[1])
         keys_all = [jax.random.fold_in(key, i) for i in chain_ids]
-        lasts = _whitened(resume.draws[:, -1, :], z_hat, L, lower_np, upper_np)
+        lasts = whitened(resume.draws[:, -1, :], z_hat, L, lower_np, upper_np)
     n_warm = 0 if resume is not None else warmup
     out_draws, out_logp, sizes, divs, accs, steps_mean = [], [], [], [], [], []
     evaluations = 0
@@ -458,7 +461,7 @@ def _summary(keys, samples):
     return mean, sd, ci, rhat, ess_b, ess_t
 
 
-def _whitened(theta, z_hat, L, lower, upper):
+def whitened(theta, z_hat, L, lower, upper):
     """θ (n, k) -> w with θ = physical(ẑ + L w): the inverse of the chains' map."""
     return np.linalg.solve(L, (unconstrained(theta, lower, upper) - z_hat).T).T
 
