@@ -31,7 +31,6 @@ map the unconstrained variables through the bounds inside the traced run.
 from __future__ import annotations
 
 import dataclasses
-import functools
 import hashlib
 import json
 import math
@@ -817,6 +816,20 @@ class CompositeObjective:
         return Bounds(self.members[i].keys, tuple(self.bounds.lower[j] for j in idx),
                       tuple(self.bounds.upper[j] for j in idx))
 
+    def _joined(self, outs) -> tuple:
+        """The members' outputs, each ``(r, prediction)`` or ``(r, J, prediction)``, as the
+        composite's: the residuals concatenated, the Jacobians scattered into the composite's
+        columns (``_scatter``), the predictions as ``{"status": every member's bits OR-ed,
+        "members": [each member's]}``. numpy in, numpy out; anything else (traced) in jnp."""
+        xp = np if all(isinstance(o[0], np.ndarray) for o in outs) else jnp
+        preds = [o[-1] for o in outs]
+        status = xp.bitwise_or.reduce(xp.stack([xp.asarray(p["status"]) for p in preds]))
+        r = xp.concatenate([xp.asarray(o[0]) for o in outs])
+        pred = {"status": status, "members": preds}
+        if len(outs[0]) == 2:
+            return r, pred
+        return r, self._scatter([o[1] for o in outs]), pred
+
     def _scatter(self, jacobians):
         """The members' Jacobians (rows × their own keys) stacked as the composite's (rows ×
         keys), numpy in, numpy out."""
@@ -848,16 +861,12 @@ class CompositeObjective:
 
     def residuals_resampled(self, theta, seed: int):
         """The members' residuals at θ with every scene's particles drawn with ``seed``."""
-        outs = [m.residuals_resampled(self._member_theta(theta, i), seed) for i, m in enumerate(self.members)]
-        status = jnp.bitwise_or.reduce(jnp.stack([jnp.asarray(o[1]["status"]) for o in outs]))
-        return jnp.concatenate([jnp.asarray(o[0]) for o in outs]), {"status": status,
-                                                                     "members": [o[1] for o in outs]}
+        return self._joined([m.residuals_resampled(self._member_theta(theta, i), seed)
+                             for i, m in enumerate(self.members)])
 
     def residual_fn(self, theta):
         """Pure, unjitted θ -> (r, prediction), the members' concatenated: for ``jax.vmap``."""
-        outs = [m.residual_fn(self._member_theta(theta, i)) for i, m in enumerate(self.members)]
-        status = functools.reduce(jnp.bitwise_or, [o[1]["status"] for o in outs])
-        return jnp.concatenate([o[0] for o in outs]), {"status": status, "members": [o[1] for o in outs]}
+        return self._joined([m.residual_fn(self._member_theta(theta, i)) for i, m in enumerate(self.members)])
 
     def in_metres(self, r) -> dict[str, np.ndarray]:
         """The residuals in metres by block (``Objective.in_metres`` of each member)."""
@@ -867,18 +876,13 @@ class CompositeObjective:
                 for name, v in m.in_metres(r[offsets[i]:offsets[i + 1]]).items()}
 
     def residuals(self, theta):
-        outs = [m.residuals(self._member_theta(theta, i)) for i, m in enumerate(self.members)]
-        status = jnp.bitwise_or.reduce(jnp.stack([o[1]["status"] for o in outs]))
-        return jnp.concatenate([o[0] for o in outs]), {"status": status, "members": [o[1] for o in outs]}
+        return self._joined([m.residuals(self._member_theta(theta, i)) for i, m in enumerate(self.members)])
 
     def residuals_and_jacobian_z(self, z):
         """(r, dr/dz, prediction) at the unconstrained z of the composite's bounds (every member
         maps z with the composite's bounds, not its own)."""
-        outs = [m.residuals_and_jacobian_z(self._member_theta(z, i), self._member_bounds(i))
-                for i, m in enumerate(self.members)]
-        status = jnp.bitwise_or.reduce(jnp.stack([o[2]["status"] for o in outs]))
-        return (jnp.concatenate([o[0] for o in outs]), self._scatter([o[1] for o in outs]),
-                {"status": status, "members": [o[2] for o in outs]})
+        return self._joined([m.residuals_and_jacobian_z(self._member_theta(z, i), self._member_bounds(i))
+                             for i, m in enumerate(self.members)])
 
     def column_tasks_z(self, z) -> list[tuple]:
         """Every member's forward-mode passes at z (the composite's bounds), members in order."""
@@ -888,9 +892,7 @@ class CompositeObjective:
     def combine_columns_z(self, results) -> tuple:
         starts = np.cumsum([0] + [len(idx) for idx in self._index])
         outs = [Objective.combine_columns_z(results[a:b]) for a, b in zip(starts[:-1], starts[1:])]
-        status = np.bitwise_or.reduce(np.stack([np.asarray(o[2]["status"]) for o in outs]))
-        return (np.concatenate([o[0] for o in outs]), self._scatter([np.asarray(o[1]) for o in outs]),
-                {"status": status, "members": [o[2] for o in outs]})
+        return self._joined([(np.asarray(r), np.asarray(Jz), pred) for r, Jz, pred in outs])
 
     def residual_tasks(self, thetas, seeds=None) -> list[tuple]:
         return [task for i, m in enumerate(self.members)
@@ -898,18 +900,13 @@ class CompositeObjective:
 
     def combine_residuals(self, results, rows: int) -> list[tuple]:
         """Per row, the members' (r, prediction) of ``residual_tasks`` combined."""
-        out = []
-        for i in range(rows):
-            parts = [results[j * rows + i] for j in range(len(self.members))]
-            status = np.bitwise_or.reduce(np.stack([np.asarray(p[1]["status"]) for p in parts]))
-            out.append((np.concatenate([p[0] for p in parts]), {"status": status, "members": [p[1] for p in parts]}))
-        return out
+        members = range(len(self.members))
+        return [self._joined([(np.asarray(results[j * rows + i][0]), results[j * rows + i][1]) for j in members])
+                for i in range(rows)]
 
     def residuals_and_jacobian(self, theta):
-        outs = [m.residuals_and_jacobian(self._member_theta(theta, i)) for i, m in enumerate(self.members)]
-        status = jnp.bitwise_or.reduce(jnp.stack([o[2]["status"] for o in outs]))
-        return (jnp.concatenate([o[0] for o in outs]), self._scatter([o[1] for o in outs]),
-                {"status": status, "members": [o[2] for o in outs]})
+        return self._joined([m.residuals_and_jacobian(self._member_theta(theta, i))
+                             for i, m in enumerate(self.members)])
 
     def value_and_grad(self, theta):
         outs = [m.value_and_grad(self._member_theta(theta, i)) for i, m in enumerate(self.members)]
