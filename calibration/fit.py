@@ -145,11 +145,9 @@ def _evaluator(objective, rev: bool, workers=None) -> Callable[[np.ndarray], Eva
             r = J = Jz = None
             g = np.asarray(g)
         else:
-            if z_space:  # dr/dz from autodiff through the bounds transform; J = dr/dθ from it
-                r, Jz, pred = objective.residuals_and_jacobian_z(jnp.asarray(z))
-                r, Jz = np.asarray(r, float), np.asarray(Jz, float)
-                with np.errstate(divide="ignore", invalid="ignore", over="ignore"):  # dθ/dz = 0 at a bound
-                    J = Jz / dtheta_dz[None, :]
+            if z_space:  # dr/dz and dr/dθ from one autodiff trace through the bounds transform
+                r, Jz, J, pred = objective.residuals_and_jacobian_z(jnp.asarray(z))
+                r, Jz, J = np.asarray(r, float), np.asarray(Jz, float), np.asarray(J, float)
             else:  # central differences in θ
                 r, J, pred = objective.residuals_and_jacobian(theta)
                 r, J = np.asarray(r, float), np.asarray(J, float)
@@ -174,11 +172,9 @@ def _parallel_evaluator(objective, workers) -> Callable[[np.ndarray], Evaluation
     bounds = objective.bounds
 
     def evaluate(Z):
-        r, Jz, pred = jacobians_z(objective, Z, workers)
-        r, Jz = np.asarray(r, float), np.asarray(Jz, float)
-        dtheta_dz = np.stack([np.asarray(bounds.jacobian_diag(jnp.asarray(z)), float) for z in Z])
-        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):  # dθ/dz = 0 at a bound: J, |g| inf
-            J = Jz / dtheta_dz[:, None, :]
+        r, Jz, J, pred = jacobians_z(objective, Z, workers)
+        r, Jz, J = np.asarray(r, float), np.asarray(Jz, float), np.asarray(J, float)
+        with np.errstate(invalid="ignore", over="ignore"):  # dθ/dz = 0 at a bound: J, |g| inf
             g = np.einsum("kmn,km->kn", 2.0 * J, r)
         g_z = np.einsum("kmn,km->kn", 2.0 * Jz, r)
         return Evaluation(theta=np.asarray(bounds.to_physical(jnp.asarray(Z)), float), loss=np.sum(r * r, axis=1),

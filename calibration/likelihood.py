@@ -138,7 +138,7 @@ def _refit_others(objective, z, fixed: int, sigma, steps: int, lam0: float = 1e-
     free = [j for j in range(z.size) if j != fixed]
 
     def evaluate(z_):
-        r_, J_, p_ = objective.residuals_and_jacobian_z(z_)
+        r_, J_, _, p_ = objective.residuals_and_jacobian_z(z_)
         return np.asarray(r_, float), np.asarray(J_, float) * w[:, None], p_
 
     r, Jz, pred = evaluate(z)

@@ -52,8 +52,9 @@ __all__ = ["jacobian_by_columns", "Objective", "CompositeObjective", "ProfileTar
 
 def _column_task(config, observations, keys, z, tangent, lower, upper, state, base, data):
     """One forward-mode pass of an objective (``Objective.column_tasks_z``), in any process."""
-    r, dr, pred = model_functions(config, observations, keys).column_z(z, tangent, lower, upper, state, base, data)
-    return np.asarray(r), np.asarray(dr), jax.tree.map(np.asarray, pred)
+    r, dr_z, dr, pred = model_functions(config, observations, keys).column_z(z, tangent, lower, upper, state, base,
+                                                                              data)
+    return np.asarray(r), np.asarray(dr_z), np.asarray(dr), jax.tree.map(np.asarray, pred)
 
 
 def _residual_task(config, observations, keys, theta, state, base, data):
@@ -74,8 +75,8 @@ def _call(fn, args):
 
 
 def jacobians_z(objective, Z, workers) -> tuple:
-    """(r (k, m), dr/dz (k, m, n), predictions stacked over k) at the rows of ``Z`` (k, n):
-    every forward-mode pass of every row, spread over ``workers``."""
+    """(r (k, m), dr/dz (k, m, n), dr/dθ (k, m, n), predictions stacked over k) at the rows of
+    ``Z`` (k, n): every forward-mode pass of every row, spread over ``workers``."""
     Z = np.atleast_2d(np.asarray(Z))
     per_row = [objective.column_tasks_z(z) for z in Z]
     results = run_tasks(workers, [t for tasks in per_row for t in tasks])
@@ -83,8 +84,8 @@ def jacobians_z(objective, Z, workers) -> tuple:
     for tasks in per_row:
         rows.append(objective.combine_columns_z(results[start:start + len(tasks)]))
         start += len(tasks)
-    r, Jz, preds = zip(*rows)
-    return np.stack(r), np.stack(Jz), jax.tree.map(lambda *a: np.stack(a), *preds)
+    r, Jz, J, preds = zip(*rows)
+    return np.stack(r), np.stack(Jz), np.stack(J), jax.tree.map(lambda *a: np.stack(a), *preds)
 
 
 def residuals_at(objective, thetas, workers, seeds=None) -> list[tuple]:
@@ -531,12 +532,13 @@ class Objective:
         return self.at_dx(ratio * self.dx)
 
     def residuals_and_jacobian_z(self, z, bounds: Bounds | None = None):
-        """(r, dr/dz, prediction) at the unconstrained z of ``bounds`` (default: the
-        objective's), θ = lo + (hi − lo) sigmoid(z) inside the traced run (forward mode)."""
+        """(r, dr/dz, dr/dθ, prediction) at the unconstrained z of ``bounds`` (default: the
+        objective's), θ = ``bounds.to_physical(z)`` inside the traced run (forward mode): both
+        Jacobians from one trace (dr/dθ infinite where z saturates a bound, dθ/dz = 0)."""
         bounds = self.bounds if bounds is None else bounds
         lower, upper = (jnp.asarray(b, self.dtype) for b in (bounds.lower, bounds.upper))
-        Jz, (r, pred) = self.functions.jacobian_z(self.as_theta(z, "z"), lower, upper, *self.arguments())
-        return r, Jz, pred
+        Jz, J, (r, pred) = self.functions.jacobian_z(self.as_theta(z, "z"), lower, upper, *self.arguments())
+        return r, Jz, J, pred
 
     def column_tasks_z(self, z, bounds: Bounds | None = None) -> list[tuple]:
         """The forward-mode passes of dr/dz at z, one per key, as tasks ``(fn, args)`` for
@@ -550,9 +552,10 @@ class Objective:
 
     @staticmethod
     def combine_columns_z(results) -> tuple:
-        """(r, dr/dz, prediction) from the results of ``column_tasks_z`` (the residuals and the
-        prediction of the first pass: every pass computes the same primal)."""
-        return results[0][0], np.stack([col[1] for col in results], axis=-1), results[0][2]
+        """(r, dr/dz, dr/dθ, prediction) from the results of ``column_tasks_z`` (the residuals and
+        the prediction of the first pass: every pass computes the same primal)."""
+        return (results[0][0], np.stack([col[1] for col in results], axis=-1),
+                np.stack([col[2] for col in results], axis=-1), results[0][3])
 
     def residual_tasks(self, thetas, seeds=None) -> list[tuple]:
         """Runs at the rows of ``thetas`` (each with the scene's particles, or drawn with the
@@ -817,18 +820,16 @@ class CompositeObjective:
                       tuple(self.bounds.upper[j] for j in idx))
 
     def _joined(self, outs) -> tuple:
-        """The members' outputs, each ``(r, prediction)`` or ``(r, J, prediction)``, as the
-        composite's: the residuals concatenated, the Jacobians scattered into the composite's
-        columns (``_scatter``), the predictions as ``{"status": every member's bits OR-ed,
+        """The members' outputs, each ``(r, prediction)``, ``(r, J, prediction)`` or ``(r, J_z, J,
+        prediction)``, as the composite's: the residuals concatenated, the Jacobians scattered into
+        the composite's columns (``_scatter``), the predictions as ``{"status": every member's bits OR-ed,
         "members": [each member's]}``. numpy in, numpy out; anything else (traced) in jnp."""
         xp = np if all(isinstance(o[0], np.ndarray) for o in outs) else jnp
         preds = [o[-1] for o in outs]
         status = xp.bitwise_or.reduce(xp.stack([xp.asarray(p["status"]) for p in preds]))
         r = xp.concatenate([xp.asarray(o[0]) for o in outs])
         pred = {"status": status, "members": preds}
-        if len(outs[0]) == 2:
-            return r, pred
-        return r, self._scatter([o[1] for o in outs]), pred
+        return (r, *(self._scatter([o[j] for o in outs]) for j in range(1, len(outs[0]) - 1)), pred)
 
     def _scatter(self, jacobians):
         """The members' Jacobians (rows × their own keys) stacked as the composite's (rows ×
@@ -879,8 +880,8 @@ class CompositeObjective:
         return self._joined([m.residuals(self._member_theta(theta, i)) for i, m in enumerate(self.members)])
 
     def residuals_and_jacobian_z(self, z):
-        """(r, dr/dz, prediction) at the unconstrained z of the composite's bounds (every member
-        maps z with the composite's bounds, not its own)."""
+        """(r, dr/dz, dr/dθ, prediction) at the unconstrained z of the composite's bounds (every
+        member maps z with the composite's bounds, not its own)."""
         return self._joined([m.residuals_and_jacobian_z(self._member_theta(z, i), self._member_bounds(i))
                              for i, m in enumerate(self.members)])
 
@@ -892,7 +893,7 @@ class CompositeObjective:
     def combine_columns_z(self, results) -> tuple:
         starts = np.cumsum([0] + [len(idx) for idx in self._index])
         outs = [Objective.combine_columns_z(results[a:b]) for a, b in zip(starts[:-1], starts[1:])]
-        return self._joined([(np.asarray(r), np.asarray(Jz), pred) for r, Jz, pred in outs])
+        return self._joined([(np.asarray(r), np.asarray(Jz), np.asarray(J), pred) for r, Jz, J, pred in outs])
 
     def residual_tasks(self, thetas, seeds=None) -> list[tuple]:
         return [task for i, m in enumerate(self.members)

@@ -29,7 +29,7 @@ from jaxmpm import make_rollout
 from jaxmpm.config import Config
 from jaxmpm.observables import deposit_profile, front_from_profile, particle_volumes
 
-from .bounds import physical
+from .bounds import dphysical_dz, physical
 
 __all__ = ["ModelFunctions", "Observations", "jacobian_by_columns", "model_functions"]
 
@@ -162,12 +162,14 @@ class ModelFunctions(NamedTuple):
     - ``predict(theta, state, base)``: {"status", "h", "front"} (unjitted); ``predictions``: jit(predict);
     - ``residual(theta, state, base, data)``: (r, prediction) (unjitted, for vmap and grad);
     - ``residuals``: jit(residual); ``jacobian``: jit, (dr/dθ, (r, prediction));
-    - ``jacobian_z(z, lower, upper, state, base, data)``: jit, (dr/dz, (r, prediction));
+    - ``jacobian_z(z, lower, upper, state, base, data)``: jit, (dr/dz, dr/dθ, (r, prediction)),
+      both Jacobians from one trace (dr/dθ = dr/dz / dθ/dz, infinite where z saturates a bound);
     - ``value_and_grad``: jit, ((Σ r², prediction), dΣr²/dθ);
     - ``batched``: jit(vmap(residual)) over rows of θ; ``batched_jacobian_z``: over rows of z;
     - ``column_z(z, tangent, lower, upper, state, base, data)``: jit, (r, dr/dz · tangent,
-      prediction): one forward-mode pass, the unit of work that ``calibration.workers`` spreads
-      over processes (a Jacobian column, a start's column in a search)."""
+      dr/dθ · tangent, prediction) for a unit ``tangent`` (a key's column): one forward-mode
+      pass, the unit of work that ``calibration.workers`` spreads over processes (a Jacobian
+      column, a start's column in a search)."""
 
     config: Config
     predict: Callable
@@ -229,12 +231,13 @@ def _model_functions(config: Config, observations: Observations, keys: tuple[str
         return jacobian_by_columns(lambda t: residual(t, state, base, data), theta)
 
     def jac_z(z, lower, upper, state, base, data):
-        return jacobian_by_columns(lambda z_: residual_z(z_, lower, upper, state, base, data), z)
+        Jz, out = jacobian_by_columns(lambda z_: residual_z(z_, lower, upper, state, base, data), z)
+        return Jz, Jz / dphysical_dz(z, lower, upper)[None, :], out  # dθ/dz = 0 at a bound: J inf there
 
     def column_z(z, tangent, lower, upper, state, base, data):
         r, dr, pred = jax.jvp(lambda z_: residual_z(z_, lower, upper, state, base, data), (z,), (tangent,),
                               has_aux=True)
-        return r, dr, pred
+        return r, dr, dr / jnp.vdot(dphysical_dz(z, lower, upper), tangent), pred
 
     return ModelFunctions(
         config=config, predict=predict, predictions=jax.jit(predict), residual=residual, residuals=jax.jit(residual),

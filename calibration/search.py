@@ -210,15 +210,15 @@ def _batch_fn(objective):
         args = objective.arguments()
 
         def fn(Z):
-            Jz, (r, pred) = functions.batched_jacobian_z(Z, lower, upper, *args)
-            return r, Jz, pred
+            Jz, J, (r, pred) = functions.batched_jacobian_z(Z, lower, upper, *args)
+            return r, Jz, J, pred
 
         return fn
     bounds = objective.bounds
 
     def member(z):
         Jz, (r, pred) = jacobian_by_columns(lambda z_: residual_fn(bounds.to_physical(z_)), z)
-        return r, Jz, pred
+        return r, Jz, Jz / bounds.jacobian_diag(z)[None, :], pred
 
     fn = jax.jit(jax.vmap(member))
     _CACHE.clear()  # one objective at a time: compiled rollouts are large
@@ -291,17 +291,16 @@ def search(objective, starts: int | np.ndarray = DEFAULT_STARTS, *, seed: int = 
             padded = np.concatenate([Z, np.repeat(Z[:1], size - b, axis=0)]) if size > b else Z
             clock = time.perf_counter()
             if parallel:
-                r, Jz, pred = jacobians_z(objective, np.asarray(padded, dtype), workers)
+                r, Jz, J, pred = jacobians_z(objective, np.asarray(padded, dtype), workers)
             else:
-                r, Jz, pred = jax.tree.map(np.asarray, batch(jnp.asarray(padded, dtype)))
+                r, Jz, J, pred = jax.tree.map(np.asarray, batch(jnp.asarray(padded, dtype)))
             if size not in compiled_sizes:
                 compiled_sizes.add(size)
                 compile_s += time.perf_counter() - clock  # the first call of a shape: compile + one run
             evaluations += size
-            r, Jz, pred = np.array(r[:b], float), np.array(Jz[:b], float), jax.tree.map(lambda a: a[:b], pred)
-            with np.errstate(divide="ignore", invalid="ignore", over="ignore"):  # dθ/dz = 0 at a bound: J, |g| inf
-                J = np.stack([Jz_ / np.asarray(bounds.jacobian_diag(jnp.asarray(z)), float)[None, :]
-                              for z, Jz_ in zip(Z, Jz)])
+            r, Jz, J = (np.array(a[:b], float) for a in (r, Jz, J))
+            pred = jax.tree.map(lambda a: a[:b], pred)
+            with np.errstate(invalid="ignore", over="ignore"):  # dθ/dz = 0 at a bound: J, |g| inf
                 g = np.stack([2.0 * J_.T @ r_ for J_, r_ in zip(J, r)])
             return Evaluation(theta=np.asarray(bounds.to_physical(jnp.asarray(Z)), float), loss=np.sum(r * r, axis=1),
                               status=np.asarray(pred["status"], int).reshape(-1), grad=g, residuals=r, jacobian=J,
