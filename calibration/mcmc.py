@@ -55,6 +55,7 @@ import numpy as np
 from .bounds import dphysical_dz, log_jacobian, physical, unconstrained
 from .likelihood import noise_levels
 from .observe import jacobian_by_columns
+from .protocol import ObjectiveLike
 from .uncertainty import NOISE_FLOOR
 
 __all__ = ["ChainDraws", "McmcPosterior", "Sampler", "diagnose", "log_density_fn", "nuts_posterior", "nuts_sampler",
@@ -218,7 +219,7 @@ def _nulls(values: Mapping[str, float]) -> dict[str, float | None]:
     return {k: v if math.isfinite(v) else None for k, v in values.items()}
 
 
-def _row_weights(objective, sigma: Mapping[str, float]) -> np.ndarray:
+def _row_weights(objective: ObjectiveLike, sigma: Mapping[str, float]) -> np.ndarray:
     """W with χ² = Σ W r²: 1 / (row_scale σ_b)² on the rows of blocks with a noise level, else 0."""
     w = np.zeros(objective.n_residuals)
     for name, sl in objective.blocks.items():
@@ -227,15 +228,15 @@ def _row_weights(objective, sigma: Mapping[str, float]) -> np.ndarray:
     return w / np.asarray(objective.row_scale, float) ** 2
 
 
-def _support(objective, theta):
+def _support(objective: ObjectiveLike, theta):
     """False where θ (with the scene's other values) breaks μ2 ≥ μ1 (the bounds hold by construction)."""
     if "mu1" not in objective.keys and "mu2" not in objective.keys:
         return jnp.bool_(True)
-    params = getattr(objective, "members", [objective])[0].params_of(theta)
+    params = objective.members[0].params_of(theta)
     return params.mu2 >= params.mu1
 
 
-def log_density_fn(objective, weights, z_hat, L, lower, upper):
+def log_density_fn(objective: ObjectiveLike, weights, z_hat, L, lower, upper):
     """``(log_density, theta_of)`` of the chains' coordinates w, θ = physical(ẑ + L w, lower,
     upper): log p(w) = −χ²(θ)/2 + log |dθ/dz| up to a constant, χ² = Σ ``weights`` r², with a
     forward-mode gradient (a ``jax.custom_vjp``); −∞ where the run fails or θ leaves the
@@ -416,7 +417,7 @@ def diagnose(keys: tuple[str, ...], chains: list[ChainDraws], theta_of: Callable
                          np.asarray(unc.cov, float), segments, chain_ids)
 
 
-def nuts_posterior(objective, fit_result, *, chains: int | None = None, warmup: int | None = None,
+def nuts_posterior(objective: ObjectiveLike, fit_result, *, chains: int | None = None, warmup: int | None = None,
                    draws: int = 200, seed: int = 0, noise: Mapping[str, float] | float | None = None,
                    target_accept: float = 0.8, max_doublings: int = 6, spread: float = 1.0,
                    resume: McmcPosterior | None = None, progress: bool = False) -> McmcPosterior:

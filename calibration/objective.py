@@ -34,7 +34,7 @@ import dataclasses
 import hashlib
 import json
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
 import jax
@@ -44,7 +44,7 @@ import numpy as np
 from jaxmpm import PARAM_KEYS, validate_params
 
 from .bounds import Bounds
-from .observe import Observations, jacobian_by_columns, model_functions, unwhiten_front
+from .observe import BATCHES, Observations, content_key, jacobian_by_columns, model_functions, unwhiten_front
 
 __all__ = ["jacobian_by_columns", "Objective", "CompositeObjective", "ProfileTarget", "FrontTarget", "run_tasks",
            "jacobians_z", "residuals_at", "ResidualLayout", "ProfileBlock", "FrontBlock", "residual_layout"]
@@ -528,6 +528,30 @@ class Objective:
         """The bounds as arrays of the run's dtype, the ``lower, upper`` of ``functions.jacobian_z``."""
         return jnp.asarray(self.bounds.lower, self.dtype), jnp.asarray(self.bounds.upper, self.dtype)
 
+    @property
+    def members(self) -> tuple[Objective]:
+        """The single objectives this one is made of: itself (``calibration.protocol``)."""
+        return (self,)
+
+    @property
+    def sampling_seed(self) -> int | None:
+        """The seed of the scene's own particle draw; None where its sampling has no seed (a lattice)."""
+        return int(self.scene.info.seed) if self.seeded else None
+
+    def batched_jacobian_z(self) -> Callable:
+        """``Z (k, n) -> (r, dr/dz, dr/dθ, prediction)`` stacked over the rows of Z: the model
+        functions' ``batched_jacobian_z`` (compiled once per configuration, observations and
+        keys, ``calibration.observe.MODEL_FUNCTIONS``) at this objective's bounds and data."""
+        lower, upper = self.lower_upper()
+        args = self.arguments()
+        functions = self.functions
+
+        def batched(Z):
+            Jz, J, (r, pred) = functions.batched_jacobian_z(Z, lower, upper, *args)
+            return r, Jz, J, pred
+
+        return batched
+
     # ---- the public calls (jitted once per objective; new θ never recompiles) --------------
     def residual_fn(self, theta):
         """Pure, unjitted θ -> (r, prediction): for ``jax.vmap`` and sweeps."""
@@ -855,6 +879,8 @@ class CompositeObjective:
         self.blocks = {f"{self._prefix[i]}/{name}": slice(offsets[i] + s.start, offsets[i] + s.stop)
                        for i, m in enumerate(members) for name, s in m.blocks.items()}
         self.row_scale = np.concatenate([m.row_scale for m in members])
+        #: The composite's Jacobians are forward-mode autodiff through the members' runs.
+        self.jacobian = "ad"
 
     @classmethod
     def sharing(cls, members: Sequence[Objective], shared: Sequence[str], labels: Sequence[str]):
@@ -936,6 +962,24 @@ class CompositeObjective:
         """The members' residuals at θ with every scene's particles drawn with ``seed``."""
         return self._joined([m.residuals_resampled(self._member_theta(theta, i), seed)
                              for i, m in enumerate(self.members)])
+
+    @property
+    def sampling_seed(self) -> None:
+        """None: the members' particles are not one draw of one scene (``calibration.protocol``)."""
+        return None
+
+    def batched_jacobian_z(self) -> Callable:
+        """``Z (k, n) -> (r, dr/dz, dr/dθ, prediction)`` stacked over the rows of Z (the
+        composite's bounds): one jit(vmap(...)) of the members' concatenated runs, kept in
+        ``calibration.observe.BATCHES`` by the composite's content (``content_key``)."""
+        bounds = self.bounds
+
+        def member(z):
+            Jz, (r, pred) = jacobian_by_columns(lambda z_: self.residual_fn(bounds.to_physical(z_)), z)
+            return r, Jz, Jz / bounds.jacobian_diag(z)[None, :], pred
+
+        content = content_key(self)
+        return BATCHES.get(None if content is None else ("search", content), lambda: jax.jit(jax.vmap(member)))
 
     def residual_fn(self, theta):
         """Pure, unjitted θ -> (r, prediction), the members' concatenated: for ``jax.vmap``."""
