@@ -21,7 +21,7 @@ from helpers import strict_json
 from calibration import Bounds, fit, read_history
 from calibration.__main__ import main
 from calibration.data import load_profile
-from calibration.objective import Objective
+from calibration.objective import CompositeObjective, Objective
 from calibration.sweep import SweepResult, write_sweep
 from jaxmpm import LEFT_GRID, scenes
 
@@ -61,10 +61,10 @@ def no_work(monkeypatch):
         raise AssertionError("the model was evaluated: the input should have been refused before")
 
     for name in ("residuals", "residuals_and_jacobian", "residuals_and_jacobian_z", "value_and_grad", "predict",
-                 "residuals_resampled"):
+                 "residuals_resampled", "batched_jacobian_z"):
         monkeypatch.setattr(Objective, name, tripwire)
-    monkeypatch.setattr(SWEEP_MODULE, "_Evaluator", tripwire)
-    monkeypatch.setattr(SEARCH_MODULE, "_batch_fn", tripwire)
+    monkeypatch.setattr(CompositeObjective, "batched_jacobian_z", tripwire)
+    monkeypatch.setattr(SWEEP_MODULE, "compile_batch", tripwire)
 
 
 def listing(folder):
