@@ -415,7 +415,8 @@ def residual_layout(scene, profiles: Sequence[ProfileTarget], front: FrontTarget
 
 
 class Objective:
-    """Residuals of one scene against a profile and/or a front history.
+    """Residuals of one scene against a profile and/or a front history (a
+    ``calibration.protocol.ObjectiveLike``).
 
     Parameters
     ----------
@@ -835,7 +836,8 @@ def _shared_layout(members, shared: tuple[str, ...], labels) -> tuple[tuple[str,
 
 class CompositeObjective:
     """Several objectives fitted together (e.g. one scene per aspect ratio): the residuals are
-    concatenated, so the loss is the sum of the members' losses.
+    concatenated, so the loss is the sum of the members' losses (a
+    ``calibration.protocol.ObjectiveLike``).
 
     By default the members fit the same keys, one value each for all. ``shared`` (with
     ``labels``, one per member) lets keys differ by experiment: a key in ``shared`` is one value
