@@ -840,7 +840,7 @@ def build_parser() -> argparse.ArgumentParser:
     tw = sub.add_parser("twin", help="fit synthetic S4 data made with known parameters")
     _common(tw, data=False)
     _fit_options(tw, "beta,mu1,xi")
-    tw.add_argument("--quick", action="store_true", help="a coarse grid (dx = L/8): about a minute")
+    tw.add_argument("--quick", action="store_true", help="a coarse grid (dx = L/8): about three minutes")
     tw.add_argument("--noise", type=float, default=0.0, help="Gaussian noise, fraction of the peak height")
     tw.add_argument("--noise-seed", type=int, default=0, help="seed of the noise")
     tw.add_argument("--landscape", type=int, default=None, metavar="N",
