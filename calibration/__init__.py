@@ -1,8 +1,9 @@
 """calibration: fit the μ(I) rheology's β, μ1, μ2, I0 and ξ to collapse data with jaxmpm.
 
 The data flow: ``data`` (profiles and front histories, validated) -> ``objective`` (a scene's
-residuals against them; ``observe`` holds what the run observes, apart from the data, and
-compiles the pure functions once per way of observing) -> ``fit`` (Levenberg–Marquardt or optax Adam, with bounds and a
+residuals against them, an ``ObjectiveLike`` of ``protocol``, what every consumer calls;
+``observe`` holds what the run observes, apart from the data, and compiles the pure functions
+once per way of observing) -> ``fit`` (Levenberg–Marquardt or optax Adam, with bounds and a
 resumable history; its options are ``options.FitOptions`` and ``options.JudgeOptions``, its JSON
 ``report.fit_report``) -> ``uncertainty`` (Gauss–Newton covariance, identifiability, and the verdict
 whether a point is a fit of the data at all); ``search`` runs LM from many space-filling starts in
@@ -33,6 +34,7 @@ from .likelihood import GridPosterior, HeldOut, ProfileLikelihood, grid_posterio
 from .objective import CompositeObjective, FrontTarget, Objective, ProfileTarget
 from .observe import ModelFunctions, Observations, model_functions
 from .options import FitOptions, JudgeOptions, OptionError
+from .protocol import ObjectiveLike, ResidualModel
 from .report import fit_report
 from .search import Minimum, SearchResult, coarse_to_fine, design_starts, search
 from .uncertainty import (
@@ -54,4 +56,5 @@ __all__ = [
     "load_measurements",
     "coarse_to_fine", "load_profile", "model_functions", "load_scaling_law", "read_history", "search",
     "grid_shift", "structural_noise", "FitOptions", "JudgeOptions", "OptionError", "fit_report",
+    "ObjectiveLike", "ResidualModel",
 ]

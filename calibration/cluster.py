@@ -41,6 +41,7 @@ import numpy as np
 
 from jaxmpm import describe_status
 
+from .protocol import ResidualModel
 from .sweep import SweepResult, _check_thetas, _jsonable, member_losses, sweep, write_sweep
 
 __all__ = ["ClusterSweepResult", "cluster_sweep", "parse_cluster", "write_cluster_sweep"]
@@ -190,9 +191,9 @@ def _bar(total: int, show: bool):
     return tqdm(total=total, unit="member", desc="sweep", file=sys.stderr)
 
 
-def cluster_sweep(make_objective: Callable[[], Any], thetas, *, cluster="local:2", chunk: int | None = None,
+def cluster_sweep(make_objective: Callable[[], ResidualModel], thetas, *, cluster="local:2", chunk: int | None = None,
                   retries: int = 2, x64: bool | None = None, progress: bool = False,
-                  objective=None) -> ClusterSweepResult:
+                  objective: ResidualModel | None = None) -> ClusterSweepResult:
     """Evaluate the objective that ``make_objective()`` builds at every row of ``thetas`` as Dask
     tasks of ``chunk`` members each (default: about ``TASKS_PER_WORKER`` tasks per worker).
 
@@ -216,8 +217,7 @@ def cluster_sweep(make_objective: Callable[[], Any], thetas, *, cluster="local:2
 
     objective = make_objective() if objective is None else objective
     keys, thetas = _check_thetas(objective, thetas)
-    if hasattr(objective, "check_thetas"):
-        objective.check_thetas(thetas, "thetas")
+    objective.check_thetas(thetas, "thetas")
     x64 = x64_enabled() if x64 is None else bool(x64)
     dtype = np.float64 if x64 else np.float32
     n_members = thetas.shape[0]

@@ -51,6 +51,7 @@ from .lm import LMOptions, LMState, levenberg_marquardt
 from .loop import Evaluation, run, status_text
 from .objective import jacobians_z
 from .options import METHODS, FitOptions, JudgeOptions, split_fields
+from .protocol import ObjectiveLike
 from .uncertainty import Uncertainty, Verdict, judge_point
 from .workers import using
 
@@ -96,7 +97,7 @@ class FitResult:
         return out
 
 
-def start_theta(objective, init: Mapping[str, float] | None) -> tuple[np.ndarray, str]:
+def start_theta(objective: ObjectiveLike, init: Mapping[str, float] | None) -> tuple[np.ndarray, str]:
     """The start θ of a fit and a note saying where it differs from the scene's values.
 
     A key in ``init`` (the user's choice) must lie strictly inside its bounds (an error names
@@ -115,26 +116,23 @@ def start_theta(objective, init: Mapping[str, float] | None) -> tuple[np.ndarray
     try:
         bounds.check(theta, "init")  # only the user's values can fail here
     except ValueError as err:
-        notes = [note for note in getattr(objective, "bound_notes", ()) if any(
-            note.startswith(f"{k}'s") for k in init)]
+        notes = [note for note in objective.bound_notes if any(note.startswith(f"{k}'s") for k in init)]
         raise ValueError("; ".join([str(err)] + notes)) from None
-    check = getattr(objective, "check_thetas", None)
-    if check is not None:  # the engine's rules (mu2 >= mu1, ...) on the full parameter set
-        check(theta, "init")
+    objective.check_thetas(theta, "init")  # the engine's rules (mu2 >= mu1, ...) on the full parameter set
     note = "; ".join(f"{k}: the scene's value {old:g} lies on or next to its bound "
                      f"({bounds.lower[objective.keys.index(k)]:g}, {bounds.upper[objective.keys.index(k)]:g}), "
                      f"so the fit starts at {new:g}" for k, (old, new) in moved.items())
     return theta, note
 
 
-def _evaluator(objective, rev: bool, workers=None) -> Callable[[np.ndarray], Evaluation]:
+def _evaluator(objective: ObjectiveLike, rev: bool, workers=None) -> Callable[[np.ndarray], Evaluation]:
     """The model at the rows of z (k, n), one run each: residuals and their Jacobian from the
     objective (forward mode, or its differences), or with ``rev`` the reverse-mode gradient alone.
     With parallel ``workers`` (``calibration.workers``) the forward-mode passes, one per key and
     row, run in the worker processes."""
     bounds = objective.bounds
-    z_space = hasattr(objective, "residuals_and_jacobian_z") and getattr(objective, "jacobian", "ad") == "ad"
-    if z_space and not rev and workers is not None and workers.parallel and hasattr(objective, "column_tasks_z"):
+    z_space = objective.jacobian == "ad"  # else central differences in θ (``residuals_and_jacobian``)
+    if z_space and not rev and workers is not None and workers.parallel:
         return _parallel_evaluator(objective, workers)
 
     def one(z):
@@ -145,11 +143,9 @@ def _evaluator(objective, rev: bool, workers=None) -> Callable[[np.ndarray], Eva
             r = J = Jz = None
             g = np.asarray(g)
         else:
-            if z_space:  # dr/dz from autodiff through the bounds transform; J = dr/dθ from it
-                r, Jz, pred = objective.residuals_and_jacobian_z(jnp.asarray(z))
-                r, Jz = np.asarray(r, float), np.asarray(Jz, float)
-                with np.errstate(divide="ignore", invalid="ignore", over="ignore"):  # dθ/dz = 0 at a bound
-                    J = Jz / dtheta_dz[None, :]
+            if z_space:  # dr/dz and dr/dθ from one autodiff trace through the bounds transform
+                r, Jz, J, pred = objective.residuals_and_jacobian_z(jnp.asarray(z))
+                r, Jz, J = np.asarray(r, float), np.asarray(Jz, float), np.asarray(J, float)
             else:  # central differences in θ
                 r, J, pred = objective.residuals_and_jacobian(theta)
                 r, J = np.asarray(r, float), np.asarray(J, float)
@@ -169,16 +165,14 @@ def _evaluator(objective, rev: bool, workers=None) -> Callable[[np.ndarray], Eva
     return evaluate
 
 
-def _parallel_evaluator(objective, workers) -> Callable[[np.ndarray], Evaluation]:
+def _parallel_evaluator(objective: ObjectiveLike, workers) -> Callable[[np.ndarray], Evaluation]:
     """``_evaluator`` for forward-mode LM with the passes in ``workers``: the same Evaluation."""
     bounds = objective.bounds
 
     def evaluate(Z):
-        r, Jz, pred = jacobians_z(objective, Z, workers)
-        r, Jz = np.asarray(r, float), np.asarray(Jz, float)
-        dtheta_dz = np.stack([np.asarray(bounds.jacobian_diag(jnp.asarray(z)), float) for z in Z])
-        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):  # dθ/dz = 0 at a bound: J, |g| inf
-            J = Jz / dtheta_dz[:, None, :]
+        r, Jz, J, pred = jacobians_z(objective, Z, workers)
+        r, Jz, J = np.asarray(r, float), np.asarray(Jz, float), np.asarray(J, float)
+        with np.errstate(invalid="ignore", over="ignore"):  # dθ/dz = 0 at a bound: J, |g| inf
             g = np.einsum("kmn,km->kn", 2.0 * J, r)
         g_z = np.einsum("kmn,km->kn", 2.0 * Jz, r)
         return Evaluation(theta=np.asarray(bounds.to_physical(jnp.asarray(Z)), float), loss=np.sum(r * r, axis=1),
@@ -212,7 +206,7 @@ def _restore(optimiser, saved: Mapping[str, Any], history: History):
                           count=np.array([history.iterations]), **common)
 
 
-def fit(objective, init: Mapping[str, float] | None = None, *, options: FitOptions | None = None,
+def fit(objective: ObjectiveLike, init: Mapping[str, float] | None = None, *, options: FitOptions | None = None,
         judge: JudgeOptions | None = None, out=None, resume: bool = False, overwrite: bool = False,
         progress: bool = False, callback: Callable | None = None, meta: Mapping[str, Any] | None = None,
         workers=None, **fields) -> FitResult:
@@ -250,8 +244,8 @@ def fit(objective, init: Mapping[str, float] | None = None, *, options: FitOptio
     method, steps, grad_mode = options.method, options.steps, options.grad_mode
     path = check_out(out, resume=resume, overwrite=overwrite)
     bounds, keys = objective.bounds, objective.keys
-    fingerprint_of = getattr(objective, "fingerprint", None)
-    fingerprint = json.loads(json.dumps(fingerprint_of())) if fingerprint_of is not None else None
+    fingerprint = objective.fingerprint()
+    fingerprint = None if fingerprint is None else json.loads(json.dumps(fingerprint))
     header = None if path is None else {
         "keys": list(keys), "method": method, "options": options.to_json(), "judge": judge.to_json(),
         "objective": objective.describe(), "fingerprint": fingerprint, "meta": dict(meta or {})}

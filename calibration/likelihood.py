@@ -35,18 +35,21 @@ from typing import Any
 import jax.numpy as jnp
 import numpy as np
 
+from .protocol import ObjectiveLike
 from .sweep import sweep
 from .uncertainty import NOISE_FLOOR, chi2_of, chi2_quantile
 
-__all__ = ["GridPosterior", "HeldOut", "ProfileLikelihood", "grid_posterior", "predict_heldout",
+__all__ = ["GridPosterior", "HeldOut", "ProfileLikelihood", "grid_posterior", "noise_levels", "predict_heldout",
            "profile_likelihood"]
 
 #: Δχ² of a 95 % interval of one parameter (Wilks' theorem).
 DELTA_CHI2_95 = chi2_quantile(0.95, 1)
 
 
-def _sigma(objective, fit_result, noise) -> dict[str, float]:
-    """σ by block: the given ``noise`` (a float: every block), else the fit's."""
+def noise_levels(objective: ObjectiveLike, fit_result, noise) -> dict[str, float]:
+    """σ by block of ``objective``: the given ``noise`` (a float: every block; a mapping: by
+    block name), else the fit's (``fit_result.uncertainty.noise``). Raises ``ValueError`` when a
+    block has no level. The scale of every χ² here and in ``calibration.mcmc``."""
     if noise is not None:
         sigma = ({name: float(noise) for name in objective.blocks} if not isinstance(noise, Mapping)
                  else {k: float(v) for k, v in noise.items()})
@@ -119,7 +122,7 @@ class ProfileLikelihood:
                 "delta_chi2_95": DELTA_CHI2_95, "noise": self.noise, "wall_s": round(self.wall_s, 2)}
 
 
-def _chi2_weights(objective, sigma) -> np.ndarray:
+def _chi2_weights(objective: ObjectiveLike, sigma) -> np.ndarray:
     """Per residual 1 / (row_scale σ_b): Σ (w r)² is ``chi2_of``'s χ²."""
     w = 1.0 / np.asarray(objective.row_scale, float)
     for name, sl in objective.blocks.items():
@@ -127,7 +130,7 @@ def _chi2_weights(objective, sigma) -> np.ndarray:
     return w
 
 
-def _refit_others(objective, z, fixed: int, sigma, steps: int, lam0: float = 1e-3):
+def _refit_others(objective: ObjectiveLike, z, fixed: int, sigma, steps: int, lam0: float = 1e-3):
     """Damped Gauss–Newton on every z but ``fixed``, minimising χ² (the residuals weighted by
     each block's noise); returns (z, r, status). Steps capped at 2 in z (``calibration.lm.MAX_STEP``)."""
     from .lm import MAX_STEP
@@ -136,7 +139,7 @@ def _refit_others(objective, z, fixed: int, sigma, steps: int, lam0: float = 1e-
     free = [j for j in range(z.size) if j != fixed]
 
     def evaluate(z_):
-        r_, J_, p_ = objective.residuals_and_jacobian_z(z_)
+        r_, J_, _, p_ = objective.residuals_and_jacobian_z(z_)
         return np.asarray(r_, float), np.asarray(J_, float) * w[:, None], p_
 
     r, Jz, pred = evaluate(z)
@@ -166,7 +169,8 @@ def _refit_others(objective, z, fixed: int, sigma, steps: int, lam0: float = 1e-
     return z, r, int(np.asarray(pred["status"]))
 
 
-def profile_likelihood(objective, fit_result, key: str, *, span: float = 4.0, n: int = 13, steps: int = 8,
+def profile_likelihood(objective: ObjectiveLike, fit_result, key: str, *, span: float = 4.0, n: int = 13,
+                       steps: int = 8,
                        values: Sequence[float] | None = None,
                        noise: Mapping[str, float] | float | None = None) -> ProfileLikelihood:
     """The profile likelihood of ``key`` around ``fit_result``'s point: ``n`` values over
@@ -179,7 +183,7 @@ def profile_likelihood(objective, fit_result, key: str, *, span: float = 4.0, n:
     if key not in keys:
         raise ValueError(f"key: {key!r} is not a fitted key {keys}")
     _check_span(span, n)
-    sigma = _sigma(objective, fit_result, noise)
+    sigma = noise_levels(objective, fit_result, noise)
     j = keys.index(key)
     theta_hat = np.array([fit_result.theta[k] for k in keys], float)
     lo_b, hi_b = objective.bounds.lower[j], objective.bounds.upper[j]
@@ -294,7 +298,7 @@ def _weighted_quantile(x, w, q):
     return float(np.interp(q, cdf / cdf[-1] if cdf[-1] > 0 else cdf, x))
 
 
-def grid_posterior(objective, fit_result, *, span: float = 4.0, n: int = 21,
+def grid_posterior(objective: ObjectiveLike, fit_result, *, span: float = 4.0, n: int = 21,
                    ranges: Mapping[str, tuple[float, float]] | None = None,
                    noise: Mapping[str, float] | float | None = None, chunk: int | None = None) -> GridPosterior:
     """The posterior of one or two fitted keys by quadrature on an ``n``-point grid per key:
@@ -307,7 +311,7 @@ def grid_posterior(objective, fit_result, *, span: float = 4.0, n: int = 21,
     if len(keys) > 2:
         raise ValueError(f"grid_posterior: {len(keys)} keys; quadrature is for one or two (sample more with MCMC)")
     _check_span(span, n)
-    sigma = _sigma(objective, fit_result, noise)
+    sigma = noise_levels(objective, fit_result, noise)
     theta_hat = np.array([fit_result.theta[k] for k in keys], float)
     unc = getattr(fit_result, "uncertainty", None)
     se = _stderr(fit_result)
@@ -331,9 +335,7 @@ def grid_posterior(objective, fit_result, *, span: float = 4.0, n: int = 21,
                 raise ValueError(f"ranges[{k!r}]: ({a:g}, {b:g}) is empty inside the bounds")
         thetas = lo + (mesh + span) / (2 * span) * (hi - lo)
     inside = np.all((thetas > lower + margin) & (thetas < upper - margin), axis=1)
-    if hasattr(objective, "check_thetas"):  # the engine's rules (mu1 <= mu2 with both fitted): no support
-        ok = np.array([_valid_row(objective, t) for t in thetas])
-        inside &= ok
+    inside &= np.array([_valid_row(objective, t) for t in thetas])  # the engine's rules (mu1 <= mu2): no support
     chi2 = np.full(thetas.shape[0], np.nan)
     if np.any(inside):
         result = sweep(objective, thetas[inside], chunk=chunk)
@@ -357,7 +359,7 @@ def grid_posterior(objective, fit_result, *, span: float = 4.0, n: int = 21,
                          {k: float(v) for k, v in sigma.items()}, time.perf_counter() - clock)
 
 
-def _valid_row(objective, theta) -> bool:
+def _valid_row(objective: ObjectiveLike, theta) -> bool:
     try:
         objective.check_thetas(theta[None, :])
     except ValueError:

@@ -45,19 +45,21 @@ import dataclasses
 import math
 import sys
 import time
-from collections.abc import Mapping
-from typing import Any
+from collections.abc import Callable, Mapping
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .bounds import log_jacobian, physical, unconstrained
-from .likelihood import _sigma
+from .bounds import dphysical_dz, log_jacobian, physical, unconstrained
+from .likelihood import noise_levels
 from .observe import jacobian_by_columns
+from .protocol import ObjectiveLike
 from .uncertainty import NOISE_FLOOR
 
-__all__ = ["McmcPosterior", "nuts_posterior", "posterior_predictive"]
+__all__ = ["ChainDraws", "McmcPosterior", "Sampler", "diagnose", "log_density_fn", "nuts_posterior", "nuts_sampler",
+           "posterior_predictive", "sample_chain", "start_chain", "warm_up", "whitened"]
 
 #: The fields ``_summary`` computes, in its order.
 _SUMMARY = ("mean", "sd", "ci95", "rhat", "ess_bulk", "ess_tail")
@@ -217,7 +219,7 @@ def _nulls(values: Mapping[str, float]) -> dict[str, float | None]:
     return {k: v if math.isfinite(v) else None for k, v in values.items()}
 
 
-def _row_weights(objective, sigma: Mapping[str, float]) -> np.ndarray:
+def _row_weights(objective: ObjectiveLike, sigma: Mapping[str, float]) -> np.ndarray:
     """W with χ² = Σ W r²: 1 / (row_scale σ_b)² on the rows of blocks with a noise level, else 0."""
     w = np.zeros(objective.n_residuals)
     for name, sl in objective.blocks.items():
@@ -226,16 +228,19 @@ def _row_weights(objective, sigma: Mapping[str, float]) -> np.ndarray:
     return w / np.asarray(objective.row_scale, float) ** 2
 
 
-def _support(objective, theta):
+def _support(objective: ObjectiveLike, theta):
     """False where θ (with the scene's other values) breaks μ2 ≥ μ1 (the bounds hold by construction)."""
     if "mu1" not in objective.keys and "mu2" not in objective.keys:
         return jnp.bool_(True)
-    params = getattr(objective, "members", [objective])[0].params_of(theta)
+    params = objective.members[0].params_of(theta)
     return params.mu2 >= params.mu1
 
 
-def _log_density_fn(objective, weights, z_hat, L, lower, upper):
-    """w -> log p(w) (up to a constant) with a forward-mode gradient; see the module docstring."""
+def log_density_fn(objective: ObjectiveLike, weights, z_hat, L, lower, upper):
+    """``(log_density, theta_of)`` of the chains' coordinates w, θ = physical(ẑ + L w, lower,
+    upper): log p(w) = −χ²(θ)/2 + log |dθ/dz| up to a constant, χ² = Σ ``weights`` r², with a
+    forward-mode gradient (a ``jax.custom_vjp``); −∞ where the run fails or θ leaves the
+    support. See the module docstring."""
     dtype = z_hat.dtype
 
     def theta_of(w):
@@ -269,7 +274,150 @@ def _log_density_fn(objective, weights, z_hat, L, lower, upper):
     return log_density, theta_of
 
 
-def nuts_posterior(objective, fit_result, *, chains: int | None = None, warmup: int | None = None,
+class Sampler(NamedTuple):
+    """The jitted NUTS pieces of one target (blackjax's kernel at an identity mass matrix in the
+    whitened coordinates): ``init(w)`` a chain's state at w; ``step(state, key, step_size)`` one
+    draw, with (acceptance, divergent, leapfrog steps); ``warmup_step(state, da, key)`` one draw
+    at the adapting step size and the dual averaging's update; ``da_init(step_size)`` the dual
+    averaging's start; ``dtype`` the chains' precision."""
+
+    init: Callable
+    step: Callable
+    warmup_step: Callable
+    da_init: Callable
+    dtype: Any
+
+
+@dataclasses.dataclass(frozen=True)
+class ChainDraws:
+    """One chain's kept draws: ``w`` (n, k) in the whitened coordinates, their ``log_density``,
+    ``acceptance``, ``divergent`` flags and leapfrog ``steps`` per draw, and the ``step_size``
+    they were drawn with."""
+
+    w: np.ndarray
+    log_density: np.ndarray
+    acceptance: np.ndarray
+    divergent: np.ndarray
+    steps: np.ndarray
+    step_size: float
+
+
+def nuts_sampler(log_density: Callable, k: int, dtype, *, target_accept: float = 0.8,
+                 max_doublings: int = 6) -> Sampler:
+    """The ``Sampler`` of ``log_density`` (w of ``k`` entries -> log p) in precision ``dtype``:
+    NUTS with at most 2^``max_doublings`` leapfrog steps per draw, its step size adapted by dual
+    averaging towards acceptance ``target_accept``."""
+    blackjax = _blackjax()
+    inverse_mass = jnp.ones(k, dtype)
+    da_init, da_update, _ = blackjax.adaptation.step_size.dual_averaging_adaptation(target_accept)
+
+    # blackjax mixes the run's dtype with its own (momenta, energies): promote as numpy does, even
+    # where a caller traces under jax_numpy_dtype_promotion="strict".
+    promote = lambda: jax.numpy_dtype_promotion("standard")  # noqa: E731
+
+    @jax.jit
+    def step(state, rng, step_size):
+        with promote():
+            kernel = blackjax.nuts(log_density, step_size, inverse_mass, max_num_doublings=max_doublings)
+            state, info = kernel.step(rng, state)
+        return state, (info.acceptance_rate, info.is_divergent, info.num_integration_steps)
+
+    @jax.jit
+    def warmup_step(state, da, rng):  # one step at the adapting step size, then its update
+        state, info = step(state, rng, jnp.exp(da.log_step_size).astype(dtype))
+        with promote():
+            return state, da_update(da, info[0]), info
+
+    def init_fn(w):
+        with promote():
+            return blackjax.nuts(log_density, 1.0, inverse_mass).init(w)
+
+    return Sampler(jax.jit(init_fn), step, warmup_step, da_init, dtype)
+
+
+def start_chain(sampler: Sampler, rng: np.random.Generator, k: int, spread: float, chain: int = 0,
+                tries: int = 20) -> tuple[Any, int]:
+    """A chain's state at a dispersed start w ~ N(0, ``spread``² I) drawn from ``rng``, drawn
+    again (up to ``tries`` times) while its run fails or breaks the support; and the runs spent."""
+    for attempt in range(1, tries + 1):
+        state = sampler.init(jnp.asarray(spread * rng.standard_normal(k), sampler.dtype))
+        if np.isfinite(float(state.logdensity)):
+            return state, attempt
+    raise RuntimeError(f"nuts_posterior: chain {chain}: {tries} starts around the fit all failed or lay "
+                       "outside the prior's support")
+
+
+def warm_up(sampler: Sampler, state, keys, progress: Callable | None = None) -> tuple[Any, Any, int]:
+    """One chain's warm-up: a NUTS draw per random key of ``keys``, its step size adapted by dual
+    averaging (from 1, the scale of the Gauss–Newton posterior in the whitened coordinates).
+    Returns the chain's state after it, the adapted step size (the dual averaging's average) and
+    the leapfrog steps taken. ``progress(i, step_size)``, if given, is called after draw i."""
+    da = sampler.da_init(1.0)
+    evaluations = 0
+    for i, key in enumerate(keys):
+        state, da, (_, _, n) = sampler.warmup_step(state, da, key)
+        evaluations += int(n)
+        if progress is not None:
+            progress(i, jnp.exp(da.log_step_size))
+    return state, jnp.asarray(jnp.exp(da.log_step_size_avg), sampler.dtype), evaluations
+
+
+def sample_chain(sampler: Sampler, state, step_size, keys, progress: Callable | None = None) -> tuple[Any, ChainDraws]:
+    """One chain's kept draws: a NUTS draw per random key of ``keys`` at the fixed ``step_size``.
+    Returns the chain's last state and its ``ChainDraws``. ``progress(i, step_size)``, if given,
+    is called after draw i."""
+    kept, logp, acc, div, nsteps = [], [], [], [], []
+    for i, key in enumerate(keys):
+        state, (a, d, n) = sampler.step(state, key, step_size)
+        kept.append(np.asarray(state.position, float))
+        logp.append(float(state.logdensity))
+        acc.append(float(a))
+        div.append(bool(d))
+        nsteps.append(int(n))
+        if progress is not None:
+            progress(i, step_size)
+    return state, ChainDraws(np.stack(kept), np.array(logp), np.array(acc), np.array(div, bool),
+                             np.array(nsteps, int), float(step_size))
+
+
+def diagnose(keys: tuple[str, ...], chains: list[ChainDraws], theta_of: Callable, *, fit_result,
+             sigma: Mapping[str, float], warmup: int, seed: int, evaluations: int, wall_s: float,
+             chain_ids: tuple[int, ...], resume: McmcPosterior | None = None) -> McmcPosterior:
+    """The ``McmcPosterior`` of the kept draws of ``chains`` (mapped to θ by ``theta_of``): the
+    draws in θ and their summary and diagnostics (``_summary``), per chain the step size,
+    divergences, mean acceptance and mean leapfrog steps. With ``resume``, the new draws extend
+    its chains and every figure is that of the whole chains (per-draw means weighted by the
+    segments' lengths, counts summed)."""
+    unc = fit_result.uncertainty
+    dtype = jnp.result_type(float)
+    samples = np.stack([np.asarray(jax.vmap(theta_of)(jnp.asarray(c.w, dtype)), float) for c in chains])
+    log_dens = np.stack([c.log_density for c in chains])  # (chains, n, k), (chains, n)
+    draws = samples.shape[1]
+    sizes = [c.step_size for c in chains]
+    divs = [int(np.sum(c.divergent)) for c in chains]
+    accs = [float(np.mean(c.acceptance)) for c in chains]
+    steps_mean = [float(np.mean(c.steps)) for c in chains]
+    segments = ((int(seed), int(draws)),)
+    if resume is not None:  # the whole chains: per-draw means weighted by the segments' lengths
+        n0 = resume.draws.shape[1]
+        weigh = lambda old, new: tuple((n0 * a + draws * b) / (n0 + draws) for a, b in zip(old, new))  # noqa: E731
+        accs, steps_mean = weigh(resume.acceptance, accs), weigh(resume.steps, steps_mean)
+        divs = [a + b for a, b in zip(resume.divergences, divs)]
+        samples = np.concatenate([resume.draws, samples], axis=1)
+        log_dens = np.concatenate([resume.log_density, log_dens], axis=1)
+        evaluations += resume.gradient_evaluations
+        wall_s += resume.wall_s
+        segments = tuple(resume.segments) + segments
+    theta_hat = [fit_result.theta[k] for k in keys]
+    return McmcPosterior(keys, samples, log_dens, *_summary(keys, samples),
+                         dict(zip(keys, np.asarray(theta_hat, float).tolist())),
+                         dict(zip(keys, np.asarray(unc.stderr, float).tolist())),
+                         tuple(sizes), tuple(divs), tuple(accs), tuple(steps_mean), evaluations, warmup,
+                         {key: float(v) for key, v in sigma.items()}, int(segments[0][0]), wall_s,
+                         np.asarray(unc.cov, float), segments, chain_ids)
+
+
+def nuts_posterior(objective: ObjectiveLike, fit_result, *, chains: int | None = None, warmup: int | None = None,
                    draws: int = 200, seed: int = 0, noise: Mapping[str, float] | float | None = None,
                    target_accept: float = 0.8, max_doublings: int = 6, spread: float = 1.0,
                    resume: McmcPosterior | None = None, progress: bool = False) -> McmcPosterior:
@@ -284,8 +432,11 @@ def nuts_posterior(objective, fit_result, *, chains: int | None = None, warmup: 
     through ``McmcPosterior.from_json`` will do) whose chains go on for ``draws`` more each, from
     their last draws with their adapted step sizes and no new warm-up, on random keys that
     ``seed`` and the draws so far fold in. The result holds every draw, and its diagnostics are
-    those of the whole chains: a chain that has not converged is made longer, not restarted."""
-    blackjax = _blackjax()
+    those of the whole chains: a chain that has not converged is made longer, not restarted.
+
+    The parts: ``log_density_fn`` (the target), ``nuts_sampler`` (the kernels), per chain
+    ``start_chain``, ``warm_up`` and ``sample_chain``, and ``diagnose`` (the summary)."""
+    _blackjax()
     if resume is not None:
         if not isinstance(resume, McmcPosterior):
             raise ValueError(f"resume must be a McmcPosterior (McmcPosterior.from_json of a record), got "
@@ -312,7 +463,7 @@ def nuts_posterior(objective, fit_result, *, chains: int | None = None, warmup: 
     if unc is None or unc.withheld:
         raise ValueError("fit_result: no Gauss-Newton covariance (not a fit of the data, or fitted without "
                          "uncertainty); the sampler needs one to precondition the chains")
-    sigma = _sigma(objective, fit_result, noise)
+    sigma = noise_levels(objective, fit_result, noise)
     if resume is not None:
         _check_resume(resume, keys, fit_result, sigma)
     clock = time.perf_counter()
@@ -321,42 +472,16 @@ def nuts_posterior(objective, fit_result, *, chains: int | None = None, warmup: 
     dtype = jnp.result_type(float)
     lower_np, upper_np = np.asarray(objective.bounds.lower, float), np.asarray(objective.bounds.upper, float)
     theta_hat = np.array([fit_result.theta[k] for k in keys], float)
-    s = (theta_hat - lower_np) / (upper_np - lower_np)
-    if np.any((s <= 0) | (s >= 1)):
+    if np.any((theta_hat <= lower_np) | (theta_hat >= upper_np)):
         raise ValueError(f"fit_result: the point {dict(zip(keys, theta_hat))} is not strictly inside the bounds")
-    dtheta_dz = (upper_np - lower_np) * s * (1 - s)
-    cov_z = np.asarray(unc.cov, float) / np.outer(dtheta_dz, dtheta_dz)
-    L = np.linalg.cholesky(cov_z)
     z_hat = unconstrained(theta_hat, lower_np, upper_np)
+    dtheta_dz = np.asarray(dphysical_dz(jnp.asarray(z_hat), jnp.asarray(lower_np), jnp.asarray(upper_np)), float)
+    L = np.linalg.cholesky(np.asarray(unc.cov, float) / np.outer(dtheta_dz, dtheta_dz))
     as_dtype = lambda a: jnp.asarray(a, dtype)  # noqa: E731
-    log_density, theta_of = _log_density_fn(objective, as_dtype(_row_weights(objective, sigma)), as_dtype(z_hat),
-                                            as_dtype(L), as_dtype(lower_np), as_dtype(upper_np))
+    log_density, theta_of = log_density_fn(objective, as_dtype(_row_weights(objective, sigma)), as_dtype(z_hat),
+                                           as_dtype(L), as_dtype(lower_np), as_dtype(upper_np))
     k = len(keys)
-    inverse_mass = jnp.ones(k, dtype)
-    da_init, da_update, _ = blackjax.adaptation.step_size.dual_averaging_adaptation(target_accept)
-
-    # blackjax mixes the run's dtype with its own (momenta, energies): promote as numpy does, even
-    # where a caller traces under jax_numpy_dtype_promotion="strict".
-    promote = lambda: jax.numpy_dtype_promotion("standard")  # noqa: E731
-
-    @jax.jit
-    def step(state, rng, step_size):
-        with promote():
-            kernel = blackjax.nuts(log_density, step_size, inverse_mass, max_num_doublings=max_doublings)
-            state, info = kernel.step(rng, state)
-        return state, (info.acceptance_rate, info.is_divergent, info.num_integration_steps)
-
-    @jax.jit
-    def warmup_step(state, da, rng):  # one step at the adapting step size, then its update
-        state, info = step(state, rng, jnp.exp(da.log_step_size).astype(dtype))
-        with promote():
-            return state, da_update(da, info[0]), info
-
-    def init_fn(w):
-        with promote():
-            return blackjax.nuts(log_density, 1.0, inverse_mass).init(w)
-
-    init = jax.jit(init_fn)
+    sampler = nuts_sampler(log_density, k, dtype, target_accept=target_accept, max_doublings=max_doublings)
     rng = np.random.default_rng(seed)
     key = jax.random.key(seed)
     chain_ids = tuple(range(chains)) if resume is None else resume.ids
@@ -366,73 +491,37 @@ def nuts_posterior(objective, fit_result, *, chains: int | None = None, warmup: 
         # chains go on in one process or in several (``McmcPosterior.take`` and ``join``)
         key = jax.random.fold_in(key, resume.draws.shape[1])
         keys_all = [jax.random.fold_in(key, i) for i in chain_ids]
-        lasts = _whitened(resume.draws[:, -1, :], z_hat, L, lower_np, upper_np)
+        lasts = whitened(resume.draws[:, -1, :], z_hat, L, lower_np, upper_np)
     n_warm = 0 if resume is not None else warmup
-    out_draws, out_logp, sizes, divs, accs, steps_mean = [], [], [], [], [], []
-    evaluations = 0
+    total = n_warm + draws
+    out, evaluations = [], 0
     for c in range(chains):
+
+        def report(i, size, offset=0, stage="sampling", c=c):
+            i += offset
+            if progress and (i + 1) % max(1, total // 10) == 0:
+                print(f"nuts: chain {c + 1}/{chains}, {stage} {i + 1}/{total}, step {float(size):.3g}, "
+                      f"{time.perf_counter() - clock:.0f} s", file=sys.stderr, flush=True)
+
+        chain_keys = jax.random.split(keys_all[c], total)
         if resume is not None:
-            state = init(as_dtype(lasts[c]))
+            state = sampler.init(as_dtype(lasts[c]))
             evaluations += 1
             if not np.isfinite(float(state.logdensity)):
                 raise RuntimeError(f"resume: chain {c}'s last draw has no finite log density here: "
                                    "not the objective it was drawn from")
-            size_final = as_dtype(resume.step_size[c])
+            step_size = as_dtype(resume.step_size[c])
         else:
-            for _ in range(20):  # a start whose run fails or breaks the support is drawn again
-                state = init(as_dtype(spread * rng.standard_normal(k)))
-                evaluations += 1
-                if np.isfinite(float(state.logdensity)):
-                    break
-            else:
-                raise RuntimeError(f"nuts_posterior: chain {c}: 20 starts around the fit all failed or lay "
-                                   "outside the prior's support")
-        da = da_init(1.0)
-        chain_keys = jax.random.split(keys_all[c], n_warm + draws)
-        kept, logp, acc, div, nsteps = [], [], [], [], []
-        for i in range(n_warm + draws):
-            if i < n_warm:
-                state, da, (a, d, n) = warmup_step(state, da, chain_keys[i])
-                if i == n_warm - 1:
-                    size_final = as_dtype(jnp.exp(da.log_step_size_avg))
-            else:
-                state, (a, d, n) = step(state, chain_keys[i], size_final)
-            evaluations += int(n)
-            if i >= n_warm:
-                kept.append(np.asarray(state.position, float))
-                logp.append(float(state.logdensity))
-                acc.append(float(a))
-                div.append(bool(d))
-                nsteps.append(int(n))
-            if progress and (i + 1) % max(1, (n_warm + draws) // 10) == 0:
-                size = jnp.exp(da.log_step_size) if i < n_warm else size_final
-                print(f"nuts: chain {c + 1}/{chains}, {'warm-up' if i < n_warm else 'sampling'} "
-                      f"{i + 1}/{n_warm + draws}, step {float(size):.3g}, {time.perf_counter() - clock:.0f} s",
-                      file=sys.stderr, flush=True)
-        w = np.stack(kept)
-        out_draws.append(np.asarray(jax.vmap(theta_of)(as_dtype(w)), float))
-        out_logp.append(np.array(logp))
-        sizes.append(float(size_final))
-        divs.append(int(np.sum(div)))
-        accs.append(float(np.mean(acc)))
-        steps_mean.append(float(np.mean(nsteps)))
-    samples, log_dens = np.stack(out_draws), np.stack(out_logp)  # (chains, n, k), (chains, n)
-    wall, segments = time.perf_counter() - clock, ((int(seed), int(draws)),)
-    if resume is not None:  # the whole chains: per-draw means weighted by the segments' lengths
-        n0 = resume.draws.shape[1]
-        weigh = lambda old, new: tuple((n0 * a + draws * b) / (n0 + draws) for a, b in zip(old, new))  # noqa: E731
-        accs, steps_mean = weigh(resume.acceptance, accs), weigh(resume.steps, steps_mean)
-        divs = [a + b for a, b in zip(resume.divergences, divs)]
-        samples = np.concatenate([resume.draws, samples], axis=1)
-        log_dens = np.concatenate([resume.log_density, log_dens], axis=1)
-        evaluations += resume.gradient_evaluations
-        wall += resume.wall_s
-        segments = tuple(resume.segments) + segments
-    return McmcPosterior(keys, samples, log_dens, *_summary(keys, samples),
-                         dict(zip(keys, theta_hat.tolist())), dict(zip(keys, np.asarray(unc.stderr, float).tolist())),
-                         tuple(sizes), tuple(divs), tuple(accs), tuple(steps_mean), evaluations, warmup,
-                         {key: float(v) for key, v in sigma.items()}, int(segments[0][0]), wall,
-                         np.asarray(unc.cov, float), segments, chain_ids)
+            state, spent = start_chain(sampler, rng, k, spread, c)
+            state, step_size, warm_evaluations = warm_up(sampler, state, chain_keys[:n_warm],
+                                                         lambda i, size: report(i, size, 0, "warm-up"))
+            evaluations += spent + warm_evaluations
+        _, drawn = sample_chain(sampler, state, step_size, chain_keys[n_warm:],
+                                lambda i, size: report(i, size, n_warm))
+        evaluations += int(np.sum(drawn.steps))
+        out.append(drawn)
+    return diagnose(keys, out, theta_of, fit_result=fit_result, sigma=sigma, warmup=warmup, seed=seed,
+                    evaluations=evaluations, wall_s=time.perf_counter() - clock, chain_ids=chain_ids, resume=resume)
 
 
 def _summary(keys, samples):
@@ -458,7 +547,7 @@ def _summary(keys, samples):
     return mean, sd, ci, rhat, ess_b, ess_t
 
 
-def _whitened(theta, z_hat, L, lower, upper):
+def whitened(theta, z_hat, L, lower, upper):
     """θ (n, k) -> w with θ = physical(ẑ + L w): the inverse of the chains' map."""
     return np.linalg.solve(L, (unconstrained(theta, lower, upper) - z_hat).T).T
 

@@ -31,11 +31,10 @@ map the unconstrained variables through the bounds inside the traced run.
 from __future__ import annotations
 
 import dataclasses
-import functools
 import hashlib
 import json
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
 import jax
@@ -45,16 +44,17 @@ import numpy as np
 from jaxmpm import PARAM_KEYS, validate_params
 
 from .bounds import Bounds
-from .observe import Observations, jacobian_by_columns, model_functions, unwhiten_front
+from .observe import BATCHES, Observations, content_key, jacobian_by_columns, model_functions, unwhiten_front
 
 __all__ = ["jacobian_by_columns", "Objective", "CompositeObjective", "ProfileTarget", "FrontTarget", "run_tasks",
-           "jacobians_z", "residuals_at"]
+           "jacobians_z", "residuals_at", "ResidualLayout", "ProfileBlock", "FrontBlock", "residual_layout"]
 
 
 def _column_task(config, observations, keys, z, tangent, lower, upper, state, base, data):
     """One forward-mode pass of an objective (``Objective.column_tasks_z``), in any process."""
-    r, dr, pred = model_functions(config, observations, keys).column_z(z, tangent, lower, upper, state, base, data)
-    return np.asarray(r), np.asarray(dr), jax.tree.map(np.asarray, pred)
+    r, dr_z, dr, pred = model_functions(config, observations, keys).column_z(z, tangent, lower, upper, state, base,
+                                                                              data)
+    return np.asarray(r), np.asarray(dr_z), np.asarray(dr), jax.tree.map(np.asarray, pred)
 
 
 def _residual_task(config, observations, keys, theta, state, base, data):
@@ -75,8 +75,8 @@ def _call(fn, args):
 
 
 def jacobians_z(objective, Z, workers) -> tuple:
-    """(r (k, m), dr/dz (k, m, n), predictions stacked over k) at the rows of ``Z`` (k, n):
-    every forward-mode pass of every row, spread over ``workers``."""
+    """(r (k, m), dr/dz (k, m, n), dr/dθ (k, m, n), predictions stacked over k) at the rows of
+    ``Z`` (k, n): every forward-mode pass of every row, spread over ``workers``."""
     Z = np.atleast_2d(np.asarray(Z))
     per_row = [objective.column_tasks_z(z) for z in Z]
     results = run_tasks(workers, [t for tasks in per_row for t in tasks])
@@ -84,8 +84,8 @@ def jacobians_z(objective, Z, workers) -> tuple:
     for tasks in per_row:
         rows.append(objective.combine_columns_z(results[start:start + len(tasks)]))
         start += len(tasks)
-    r, Jz, preds = zip(*rows)
-    return np.stack(r), np.stack(Jz), jax.tree.map(lambda *a: np.stack(a), *preds)
+    r, Jz, J, preds = zip(*rows)
+    return np.stack(r), np.stack(Jz), np.stack(J), jax.tree.map(lambda *a: np.stack(a), *preds)
 
 
 def residuals_at(objective, thetas, workers, seeds=None) -> list[tuple]:
@@ -266,8 +266,157 @@ def _valid(values) -> bool:
     return True
 
 
+def _targets(profile, front) -> tuple[tuple[ProfileTarget, ...], FrontTarget | None]:
+    """The profiles (none, one or a list) and the front as ``ProfileTarget``s and a ``FrontTarget``."""
+    if not profile and front is None:
+        raise ValueError("give profile and/or front: there is nothing to fit")
+    if profile is None:
+        profiles = ()
+    elif isinstance(profile, (list, tuple)):
+        profiles = tuple(profile)
+    else:
+        profiles = (profile,)
+    profiles = tuple(p if isinstance(p, ProfileTarget) else ProfileTarget.of(p) for p in profiles)
+    return profiles, front if front is None or isinstance(front, FrontTarget) else FrontTarget.of(front)
+
+
+def _checked_weights(weights, weighting: str, profile: bool, front: bool) -> dict[str, float]:
+    """The blocks' weights (1 unless given), checked: finite, >= 0, and not 0 for a block that
+    has data; ``weighting`` one of ``WEIGHTINGS``."""
+    weights = {"profile": 1.0, "front": 1.0, **dict(weights or {})}
+    if set(weights) - {"profile", "front"}:
+        raise ValueError(f"weights: keys must be 'profile' and 'front', got {sorted(weights)}")
+    for name, w in weights.items():
+        if not (math.isfinite(w) and w >= 0):
+            raise ValueError(f"weights[{name!r}] must be finite and >= 0, got {w!r}")
+    if weighting not in WEIGHTINGS:
+        raise ValueError(f"weighting must be one of {WEIGHTINGS}, got {weighting!r}")
+    for name, there in (("profile", profile), ("front", front)):
+        if there and weights[name] == 0:
+            raise ValueError(f"weights[{name!r}] is 0: the {name} data would have no say in the fit (every "
+                             f"residual of theirs zero, their noise undefined); leave the {name} out instead")
+    return weights
+
+
+@dataclasses.dataclass(frozen=True)
+class ProfileBlock:
+    """One profile's rows: its block ``name``, the points ``x`` (m) and measured heights ``h``
+    (m), its ``scale`` (the peak height, m: a residual of 0.01 is 1 % of it) and its ``time``
+    (s, at the run's precision)."""
+
+    name: str
+    x: np.ndarray
+    h: np.ndarray
+    scale: float
+    time: float
+
+
+@dataclasses.dataclass(frozen=True)
+class FrontBlock:
+    """The front's rows: times ``t`` (s, at the run's precision), measured positions ``x_front``
+    (m) and the whitening factors ``phi`` of its correlated errors
+    (``FrontTarget.correlation_time``; zeros: independent)."""
+
+    t: np.ndarray
+    x_front: np.ndarray
+    phi: np.ndarray
+
+
+@dataclasses.dataclass(frozen=True)
+class ResidualLayout:
+    """Where each residual comes from: the ``profiles`` (in order), then the ``front`` (or None);
+    ``blocks`` maps each block's name to its rows, ``row_scale`` is every row's weight factor
+    sqrt(w / m) ("block" weighting) or sqrt(w) ("row"); ``front_scale`` (m, the column's
+    length) divides the front's rows. Built by ``residual_layout``."""
+
+    profiles: tuple[ProfileBlock, ...]
+    front: FrontBlock | None
+    blocks: Mapping[str, slice]
+    row_scale: np.ndarray
+    front_scale: float
+
+    @property
+    def n_residuals(self) -> int:
+        return int(self.row_scale.size)
+
+    def scales(self) -> np.ndarray:
+        """Every row's scale (m): its profile's peak height, or the front's length."""
+        return np.concatenate([np.full(p.x.size, p.scale) for p in self.profiles]
+                              + ([np.full(self.front.t.size, self.front_scale)] if self.front is not None else [])
+                              + [np.zeros(0)])
+
+    def data(self, dtype) -> dict[str, jax.Array]:
+        """The measured values and scales as the arrays ``calibration.observe``'s functions take
+        (``ModelFunctions``' ``data``), in ``dtype``."""
+        front = self.front
+        as_array = lambda a: jnp.asarray(a, dtype)  # noqa: E731
+        return {
+            "h": as_array(np.concatenate([p.h for p in self.profiles] + [np.zeros(0)])),
+            "h_scale": as_array(np.concatenate([np.full(p.x.size, p.scale) for p in self.profiles] + [np.zeros(0)])),
+            "front": as_array(front.x_front if front is not None else np.zeros(0)),
+            "front_scale": as_array(self.front_scale),
+            "front_phi": as_array(front.phi if front is not None else np.zeros(0)),
+            "row_scale": as_array(self.row_scale),
+        }
+
+
+def residual_layout(scene, profiles: Sequence[ProfileTarget], front: FrontTarget | None, *,
+                    weights: Mapping[str, float], weighting: str, dtype, check_data: bool = True) -> ResidualLayout:
+    """The ``ResidualLayout`` of ``profiles`` and ``front`` against runs of ``scene``: each
+    target's arrays checked (finite, matching lengths, times in (0, t_end], increasing front
+    times that stay distinct at the run's precision ``dtype``; with ``check_data`` plausible for
+    the scene, naming the target's source), its times rounded to the run's precision, and every
+    row's weight factor from ``weights`` and ``weighting``."""
+    config = scene.config
+    t_end = config.t_end
+    x_lo = float(config.grid.origin[0])
+    x_hi = x_lo + config.grid.cells[0] * config.grid.dx
+    blocks, scales, built = {}, [], []
+    m = 0
+    for i, prof in enumerate(profiles):
+        name = "profile" if len(profiles) == 1 else f"profile[{i}]"
+        xp = _check_array(f"{name}.x", prof.x)
+        hp = _check_array(f"{name}.h", prof.h, xp.size)
+        if hp.max() <= 0:
+            raise ValueError(f"{name}.h is zero everywhere: there is no deposit to fit")
+        if check_data:
+            _check_profile_plausible(prof.source or name, xp, hp, scene, x_lo, x_hi, dtype)
+        t_prof = t_end if prof.time_s is None else float(prof.time_s)
+        if not (0 < t_prof <= t_end * (1 + 1e-9)):
+            raise ValueError(f"{name}.time_s = {t_prof} must lie in (0, t_end = {t_end}]: "
+                             "raise the scene's t_end (--t-end)")
+        built.append(ProfileBlock(name, xp, hp, float(hp.max()), min(_at_run_precision(t_prof, dtype), t_end)))
+        blocks[name] = slice(m, m + xp.size)
+        scales.append(np.full(xp.size, math.sqrt(weights["profile"] / (xp.size if weighting == "block" else 1))))
+        m += xp.size
+    front_block = None
+    if front is not None:
+        tf = _check_array("front.t", front.t)
+        xf = _check_array("front.x_front", front.x_front, tf.size)
+        if np.any(tf <= 0) or np.any(tf > t_end * (1 + 1e-9)):
+            raise ValueError(f"front.t must lie in (0, t_end = {t_end}], got {tf.min()}..{tf.max()}")
+        if np.any(np.diff(tf) <= 0):
+            raise ValueError("front.t must be strictly increasing")
+        if check_data:
+            _check_front_plausible(front.source or "front", tf, xf, scene, x_lo, x_hi, dtype)
+        tf = np.minimum(_at_run_precision(tf, dtype), t_end)
+        if np.any(np.diff(tf) <= 0):
+            raise ValueError(f"front.t: two times coincide at the run's precision ({jnp.dtype(dtype).name}); "
+                             "space them further apart or run in float64")
+        tau = front.correlation_time
+        if tau is not None and not (isinstance(tau, (int, float, np.floating)) and math.isfinite(tau) and tau > 0):
+            raise ValueError(f"front.correlation_time must be None or a positive number of seconds, got {tau!r}")
+        phi = np.zeros(tf.size) if tau is None else np.concatenate([[0.0], np.exp(-np.diff(tf) / float(tau))])
+        front_block = FrontBlock(tf, xf, phi)
+        blocks["front"] = slice(m, m + tf.size)
+        scales.append(np.full(tf.size, math.sqrt(weights["front"] / (tf.size if weighting == "block" else 1))))
+        m += tf.size
+    return ResidualLayout(tuple(built), front_block, blocks, np.concatenate(scales), float(scene.info.length))
+
+
 class Objective:
-    """Residuals of one scene against a profile and/or a front history.
+    """Residuals of one scene against a profile and/or a front history (a
+    ``calibration.protocol.ObjectiveLike``).
 
     Parameters
     ----------
@@ -316,31 +465,9 @@ class Objective:
             raise ValueError(f"keys: unknown parameter(s) {bad}; valid keys are {list(PARAM_KEYS)}")
         self.bounds = Bounds.create(keys, bounds)
         self.keys = keys
-        if not profile and front is None:
-            raise ValueError("give profile and/or front: there is nothing to fit")
-        if profile is None:
-            profiles = ()
-        elif isinstance(profile, (list, tuple)):
-            profiles = tuple(profile)
-        else:
-            profiles = (profile,)
-        self.profiles = tuple(p if isinstance(p, ProfileTarget) else ProfileTarget.of(p) for p in profiles)
-        self.front = front if front is None or isinstance(front, FrontTarget) else FrontTarget.of(front)
-        weights = {"profile": 1.0, "front": 1.0, **dict(weights or {})}
-        if set(weights) - {"profile", "front"}:
-            raise ValueError(f"weights: keys must be 'profile' and 'front', got {sorted(weights)}")
-        for name, w in weights.items():
-            if not (math.isfinite(w) and w >= 0):
-                raise ValueError(f"weights[{name!r}] must be finite and >= 0, got {w!r}")
-        self.weights = weights
-        if weighting not in WEIGHTINGS:
-            raise ValueError(f"weighting must be one of {WEIGHTINGS}, got {weighting!r}")
+        self.profiles, self.front = _targets(profile, front)
+        self.weights = _checked_weights(weights, weighting, bool(self.profiles), self.front is not None)
         self.weighting = weighting
-        present = {"profile": bool(self.profiles), "front": self.front is not None}
-        for name, there in present.items():
-            if there and weights[name] == 0:
-                raise ValueError(f"weights[{name!r}] is 0: the {name} data would have no say in the fit (every "
-                                 f"residual of theirs zero, their noise undefined); leave the {name} out instead")
 
         self.scene = scene
         self.bounds, self.bound_notes = _engine_bounds(self.bounds, scene.params)
@@ -363,74 +490,22 @@ class Objective:
         self.length = float(info.length)
         width = info.width if info.dim == 3 else None
 
-        blocks, scales = {}, []
-        m = 0
-        t_end = config.t_end
         self.dtype = jnp.result_type(scene.params.E)
-        x_lo = float(config.grid.origin[0])
-        x_hi = x_lo + config.grid.cells[0] * config.grid.dx
-        self._profiles = []  # (x, h, h_scale, time)
-        for i, prof in enumerate(self.profiles):
-            name = "profile" if len(self.profiles) == 1 else f"profile[{i}]"
-            xp = _check_array(f"{name}.x", prof.x)
-            hp = _check_array(f"{name}.h", prof.h, xp.size)
-            if hp.max() <= 0:
-                raise ValueError(f"{name}.h is zero everywhere: there is no deposit to fit")
-            if check_data:
-                _check_profile_plausible(getattr(prof, "source", None) or name, xp, hp, scene, x_lo, x_hi, self.dtype)
-            t_prof = t_end if prof.time_s is None else float(prof.time_s)
-            if not (0 < t_prof <= t_end * (1 + 1e-9)):
-                raise ValueError(f"{name}.time_s = {t_prof} must lie in (0, t_end = {t_end}]: "
-                                 "raise the scene's t_end (--t-end)")
-            t_prof = min(_at_run_precision(t_prof, self.dtype), t_end)
-            self._profiles.append((xp, hp, float(hp.max()), t_prof))
-            blocks[name] = slice(m, m + xp.size)
-            scales.append(np.full(xp.size, math.sqrt(weights["profile"] / (xp.size if weighting == "block" else 1))))
-            m += xp.size
-        if self.front is not None:
-            tf = _check_array("front.t", self.front.t)
-            xf = _check_array("front.x_front", self.front.x_front, tf.size)
-            if np.any(tf <= 0) or np.any(tf > t_end * (1 + 1e-9)):
-                raise ValueError(f"front.t must lie in (0, t_end = {t_end}], got {tf.min()}..{tf.max()}")
-            if np.any(np.diff(tf) <= 0):
-                raise ValueError("front.t must be strictly increasing")
-            if check_data:
-                _check_front_plausible(self.front.source or "front", tf, xf, scene, x_lo, x_hi, self.dtype)
-            tf = np.minimum(_at_run_precision(tf, self.dtype), t_end)
-            if np.any(np.diff(tf) <= 0):
-                raise ValueError(f"front.t: two times coincide at the run's precision ({jnp.dtype(self.dtype).name}); "
-                                 "space them further apart or run in float64")
-            self._t_front, self._xf_data = tf, xf
-            tau = self.front.correlation_time
-            if tau is not None and not (isinstance(tau, (int, float, np.floating)) and math.isfinite(tau) and tau > 0):
-                raise ValueError(f"front.correlation_time must be None or a positive number of seconds, got {tau!r}")
-            self._front_phi = (np.zeros(tf.size) if tau is None
-                               else np.concatenate([[0.0], np.exp(-np.diff(tf) / float(tau))]))
-            blocks["front"] = slice(m, m + tf.size)
-            scales.append(np.full(tf.size, math.sqrt(weights["front"] / (tf.size if weighting == "block" else 1))))
-            m += tf.size
-        self.blocks = blocks
-        self.row_scale = np.concatenate(scales)
-        self.n_residuals = m
-
+        self.layout = residual_layout(scene, self.profiles, self.front, weights=self.weights, weighting=weighting,
+                                      dtype=self.dtype, check_data=check_data)
+        self.blocks, self.row_scale = dict(self.layout.blocks), self.layout.row_scale
+        self.n_residuals = self.layout.n_residuals
+        front = self.layout.front
         # Uniform points for the front integral: from x_ref to the far edge of the grid.
         upper = config.grid.origin[0] + config.grid.cells[0] * config.grid.dx
         # Where and when the run is observed (no measured value), and what was measured.
         self.observations = Observations(
-            profile_x=tuple(p[0] for p in self._profiles), profile_times=tuple(p[3] for p in self._profiles),
-            front_times=self._t_front if self.front is not None else None,
+            profile_x=tuple(p.x for p in self.layout.profiles),
+            profile_times=tuple(p.time for p in self.layout.profiles),
+            front_times=None if front is None else front.t,
             front_points=np.arange(self.x_ref, upper, 0.5 * spacing), sigma=self.sigma,
             front_threshold=self.front_threshold, x_ref=self.x_ref, mirror=self.mirror, width=width)
-        h_data = [p[1] for p in self._profiles]
-        self.data = {
-            "h": jnp.asarray(np.concatenate(h_data) if h_data else np.zeros(0), self.dtype),
-            "h_scale": jnp.asarray(np.concatenate([np.full(p[0].size, p[2]) for p in self._profiles])
-                                   if h_data else np.zeros(0), self.dtype),
-            "front": jnp.asarray(self._xf_data if self.front is not None else np.zeros(0), self.dtype),
-            "front_scale": jnp.asarray(self.length, self.dtype),
-            "front_phi": jnp.asarray(self._front_phi if self.front is not None else np.zeros(0), self.dtype),
-            "row_scale": jnp.asarray(self.row_scale, self.dtype),
-        }
+        self.data = self.layout.data(self.dtype)
         self.times = self.observations.times  # the run's frame times
         self._model_key = (config, self.observations, self.keys)  # what a worker rebuilds the functions from
         self.functions = model_functions(*self._model_key)
@@ -453,6 +528,30 @@ class Objective:
     def lower_upper(self):
         """The bounds as arrays of the run's dtype, the ``lower, upper`` of ``functions.jacobian_z``."""
         return jnp.asarray(self.bounds.lower, self.dtype), jnp.asarray(self.bounds.upper, self.dtype)
+
+    @property
+    def members(self) -> tuple[Objective]:
+        """The single objectives this one is made of: itself (``calibration.protocol``)."""
+        return (self,)
+
+    @property
+    def sampling_seed(self) -> int | None:
+        """The seed of the scene's own particle draw; None where its sampling has no seed (a lattice)."""
+        return int(self.scene.info.seed) if self.seeded else None
+
+    def batched_jacobian_z(self) -> Callable:
+        """``Z (k, n) -> (r, dr/dz, dr/dθ, prediction)`` stacked over the rows of Z: the model
+        functions' ``batched_jacobian_z`` (compiled once per configuration, observations and
+        keys, ``calibration.observe.MODEL_FUNCTIONS``) at this objective's bounds and data."""
+        lower, upper = self.lower_upper()
+        args = self.arguments()
+        functions = self.functions
+
+        def batched(Z):
+            Jz, J, (r, pred) = functions.batched_jacobian_z(Z, lower, upper, *args)
+            return r, Jz, J, pred
+
+        return batched
 
     # ---- the public calls (jitted once per objective; new θ never recompiles) --------------
     def residual_fn(self, theta):
@@ -532,12 +631,13 @@ class Objective:
         return self.at_dx(ratio * self.dx)
 
     def residuals_and_jacobian_z(self, z, bounds: Bounds | None = None):
-        """(r, dr/dz, prediction) at the unconstrained z of ``bounds`` (default: the
-        objective's), θ = lo + (hi − lo) sigmoid(z) inside the traced run (forward mode)."""
+        """(r, dr/dz, dr/dθ, prediction) at the unconstrained z of ``bounds`` (default: the
+        objective's), θ = ``bounds.to_physical(z)`` inside the traced run (forward mode): both
+        Jacobians from one trace (dr/dθ infinite where z saturates a bound, dθ/dz = 0)."""
         bounds = self.bounds if bounds is None else bounds
         lower, upper = (jnp.asarray(b, self.dtype) for b in (bounds.lower, bounds.upper))
-        Jz, (r, pred) = self.functions.jacobian_z(self.as_theta(z, "z"), lower, upper, *self.arguments())
-        return r, Jz, pred
+        Jz, J, (r, pred) = self.functions.jacobian_z(self.as_theta(z, "z"), lower, upper, *self.arguments())
+        return r, Jz, J, pred
 
     def column_tasks_z(self, z, bounds: Bounds | None = None) -> list[tuple]:
         """The forward-mode passes of dr/dz at z, one per key, as tasks ``(fn, args)`` for
@@ -551,9 +651,10 @@ class Objective:
 
     @staticmethod
     def combine_columns_z(results) -> tuple:
-        """(r, dr/dz, prediction) from the results of ``column_tasks_z`` (the residuals and the
-        prediction of the first pass: every pass computes the same primal)."""
-        return results[0][0], np.stack([col[1] for col in results], axis=-1), results[0][2]
+        """(r, dr/dz, dr/dθ, prediction) from the results of ``column_tasks_z`` (the residuals and
+        the prediction of the first pass: every pass computes the same primal)."""
+        return (results[0][0], np.stack([col[1] for col in results], axis=-1),
+                np.stack([col[2] for col in results], axis=-1), results[0][3])
 
     def residual_tasks(self, thetas, seeds=None) -> list[tuple]:
         """Runs at the rows of ``thetas`` (each with the scene's particles, or drawn with the
@@ -595,12 +696,10 @@ class Objective:
         """The weighted residuals ``r`` back in metres (model − data), by block: profile heights
         and front positions."""
         e = np.asarray(r, float) / self.row_scale
-        if self.front is not None:  # the front's rows are whitened (FrontTarget.correlation_time): undo it
+        if self.layout.front is not None:  # the front's rows are whitened (FrontTarget.correlation_time): undo it
             e = e.copy()
-            e[self.blocks["front"]] = unwhiten_front(e[self.blocks["front"]], self._front_phi)
-        scale = np.concatenate([np.full(p[0].size, p[2]) for p in self._profiles]
-                               + ([np.full(self._t_front.size, self.length)] if self.front is not None else []))
-        metres = e * scale
+            e[self.blocks["front"]] = unwhiten_front(e[self.blocks["front"]], self.layout.front.phi)
+        metres = e * self.layout.scales()
         return {name: metres[sl] for name, sl in self.blocks.items()}
 
     def _fd_steps(self, theta):
@@ -673,9 +772,9 @@ class Objective:
         initial particles and the whole run configuration (hashed). Two objectives with equal
         fingerprints compute the same residuals; ``fit`` refuses to resume a history made for
         another one."""
-        data = [a for x, h, _, t in self._profiles for a in (x, h, [t])]
-        if self.front is not None:
-            data += [self._t_front, self._xf_data]
+        data = [a for p in self.layout.profiles for a in (p.x, p.h, [p.time])]
+        if self.layout.front is not None:
+            data += [self.layout.front.t, self.layout.front.x_front]
             if self.front.correlation_time is not None:  # (absent when None: older histories still match)
                 data += [[float(self.front.correlation_time)]]
         info = self.scene.info
@@ -700,8 +799,8 @@ class Objective:
     def describe(self) -> dict[str, Any]:
         """A JSON-able description (scene, data sizes, weights), for history files."""
         return {"scene": self.scene.name, "keys": list(self.keys), "times": list(self.times),
-                "n_profile": [int(p[0].size) for p in self._profiles],
-                "n_front": int(self._t_front.size) if self.front is not None else 0,
+                "n_profile": [int(p.x.size) for p in self.layout.profiles],
+                "n_front": int(self.layout.front.t.size) if self.layout.front is not None else 0,
                 "weights": self.weights, "weighting": self.weighting, "sigma": self.sigma,
                 "front_threshold": self.front_threshold,
                 "dx": self.config.grid.dx, "n_particles": int(self._state.x.shape[0]),
@@ -737,7 +836,8 @@ def _shared_layout(members, shared: tuple[str, ...], labels) -> tuple[tuple[str,
 
 class CompositeObjective:
     """Several objectives fitted together (e.g. one scene per aspect ratio): the residuals are
-    concatenated, so the loss is the sum of the members' losses.
+    concatenated, so the loss is the sum of the members' losses (a
+    ``calibration.protocol.ObjectiveLike``).
 
     By default the members fit the same keys, one value each for all. ``shared`` (with
     ``labels``, one per member) lets keys differ by experiment: a key in ``shared`` is one value
@@ -781,6 +881,8 @@ class CompositeObjective:
         self.blocks = {f"{self._prefix[i]}/{name}": slice(offsets[i] + s.start, offsets[i] + s.stop)
                        for i, m in enumerate(members) for name, s in m.blocks.items()}
         self.row_scale = np.concatenate([m.row_scale for m in members])
+        #: The composite's Jacobians are forward-mode autodiff through the members' runs.
+        self.jacobian = "ad"
 
     @classmethod
     def sharing(cls, members: Sequence[Objective], shared: Sequence[str], labels: Sequence[str]):
@@ -817,6 +919,18 @@ class CompositeObjective:
         return Bounds(self.members[i].keys, tuple(self.bounds.lower[j] for j in idx),
                       tuple(self.bounds.upper[j] for j in idx))
 
+    def _joined(self, outs) -> tuple:
+        """The members' outputs, each ``(r, prediction)``, ``(r, J, prediction)`` or ``(r, J_z, J,
+        prediction)``, as the composite's: the residuals concatenated, the Jacobians scattered into
+        the composite's columns (``_scatter``), the predictions as ``{"status": every member's bits OR-ed,
+        "members": [each member's]}``. numpy in, numpy out; anything else (traced) in jnp."""
+        xp = np if all(isinstance(o[0], np.ndarray) for o in outs) else jnp
+        preds = [o[-1] for o in outs]
+        status = xp.bitwise_or.reduce(xp.stack([xp.asarray(p["status"]) for p in preds]))
+        r = xp.concatenate([xp.asarray(o[0]) for o in outs])
+        pred = {"status": status, "members": preds}
+        return (r, *(self._scatter([o[j] for o in outs]) for j in range(1, len(outs[0]) - 1)), pred)
+
     def _scatter(self, jacobians):
         """The members' Jacobians (rows × their own keys) stacked as the composite's (rows ×
         keys), numpy in, numpy out."""
@@ -848,16 +962,30 @@ class CompositeObjective:
 
     def residuals_resampled(self, theta, seed: int):
         """The members' residuals at θ with every scene's particles drawn with ``seed``."""
-        outs = [m.residuals_resampled(self._member_theta(theta, i), seed) for i, m in enumerate(self.members)]
-        status = jnp.bitwise_or.reduce(jnp.stack([jnp.asarray(o[1]["status"]) for o in outs]))
-        return jnp.concatenate([jnp.asarray(o[0]) for o in outs]), {"status": status,
-                                                                     "members": [o[1] for o in outs]}
+        return self._joined([m.residuals_resampled(self._member_theta(theta, i), seed)
+                             for i, m in enumerate(self.members)])
+
+    @property
+    def sampling_seed(self) -> None:
+        """None: the members' particles are not one draw of one scene (``calibration.protocol``)."""
+        return None
+
+    def batched_jacobian_z(self) -> Callable:
+        """``Z (k, n) -> (r, dr/dz, dr/dθ, prediction)`` stacked over the rows of Z (the
+        composite's bounds): one jit(vmap(...)) of the members' concatenated runs, kept in
+        ``calibration.observe.BATCHES`` by the composite's content (``content_key``)."""
+        bounds = self.bounds
+
+        def member(z):
+            Jz, (r, pred) = jacobian_by_columns(lambda z_: self.residual_fn(bounds.to_physical(z_)), z)
+            return r, Jz, Jz / bounds.jacobian_diag(z)[None, :], pred
+
+        content = content_key(self)
+        return BATCHES.get(None if content is None else ("search", content), lambda: jax.jit(jax.vmap(member)))
 
     def residual_fn(self, theta):
         """Pure, unjitted θ -> (r, prediction), the members' concatenated: for ``jax.vmap``."""
-        outs = [m.residual_fn(self._member_theta(theta, i)) for i, m in enumerate(self.members)]
-        status = functools.reduce(jnp.bitwise_or, [o[1]["status"] for o in outs])
-        return jnp.concatenate([o[0] for o in outs]), {"status": status, "members": [o[1] for o in outs]}
+        return self._joined([m.residual_fn(self._member_theta(theta, i)) for i, m in enumerate(self.members)])
 
     def in_metres(self, r) -> dict[str, np.ndarray]:
         """The residuals in metres by block (``Objective.in_metres`` of each member)."""
@@ -867,18 +995,13 @@ class CompositeObjective:
                 for name, v in m.in_metres(r[offsets[i]:offsets[i + 1]]).items()}
 
     def residuals(self, theta):
-        outs = [m.residuals(self._member_theta(theta, i)) for i, m in enumerate(self.members)]
-        status = jnp.bitwise_or.reduce(jnp.stack([o[1]["status"] for o in outs]))
-        return jnp.concatenate([o[0] for o in outs]), {"status": status, "members": [o[1] for o in outs]}
+        return self._joined([m.residuals(self._member_theta(theta, i)) for i, m in enumerate(self.members)])
 
     def residuals_and_jacobian_z(self, z):
-        """(r, dr/dz, prediction) at the unconstrained z of the composite's bounds (every member
-        maps z with the composite's bounds, not its own)."""
-        outs = [m.residuals_and_jacobian_z(self._member_theta(z, i), self._member_bounds(i))
-                for i, m in enumerate(self.members)]
-        status = jnp.bitwise_or.reduce(jnp.stack([o[2]["status"] for o in outs]))
-        return (jnp.concatenate([o[0] for o in outs]), self._scatter([o[1] for o in outs]),
-                {"status": status, "members": [o[2] for o in outs]})
+        """(r, dr/dz, dr/dθ, prediction) at the unconstrained z of the composite's bounds (every
+        member maps z with the composite's bounds, not its own)."""
+        return self._joined([m.residuals_and_jacobian_z(self._member_theta(z, i), self._member_bounds(i))
+                             for i, m in enumerate(self.members)])
 
     def column_tasks_z(self, z) -> list[tuple]:
         """Every member's forward-mode passes at z (the composite's bounds), members in order."""
@@ -888,9 +1011,7 @@ class CompositeObjective:
     def combine_columns_z(self, results) -> tuple:
         starts = np.cumsum([0] + [len(idx) for idx in self._index])
         outs = [Objective.combine_columns_z(results[a:b]) for a, b in zip(starts[:-1], starts[1:])]
-        status = np.bitwise_or.reduce(np.stack([np.asarray(o[2]["status"]) for o in outs]))
-        return (np.concatenate([o[0] for o in outs]), self._scatter([np.asarray(o[1]) for o in outs]),
-                {"status": status, "members": [o[2] for o in outs]})
+        return self._joined([(np.asarray(r), np.asarray(Jz), np.asarray(J), pred) for r, Jz, J, pred in outs])
 
     def residual_tasks(self, thetas, seeds=None) -> list[tuple]:
         return [task for i, m in enumerate(self.members)
@@ -898,18 +1019,13 @@ class CompositeObjective:
 
     def combine_residuals(self, results, rows: int) -> list[tuple]:
         """Per row, the members' (r, prediction) of ``residual_tasks`` combined."""
-        out = []
-        for i in range(rows):
-            parts = [results[j * rows + i] for j in range(len(self.members))]
-            status = np.bitwise_or.reduce(np.stack([np.asarray(p[1]["status"]) for p in parts]))
-            out.append((np.concatenate([p[0] for p in parts]), {"status": status, "members": [p[1] for p in parts]}))
-        return out
+        members = range(len(self.members))
+        return [self._joined([(np.asarray(results[j * rows + i][0]), results[j * rows + i][1]) for j in members])
+                for i in range(rows)]
 
     def residuals_and_jacobian(self, theta):
-        outs = [m.residuals_and_jacobian(self._member_theta(theta, i)) for i, m in enumerate(self.members)]
-        status = jnp.bitwise_or.reduce(jnp.stack([o[2]["status"] for o in outs]))
-        return (jnp.concatenate([o[0] for o in outs]), self._scatter([o[1] for o in outs]),
-                {"status": status, "members": [o[2] for o in outs]})
+        return self._joined([m.residuals_and_jacobian(self._member_theta(theta, i))
+                             for i, m in enumerate(self.members)])
 
     def value_and_grad(self, theta):
         outs = [m.value_and_grad(self._member_theta(theta, i)) for i, m in enumerate(self.members)]

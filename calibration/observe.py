@@ -6,7 +6,11 @@ the back wall, the front's threshold and reference point). It holds no measured 
 
 ``model_functions(config, observations, keys)`` builds the pure functions a fit needs, jitted
 once per distinct (run configuration, observations, fitted keys) in the process: the data (what
-was measured, and the scales of the residuals) are arguments, not constants of the trace. A
+was measured, and the scales of the residuals) are arguments, not constants of the trace.
+This module owns every compile cache of the calibration, keyed by content, never by an
+object's identity: ``MODEL_FUNCTIONS`` (by configuration, observations and keys) and
+``BATCHES`` (the batched, sharded calls of ``calibration.sweep`` and ``calibration.search``, by
+an objective's fingerprint, ``content_key``, and the batch's shape, mode and devices). A
 twin's generator and its fit, the seeds of a coverage study or two objectives of the same
 experiment against different files share one compiled run. Functions of the unconstrained z
 take the bounds as arguments and map z -> θ inside the traced function, so autodiff supplies
@@ -15,11 +19,14 @@ the chain rule of the bounds transform.
 
 from __future__ import annotations
 
+import collections
 import dataclasses
 import functools
+import json
 import math
-from collections.abc import Callable
-from typing import NamedTuple
+import time
+from collections.abc import Callable, Hashable, Mapping
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -29,12 +36,63 @@ from jaxmpm import make_rollout
 from jaxmpm.config import Config
 from jaxmpm.observables import deposit_profile, front_from_profile, particle_volumes
 
-from .bounds import physical
+from .bounds import dphysical_dz, physical
 
-__all__ = ["ModelFunctions", "Observations", "jacobian_by_columns", "model_functions"]
+__all__ = ["BATCHES", "MODEL_FUNCTIONS", "MODES", "CompileCache", "CompiledBatch", "ModelFunctions", "Observations",
+           "compile_batch", "content_key", "jacobian_by_columns", "model_functions"]
 
 #: Compiled (configuration, observations, keys) kept at once; each holds a compiled rollout.
 CACHE_SIZE = 4
+#: Compiled batches (a sweep's chunk shape in a mode, a search's vmapped Jacobians) kept at once.
+BATCH_CACHE_SIZE = 16
+#: How a batch runs: one member per call, a vmapped chunk, or a vmapped chunk sharded over devices.
+MODES = ("loop", "vmap", "shard")
+
+
+class CompileCache:
+    """Compiled functions by a hashable content key, the least recently used dropped beyond
+    ``size`` (each entry may hold a compiled rollout: they are large). ``get(key, build)``
+    returns the entry of ``key``, built by ``build()`` on a miss; a key of None (a model with no
+    content description) builds every time and keeps nothing."""
+
+    def __init__(self, size: int):
+        self.size = int(size)
+        self._entries: collections.OrderedDict = collections.OrderedDict()
+
+    def get(self, key: Hashable | None, build: Callable[[], Any]) -> Any:
+        if key is None:
+            return build()
+        if key in self._entries:
+            self._entries.move_to_end(key)
+            return self._entries[key]
+        value = build()
+        self._entries[key] = value
+        while len(self._entries) > self.size:
+            self._entries.popitem(last=False)
+        return value
+
+    def __contains__(self, key) -> bool:
+        return key in self._entries
+
+    def __len__(self) -> int:
+        return len(self._entries)
+
+    def clear(self) -> None:
+        self._entries.clear()
+
+
+#: The ``ModelFunctions`` of each (configuration, observations, keys).
+MODEL_FUNCTIONS = CompileCache(CACHE_SIZE)
+#: The compiled batches of sweeps and searches, by ``content_key`` and the batch's description.
+BATCHES = CompileCache(BATCH_CACHE_SIZE)
+
+
+def content_key(model) -> str | None:
+    """The content key of a model (``calibration.protocol.ResidualModel``): its fingerprint as
+    canonical JSON (equal fingerprints: equal residuals, so one compilation serves both); None
+    where it gives none."""
+    fingerprint = model.fingerprint()
+    return None if fingerprint is None else json.dumps(fingerprint, sort_keys=True, default=str)
 
 
 def _frozen(a) -> np.ndarray:
@@ -162,12 +220,14 @@ class ModelFunctions(NamedTuple):
     - ``predict(theta, state, base)``: {"status", "h", "front"} (unjitted); ``predictions``: jit(predict);
     - ``residual(theta, state, base, data)``: (r, prediction) (unjitted, for vmap and grad);
     - ``residuals``: jit(residual); ``jacobian``: jit, (dr/dθ, (r, prediction));
-    - ``jacobian_z(z, lower, upper, state, base, data)``: jit, (dr/dz, (r, prediction));
+    - ``jacobian_z(z, lower, upper, state, base, data)``: jit, (dr/dz, dr/dθ, (r, prediction)),
+      both Jacobians from one trace (dr/dθ = dr/dz / dθ/dz, infinite where z saturates a bound);
     - ``value_and_grad``: jit, ((Σ r², prediction), dΣr²/dθ);
     - ``batched``: jit(vmap(residual)) over rows of θ; ``batched_jacobian_z``: over rows of z;
     - ``column_z(z, tangent, lower, upper, state, base, data)``: jit, (r, dr/dz · tangent,
-      prediction): one forward-mode pass, the unit of work that ``calibration.workers`` spreads
-      over processes (a Jacobian column, a start's column in a search)."""
+      dr/dθ · tangent, prediction) for a unit ``tangent`` (a key's column): one forward-mode
+      pass, the unit of work that ``calibration.workers`` spreads over processes (a Jacobian
+      column, a start's column in a search)."""
 
     config: Config
     predict: Callable
@@ -184,12 +244,12 @@ class ModelFunctions(NamedTuple):
 
 def model_functions(config: Config, observations: Observations, keys: tuple[str, ...]) -> ModelFunctions:
     """The ``ModelFunctions`` of ``keys`` observed by ``observations`` in runs of ``config``
-    (its frame times are replaced by the observation times), from a cache of ``CACHE_SIZE``."""
-    return _model_functions(config, observations, tuple(keys))
+    (its frame times are replaced by the observation times), from ``MODEL_FUNCTIONS``."""
+    keys = tuple(keys)
+    return MODEL_FUNCTIONS.get((config, observations, keys), lambda: _build_model_functions(config, observations, keys))
 
 
-@functools.lru_cache(maxsize=CACHE_SIZE)
-def _model_functions(config: Config, observations: Observations, keys: tuple[str, ...]) -> ModelFunctions:
+def _build_model_functions(config: Config, observations: Observations, keys: tuple[str, ...]) -> ModelFunctions:
     times = observations.times
     config = dataclasses.replace(config, frame_times=times, max_steps=config.max_steps + len(times))
     rollout = make_rollout(config, observations.observer())
@@ -229,12 +289,13 @@ def _model_functions(config: Config, observations: Observations, keys: tuple[str
         return jacobian_by_columns(lambda t: residual(t, state, base, data), theta)
 
     def jac_z(z, lower, upper, state, base, data):
-        return jacobian_by_columns(lambda z_: residual_z(z_, lower, upper, state, base, data), z)
+        Jz, out = jacobian_by_columns(lambda z_: residual_z(z_, lower, upper, state, base, data), z)
+        return Jz, Jz / dphysical_dz(z, lower, upper)[None, :], out  # dθ/dz = 0 at a bound: J inf there
 
     def column_z(z, tangent, lower, upper, state, base, data):
         r, dr, pred = jax.jvp(lambda z_: residual_z(z_, lower, upper, state, base, data), (z,), (tangent,),
                               has_aux=True)
-        return r, dr, pred
+        return r, dr, dr / jnp.vdot(dphysical_dz(z, lower, upper), tangent), pred
 
     return ModelFunctions(
         config=config, predict=predict, predictions=jax.jit(predict), residual=residual, residuals=jax.jit(residual),
@@ -243,3 +304,68 @@ def _model_functions(config: Config, observations: Observations, keys: tuple[str
         batched=jax.jit(jax.vmap(residual, in_axes=(0, None, None, None))),
         batched_jacobian_z=jax.jit(jax.vmap(jac_z, in_axes=(0, None, None, None, None, None))),
         column_z=jax.jit(column_z))
+
+
+class CompiledBatch(NamedTuple):
+    """A compiled call of a model's residuals on a batch of exactly ``chunk`` rows of θ (one row
+    in "loop" mode): ``compiled(thetas) -> (r, status, prediction)`` (``status`` 0 where the
+    prediction has none); ``sharding`` the rows' sharding in "shard" mode (else None);
+    ``compile_s`` the seconds its compilation took (0 when it came from ``BATCHES``)."""
+
+    mode: str
+    chunk: int
+    compiled: Any
+    sharding: Any
+    compile_s: float
+
+    def __call__(self, thetas: np.ndarray):
+        """Dispatch (asynchronously) one chunk of exactly ``chunk`` rows."""
+        if self.mode == "loop":
+            return self.compiled(thetas[0])
+        if self.sharding is not None:
+            return self.compiled(jax.device_put(thetas, self.sharding))
+        return self.compiled(thetas)
+
+
+def _member_fn(model):
+    def member(theta):
+        r, pred = model.residual_fn(theta)
+        status = pred.get("status") if isinstance(pred, Mapping) else None
+        status = jnp.zeros((), jnp.int32) if status is None else jnp.asarray(status)
+        return r, status, pred
+
+    return member
+
+
+def compile_batch(model, mode: str, chunk: int, n_keys: int, dtype, devices) -> CompiledBatch:
+    """``model.residual_fn`` compiled for a batch of ``chunk`` rows of ``n_keys`` values in
+    ``dtype``: in ``mode`` "loop" one row per call, "vmap" a vmapped chunk, "shard" a vmapped
+    chunk split over ``devices``. Kept in ``BATCHES`` by the model's ``content_key`` and the
+    batch's description, so a second sweep of equal content does not compile again."""
+    if mode not in MODES:
+        raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
+    content = content_key(model)
+    key = None if content is None else ("sweep", content, mode, int(chunk), int(n_keys), np.dtype(dtype).str,
+                                        tuple(d.id for d in devices))
+    built = []
+
+    def build():
+        from jax.sharding import Mesh, NamedSharding, PartitionSpec
+
+        member = _member_fn(model)
+        clock = time.perf_counter()
+        sharding = None
+        if mode == "loop":
+            compiled = jax.jit(member).lower(jax.ShapeDtypeStruct((n_keys,), dtype)).compile()
+        elif mode == "vmap":
+            compiled = jax.jit(jax.vmap(member)).lower(jax.ShapeDtypeStruct((chunk, n_keys), dtype)).compile()
+        else:
+            sharding = NamedSharding(Mesh(np.asarray(devices), ("members",)), PartitionSpec("members"))
+            arg = jax.ShapeDtypeStruct((chunk, n_keys), dtype, sharding=sharding)
+            fn = jax.jit(jax.vmap(member), in_shardings=sharding, out_shardings=sharding)
+            compiled = fn.lower(arg).compile()
+        built.append(time.perf_counter() - clock)
+        return CompiledBatch(mode, chunk, compiled, sharding, 0.0)
+
+    batch = BATCHES.get(key, build)
+    return batch._replace(compile_s=built[0]) if built else batch

@@ -10,6 +10,8 @@ import pathlib
 
 import numpy as np
 
+from .protocol import ObjectiveLike
+
 __all__ = ["fit_figures", "law_figures", "likelihood_figures", "plot_coverage", "plot_fit", "plot_heldout",
            "plot_history", "plot_landscape", "plot_loss_curve", "plot_nuts", "plot_posterior_predictive",
            "plot_profile_likelihoods", "plot_runout_law", "sweep_figures", "twin_landscape_figure"]
@@ -33,10 +35,11 @@ def _save(plt, fig, path, dpi: int) -> pathlib.Path:
     return path
 
 
-def plot_fit(objective, result, path, *, initial_prediction=None, truth_label: str = "data", title: str | None = None):
+def plot_fit(objective: ObjectiveLike, result, path, *, initial_prediction=None, truth_label: str = "data",
+             title: str | None = None):
     """Modelled against measured profiles (one panel per profile time) and the front history."""
     plt = _plt()
-    members = getattr(objective, "members", (objective,))
+    members = objective.members
     preds = result.prediction.get("members", [result.prediction]) if isinstance(result.prediction, dict) else [
         result.prediction]
     inits = None

@@ -8,10 +8,12 @@ from typing import Any
 
 import numpy as np
 
+from .protocol import ObjectiveLike
+
 __all__ = ["PosteriorChecks", "fit_report", "posterior_checks"]
 
 
-def fit_report(objective, result, search=None) -> dict[str, Any]:
+def fit_report(objective: ObjectiveLike, result, search=None) -> dict[str, Any]:
     """The JSON of a fit (``FitResult``) or of a search (``SearchResult``, whose best point is
     ``result``): the result's own fields, the residuals in metres (RMS of the profiles and of
     every block), the front residuals' correlation where a front history was fitted, the notes on

@@ -40,8 +40,9 @@ from .fit import FitResult, start_theta
 from .history import History
 from .lm import LMOptions, levenberg_marquardt
 from .loop import Evaluation, run
-from .objective import jacobian_by_columns, jacobians_z
+from .objective import jacobians_z
 from .options import FitOptions, JudgeOptions
+from .protocol import ObjectiveLike
 from .uncertainty import (
     GRID_DRAWS,
     ROUNDOFF_SAMPLES,
@@ -81,7 +82,7 @@ def _check_int(name: str, value, low: int) -> int:
     return int(value)
 
 
-def design_starts(objective, k: int, *, seed: int = 0, design: str = "sobol") -> np.ndarray:
+def design_starts(objective: ObjectiveLike, k: int, *, seed: int = 0, design: str = "sobol") -> np.ndarray:
     """``k`` physical starts (k, n) in the objective's bounds, ``DESIGN_MARGIN`` inside them,
     space-filling (scrambled Sobol or Latin hypercube, seeded), every one a valid parameter set
     of the engine (``objective.check_thetas``): invalid rows are skipped and more are drawn."""
@@ -92,7 +93,6 @@ def design_starts(objective, k: int, *, seed: int = 0, design: str = "sobol") ->
     qmc = _qmc()
     bounds = objective.bounds
     lo, hi = np.asarray(bounds.lower), np.asarray(bounds.upper)
-    check = getattr(objective, "check_thetas", None)
     draw = max(2, 1 << (4 * k - 1).bit_length())  # a power of two, >= 4k: room for invalid rows
     for _ in range(4):
         if design == "sobol":
@@ -103,8 +103,7 @@ def design_starts(objective, k: int, *, seed: int = 0, design: str = "sobol") ->
         valid = []
         for theta in thetas:
             try:
-                if check is not None:
-                    check(theta, "start")
+                objective.check_thetas(theta, "start")
             except ValueError:
                 continue
             valid.append(theta)
@@ -189,44 +188,7 @@ class SearchResult:
         return out
 
 
-_CACHE: dict = {}
-
-
-def _batch_fn(objective):
-    """jit(vmap(z -> (r, dr/dz, prediction))) for the objective: an ``Objective``'s own
-    (``functions.batched_jacobian_z``), any other's (a composite) built and cached on it."""
-    hit = _CACHE.get(id(objective))
-    if hit is not None and hit[0] is objective:
-        return hit[1]
-    residual_fn = getattr(objective, "residual_fn", None)
-    if residual_fn is None:
-        raise ValueError("search needs an objective with a pure residual_fn(theta) (Objective, CompositeObjective)")
-    if getattr(objective, "jacobian", "ad") != "ad":
-        raise ValueError("search uses forward-mode Jacobians: the objective's jacobian='fd' is not supported "
-                         "(a single-start fit is)")
-    functions = getattr(objective, "functions", None)
-    if functions is not None:  # an Objective: its compiled batch, shared with equal objectives
-        lower, upper = objective.lower_upper()
-        args = objective.arguments()
-
-        def fn(Z):
-            Jz, (r, pred) = functions.batched_jacobian_z(Z, lower, upper, *args)
-            return r, Jz, pred
-
-        return fn
-    bounds = objective.bounds
-
-    def member(z):
-        Jz, (r, pred) = jacobian_by_columns(lambda z_: residual_fn(bounds.to_physical(z_)), z)
-        return r, Jz, pred
-
-    fn = jax.jit(jax.vmap(member))
-    _CACHE.clear()  # one objective at a time: compiled rollouts are large
-    _CACHE[id(objective)] = (objective, fn)
-    return fn
-
-
-def search(objective, starts: int | np.ndarray = DEFAULT_STARTS, *, seed: int = 0, design: str = "sobol",
+def search(objective: ObjectiveLike, starts: int | np.ndarray = DEFAULT_STARTS, *, seed: int = 0, design: str = "sobol",
            init: Mapping[str, float] | None = None, steps: int = 30, xtol: float = 1e-6, ftol: float = 1e-7,
            stat_tol: float = 0.1, max_rejections: int = 6, cluster_tol: float = 0.01,
            noise: Mapping[str, float] | float | None = None, uncertainty: bool = True, shrink: bool = True,
@@ -267,16 +229,18 @@ def search(objective, starts: int | np.ndarray = DEFAULT_STARTS, *, seed: int = 
                 raise ValueError(f"starts must be an integer or an array (k, {len(keys)}), got shape {thetas.shape}")
             for i, theta in enumerate(thetas):
                 bounds.check(theta, f"starts[{i}]")
-            if getattr(objective, "check_thetas", None) is not None:
-                objective.check_thetas(thetas, "starts")
+            objective.check_thetas(thetas, "starts")
         if init:
             theta0, start_note = start_theta(objective, init)
             thetas = np.concatenate([theta0[None], thetas])
         k, n = thetas.shape
         lm_options = LMOptions(xtol=xtol, ftol=ftol, stat_tol=stat_tol, max_rejections=max_rejections)
         optimiser = levenberg_marquardt(lm_options)
-        parallel = workers.parallel and hasattr(objective, "column_tasks_z")
-        batch = None if parallel else _batch_fn(objective)
+        if objective.jacobian != "ad":
+            raise ValueError("search uses forward-mode Jacobians: the objective's jacobian='fd' is not supported "
+                             "(a single-start fit is)")
+        parallel = workers.parallel
+        batch = None if parallel else objective.batched_jacobian_z()
         dtype = objective.dtype
         compile_s = 0.0
         compiled_sizes: set[int] = set()
@@ -291,17 +255,16 @@ def search(objective, starts: int | np.ndarray = DEFAULT_STARTS, *, seed: int = 
             padded = np.concatenate([Z, np.repeat(Z[:1], size - b, axis=0)]) if size > b else Z
             clock = time.perf_counter()
             if parallel:
-                r, Jz, pred = jacobians_z(objective, np.asarray(padded, dtype), workers)
+                r, Jz, J, pred = jacobians_z(objective, np.asarray(padded, dtype), workers)
             else:
-                r, Jz, pred = jax.tree.map(np.asarray, batch(jnp.asarray(padded, dtype)))
+                r, Jz, J, pred = jax.tree.map(np.asarray, batch(jnp.asarray(padded, dtype)))
             if size not in compiled_sizes:
                 compiled_sizes.add(size)
                 compile_s += time.perf_counter() - clock  # the first call of a shape: compile + one run
             evaluations += size
-            r, Jz, pred = np.array(r[:b], float), np.array(Jz[:b], float), jax.tree.map(lambda a: a[:b], pred)
-            with np.errstate(divide="ignore", invalid="ignore", over="ignore"):  # dθ/dz = 0 at a bound: J, |g| inf
-                J = np.stack([Jz_ / np.asarray(bounds.jacobian_diag(jnp.asarray(z)), float)[None, :]
-                              for z, Jz_ in zip(Z, Jz)])
+            r, Jz, J = (np.array(a[:b], float) for a in (r, Jz, J))
+            pred = jax.tree.map(lambda a: a[:b], pred)
+            with np.errstate(invalid="ignore", over="ignore"):  # dθ/dz = 0 at a bound: J, |g| inf
                 g = np.stack([2.0 * J_.T @ r_ for J_, r_ in zip(J, r)])
             return Evaluation(theta=np.asarray(bounds.to_physical(jnp.asarray(Z)), float), loss=np.sum(r * r, axis=1),
                               status=np.asarray(pred["status"], int).reshape(-1), grad=g, residuals=r, jacobian=J,
@@ -375,7 +338,8 @@ def search(objective, starts: int | np.ndarray = DEFAULT_STARTS, *, seed: int = 
                             wall_s=wall, compile_s=compile_s, start_note=start_note)
 
 
-def coarse_to_fine(objective, coarse, starts: int | np.ndarray = DEFAULT_STARTS, *, refine: int = 2, seed: int = 0,
+def coarse_to_fine(objective: ObjectiveLike, coarse: ObjectiveLike, starts: int | np.ndarray = DEFAULT_STARTS, *,
+                   refine: int = 2, seed: int = 0,
                    design: str = "sobol", init: Mapping[str, float] | None = None,
                    coarse_options: Mapping[str, Any] | None = None, progress: bool = False, workers=None,
                    **options) -> SearchResult:
@@ -403,12 +367,9 @@ def coarse_to_fine(objective, coarse, starts: int | np.ndarray = DEFAULT_STARTS,
     with using(workers) as workers:  # one pool for both stages
         first = search(coarse, starts, seed=seed, design=design, init=init, uncertainty=False,
                        noise=options.get("noise"), progress=progress, workers=workers, **opts)
-        check = getattr(objective, "check_thetas", None)
-
         def valid(theta):  # an LM endpoint may break a rule of the engine's (μ1 > μ2): not a start
             try:
-                if check is not None:
-                    check(theta[None], "coarse minimum")
+                objective.check_thetas(theta[None], "coarse minimum")
             except ValueError:
                 return False
             return True

@@ -25,7 +25,6 @@ on the host (numpy, row by row) so that it adds no such difference of its own.
 
 from __future__ import annotations
 
-import collections
 import dataclasses
 import math
 import os
@@ -35,11 +34,12 @@ from collections.abc import Mapping, Sequence
 from typing import Any
 
 import jax
-import jax.numpy as jnp
 import numpy as np
-from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from jaxmpm import describe_status
+
+from .observe import compile_batch
+from .protocol import ResidualModel
 
 __all__ = ["SweepResult", "sweep", "grid_points", "latin_hypercube", "sweep_points", "write_sweep", "MODES",
            "DEFAULT_CHUNK"]
@@ -237,22 +237,6 @@ class SweepResult:
 
 
 # ---- evaluation -------------------------------------------------------------------------------
-#: Compiled executables by (objective, mode, chunk, dtype, devices), so a repeated sweep does not
-#: recompile; the least recently used go first. An entry keeps its objective alive.
-_CACHE: collections.OrderedDict = collections.OrderedDict()
-_CACHE_SIZE = 16
-
-
-def _member_fn(objective):
-    def member(theta):
-        r, pred = objective.residual_fn(theta)
-        status = pred.get("status") if isinstance(pred, Mapping) else None
-        status = jnp.zeros((), jnp.int32) if status is None else jnp.asarray(status)
-        return r, status, pred
-
-    return member
-
-
 def _default_budget(device) -> int:
     """A quarter of the device's memory limit if it reports one (GPUs), else of physical RAM."""
     try:
@@ -285,49 +269,6 @@ def _compiled_bytes(compiled) -> int | None:
         return None
 
 
-class _Evaluator:
-    """One compiled call for one chunk shape, in one mode."""
-
-    def __init__(self, objective, mode: str, chunk: int, n_keys: int, dtype, devices):
-        # Keyed by id (objectives need not be hashable); the entry holds the objective, so the
-        # id cannot be reused while the entry lives.
-        key = (id(objective), mode, chunk, n_keys, np.dtype(dtype).str, tuple(d.id for d in devices))
-        self.mode, self.chunk = mode, chunk
-        self.compile_s = 0.0
-        hit = _CACHE.get(key)
-        if hit is not None and hit[0] is objective:
-            _CACHE.move_to_end(key)
-            _, self.compiled, self.sharding = hit
-            return
-        member = _member_fn(objective)
-        clock = time.perf_counter()
-        self.sharding = None
-        if mode == "loop":
-            arg = jax.ShapeDtypeStruct((n_keys,), dtype)
-            self.compiled = jax.jit(member).lower(arg).compile()
-        elif mode == "vmap":
-            arg = jax.ShapeDtypeStruct((chunk, n_keys), dtype)
-            self.compiled = jax.jit(jax.vmap(member)).lower(arg).compile()
-        else:
-            mesh = Mesh(np.asarray(devices), ("members",))
-            self.sharding = NamedSharding(mesh, PartitionSpec("members"))
-            arg = jax.ShapeDtypeStruct((chunk, n_keys), dtype, sharding=self.sharding)
-            fn = jax.jit(jax.vmap(member), in_shardings=self.sharding, out_shardings=self.sharding)
-            self.compiled = fn.lower(arg).compile()
-        self.compile_s = time.perf_counter() - clock
-        _CACHE[key] = (objective, self.compiled, self.sharding)
-        while len(_CACHE) > _CACHE_SIZE:
-            _CACHE.popitem(last=False)
-
-    def __call__(self, thetas: np.ndarray):
-        """Dispatch (asynchronously) one chunk of exactly ``self.chunk`` rows."""
-        if self.mode == "loop":
-            return self.compiled(thetas[0])
-        if self.sharding is not None:
-            return self.compiled(jax.device_put(thetas, self.sharding))
-        return self.compiled(thetas)
-
-
 def _check_thetas(objective, thetas) -> tuple[tuple[str, ...], np.ndarray]:
     keys = tuple(objective.keys)
     if isinstance(thetas, tuple) and len(thetas) == 2 and not np.isscalar(thetas[0]) and \
@@ -356,14 +297,16 @@ def member_losses(residuals: np.ndarray, status: np.ndarray) -> tuple[np.ndarray
     return np.where(failed, np.nan, loss), np.flatnonzero(failed)
 
 
-def sweep(objective, thetas, *, chunk: int | None = None, mode: str = "auto",
+def sweep(objective: ResidualModel, thetas, *, chunk: int | None = None, mode: str = "auto",
           memory_budget_bytes: int | None = None, progress: bool = False, validate: bool = True) -> SweepResult:
     """Evaluate ``objective.residual_fn`` at every row of ``thetas``.
 
     Parameters
     ----------
-    objective: a ``calibration.Objective`` (anything with ``keys`` and a pure
-        ``residual_fn(theta) -> (r, prediction)``, prediction a dict that may hold ``status``).
+    objective: a ``calibration.Objective`` (any ``calibration.protocol.ResidualModel``: ``keys``,
+        ``dtype``, a pure ``residual_fn(theta) -> (r, prediction)``, prediction a dict that may
+        hold ``status``, ``check_thetas``, ``fingerprint`` and ``describe``). Its compiled
+        chunks are kept by content (``calibration.observe.compile_batch``).
     thetas: (B, n) physical values ordered as ``objective.keys``, or the ``(keys, thetas)`` pair
         that ``grid_points`` / ``latin_hypercube`` return (its columns are reordered to match).
     chunk: members per compiled call ("vmap", "shard"); in "shard" mode a multiple of the device
@@ -377,16 +320,16 @@ def sweep(objective, thetas, *, chunk: int | None = None, mode: str = "auto",
         engine's parameter rules, as ``python -m jaxmpm run --set`` applies them) and raise
         ``ValueError`` naming the invalid members: a member with β < 0 or μ2 < μ1 would run,
         get a finite loss and could be reported as the best. ``False`` runs them anyway (their
-        failures, if any, are reported as usual); objectives without ``check_thetas`` are not
-        checked.
+        failures, if any, are reported as usual).
     """
     if mode not in MODES:
         raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
-    if not (hasattr(objective, "residual_fn") and hasattr(objective, "keys")):
-        raise ValueError(f"objective must have keys and residual_fn (a calibration.Objective), "
-                         f"got {type(objective).__name__}")
+    if not isinstance(objective, ResidualModel):
+        raise ValueError("objective must be a calibration.protocol.ResidualModel (keys, dtype, residual_fn, "
+                         "check_thetas, fingerprint, describe; a calibration.Objective), got "
+                         f"{type(objective).__name__}")
     keys, thetas = _check_thetas(objective, thetas)
-    if validate and hasattr(objective, "check_thetas"):
+    if validate:
         objective.check_thetas(thetas, "thetas")
     if chunk is not None:
         chunk = _check_count("chunk", chunk)
@@ -399,30 +342,29 @@ def sweep(objective, thetas, *, chunk: int | None = None, mode: str = "auto",
     n_dev = len(devices) if mode == "shard" else 1
     if mode == "shard" and chunk is not None and chunk % n_dev:
         raise ValueError(f"chunk must be a multiple of the {n_dev} devices in shard mode, got {chunk}")
-    dtype = getattr(objective, "dtype", None)
-    dtype = jnp.zeros(()).dtype if dtype is None else np.dtype(dtype)
+    dtype = np.dtype(objective.dtype)
     n_members = thetas.shape[0]
     clock = time.perf_counter()
 
     # Chunk size: the whole (padded) batch, capped; shrunk to the memory budget if needed.
     whole = -(-n_members // n_dev) * n_dev
     if mode == "loop":
-        evaluator = _Evaluator(objective, mode, 1, len(keys), dtype, devices[:1])
+        evaluator = compile_batch(objective, mode, 1, len(keys), dtype, devices[:1])
     elif chunk is not None:
-        evaluator = _Evaluator(objective, mode, min(chunk, whole), len(keys), dtype, devices)
+        evaluator = compile_batch(objective, mode, min(chunk, whole), len(keys), dtype, devices)
     else:
         budget = memory_budget_bytes or _default_budget(devices[0])
         if mode == "shard" and devices[0].platform == "cpu":
             budget //= n_dev  # host "devices" share one RAM
-        evaluator = _Evaluator(objective, mode, min(DEFAULT_CHUNK * n_dev, whole), len(keys), dtype, devices)
+        evaluator = compile_batch(objective, mode, min(DEFAULT_CHUNK * n_dev, whole), len(keys), dtype, devices)
         need = _compiled_bytes(evaluator.compiled)
         if need is not None and need > budget and evaluator.chunk > n_dev:
             per_member = need / (evaluator.chunk // n_dev)
             fit = max(1, int(budget // per_member)) * n_dev
             if fit < evaluator.chunk:
                 spent = evaluator.compile_s
-                evaluator = _Evaluator(objective, mode, fit, len(keys), dtype, devices)
-                evaluator.compile_s += spent
+                evaluator = compile_batch(objective, mode, fit, len(keys), dtype, devices)
+                evaluator = evaluator._replace(compile_s=evaluator.compile_s + spent)
     size = evaluator.chunk
 
     # Run the chunks, dispatching the next before fetching the last (jax dispatch is async).
@@ -458,7 +400,7 @@ def sweep(objective, thetas, *, chunk: int | None = None, mode: str = "auto",
                        n_devices=n_dev, wall_s=time.perf_counter() - clock, compile_s=evaluator.compile_s)
 
 
-def write_sweep(path, result: SweepResult, objective=None, extra=None) -> None:
+def write_sweep(path, result: SweepResult, objective: ResidualModel | None = None, extra=None) -> None:
     """Write a sweep to the HDF5 file ``path``: attributes ``keys_json`` (and ``objective_json``,
     the objective's ``describe()``), datasets ``thetas``, ``loss``, ``status`` and ``residuals``;
     ``extra(f)``, if given, adds to the open file (the cluster sweep's task of each member).
@@ -471,7 +413,7 @@ def write_sweep(path, result: SweepResult, objective=None, extra=None) -> None:
 
     def write(f):
         f.attrs["keys_json"] = json.dumps(list(result.keys))
-        if objective is not None and hasattr(objective, "describe"):
+        if objective is not None:
             f.attrs["objective_json"] = json.dumps(objective.describe())
         f.create_dataset("thetas", data=np.asarray(result.thetas))
         f.create_dataset("loss", data=np.asarray(result.loss))

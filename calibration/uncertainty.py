@@ -75,6 +75,7 @@ from typing import Any
 import numpy as np
 
 from .objective import residuals_at
+from .protocol import ObjectiveLike
 
 __all__ = [
     "GRID_RATIO", "GridCheck", "GRID_DRAWS", "NOISE_FLOOR", "ROUNDOFF_SAMPLES", "ModelScatter", "Uncertainty",
@@ -215,10 +216,10 @@ def _scatter_of(S, J, blocks, row_scale, kind, step, clock) -> ModelScatter:
     return ModelScatter(len(S) - 1, float(step), noise, cov, time.perf_counter() - clock, kind)
 
 
-def _runs(objective, thetas, workers, seeds=None) -> list:
+def _runs(objective: ObjectiveLike, thetas, workers, seeds=None) -> list:
     """[(r, prediction)] at ``thetas`` (particles drawn with ``seeds``, if given): in ``workers``
     when they are parallel and the objective can make tasks, else one after the other here."""
-    if workers is not None and workers.parallel and hasattr(objective, "residual_tasks"):
+    if workers is not None and workers.parallel:
         return residuals_at(objective, thetas, workers, seeds)
     if seeds is None:
         return [objective.residuals(t) for t in thetas]
@@ -236,15 +237,16 @@ def _ran(runs) -> list[np.ndarray]:
     return kept
 
 
-def redrawn_residuals(objective, theta, seeds: int, workers=None) -> list[np.ndarray]:
+def redrawn_residuals(objective: ObjectiveLike, theta, seeds: int, workers=None) -> list[np.ndarray]:
     """The residuals at θ with the scene's body drawn with ``seeds`` seeds other than its own
     (``Objective.residuals_resampled``), those that ran cleanly (``_ran``)."""
-    own = objective.scene.info.seed
+    own = objective.sampling_seed
     draws = [s for s in range(seeds + 1) if s != own][:seeds]
     return _ran(_runs(objective, [theta] * len(draws), workers, draws))
 
 
-def coarse_residuals(objective, theta, ratio: float, draws: int, workers=None) -> tuple[Any, list[np.ndarray]]:
+def coarse_residuals(objective: ObjectiveLike, theta, ratio: float, draws: int,
+                     workers=None) -> tuple[Any, list[np.ndarray]]:
     """The objective rebuilt at ``ratio`` × its dx (``Objective.at_dx``) and its residuals at θ
     over ``draws`` particle draws (the scene's own only, for a sampling with no seed), those that
     ran cleanly (``_ran``)."""
@@ -254,8 +256,8 @@ def coarse_residuals(objective, theta, ratio: float, draws: int, workers=None) -
     return coarse, _ran(_runs(coarse, [np.asarray(theta, float)] * (draws if seeded else 1), workers, seeds))
 
 
-def model_scatter(objective, theta, r, J, *, samples: int = ROUNDOFF_SAMPLES, step: float = ROUNDOFF_STEP,
-                  seed: int = 0, workers=None) -> ModelScatter | None:
+def model_scatter(objective: ObjectiveLike, theta, r, J, *, samples: int = ROUNDOFF_SAMPLES,
+                  step: float = ROUNDOFF_STEP, seed: int = 0, workers=None) -> ModelScatter | None:
     """The run's round-off scatter at θ (residuals ``r``, Jacobian ``J`` there, the objective's
     weighted ones): ``samples`` runs at θ + d_k, d_k of relative size ``step`` in random
     directions (reflected to stay inside the bounds), give s_k = r(θ + d_k) − J d_k, which differ
@@ -287,7 +289,8 @@ def model_scatter(objective, theta, r, J, *, samples: int = ROUNDOFF_SAMPLES, st
     return _scatter_of(np.stack(kept), J, objective.blocks, objective.row_scale, "round-off", step, clock)
 
 
-def sampling_scatter(objective, theta, r, J, *, seeds: int = SAMPLING_SEEDS, workers=None) -> ModelScatter | None:
+def sampling_scatter(objective: ObjectiveLike, theta, r, J, *, seeds: int = SAMPLING_SEEDS,
+                     workers=None) -> ModelScatter | None:
     """The scatter that the particle sampling puts into the prediction at θ: the residuals with
     the scene's body drawn with ``seeds`` other seeds (``Objective.residuals_resampled``), beside
     its own ``r``. Their spread gives σ by block and, through J⁺, the covariance of θ that the
@@ -299,8 +302,7 @@ def sampling_scatter(objective, theta, r, J, *, seeds: int = SAMPLING_SEEDS, wor
     seeds = int(seeds)
     if seeds < 2:
         raise ValueError(f"seeds must be >= 2, got {seeds!r}")
-    scene = getattr(objective, "scene", None)
-    if scene is None or getattr(scene, "sampler", None) is None or not hasattr(objective, "residuals_resampled"):
+    if objective.sampling_seed is None:
         return None
     clock = time.perf_counter()
     kept = [np.asarray(r, float)] + redrawn_residuals(objective, theta, seeds, workers)
@@ -397,8 +399,8 @@ def check_grid_options(ratio, draws, levels: int = 1) -> None:
         raise OptionError("grid_levels", f"must be 1 or 2 (coarser grids), got {levels!r}")
 
 
-def grid_shift(objective, theta, J, *, ratio: float = GRID_RATIO, draws: int = GRID_DRAWS, levels: int = 1,
-               workers=None) -> GridCheck | None:
+def grid_shift(objective: ObjectiveLike, theta, J, *, ratio: float = GRID_RATIO, draws: int = GRID_DRAWS,
+               levels: int = 1, workers=None) -> GridCheck | None:
     """The grid term at the fit's θ (``J`` the objective's weighted Jacobian there): the
     objective rebuilt at ``ratio`` × its dx (``Objective.at_dx``), its residuals at θ averaged over
     ``draws`` particle draws (one, the scene's own, for a sampling with no seed), and the
@@ -408,8 +410,6 @@ def grid_shift(objective, theta, J, *, ratio: float = GRID_RATIO, draws: int = G
     (a scene with no recipe, data outside the coarser grid); returns None when no coarse run ran
     without status bits."""
     check_grid_options(ratio, draws, levels)
-    if not hasattr(objective, "coarsened"):
-        raise ValueError("this objective cannot be rebuilt at another dx")
     clock = time.perf_counter()
     dx = objective.dx
     coarse, kept = coarse_residuals(objective, theta, ratio, draws, workers)
@@ -740,7 +740,7 @@ def gauss_newton_uncertainty(
                        scatter.stderr if scatter is not None else None, sampling, grid, grid_note)
 
 
-def judge_point(objective, r, J, theta, *, converged: bool, message: str,
+def judge_point(objective: ObjectiveLike, r, J, theta, *, converged: bool, message: str,
                 noise: Mapping[str, float] | float | None = None, uncertainty: bool = True,
                 roundoff_samples: int = ROUNDOFF_SAMPLES, sampling_seeds: int = 0, reference_noise: float = 0.01,
                 threshold: float = 0.1, grid_ratio: float | None = None, grid_draws: int = GRID_DRAWS,
@@ -757,7 +757,7 @@ def judge_point(objective, r, J, theta, *, converged: bool, message: str,
     check_grid_options(grid_ratio, grid_draws, grid_levels)
     J = np.asarray(J, float)
     scatter = None
-    if roundoff_samples and np.all(np.isfinite(J)) and hasattr(objective, "residuals"):
+    if roundoff_samples and np.all(np.isfinite(J)):
         scatter = model_scatter(objective, theta, r, J, samples=roundoff_samples, workers=workers)
     verdict = assess_fit(r, objective.row_scale, objective.blocks, theta, converged=converged, message=message,
                          bounds=objective.bounds, noise=noise, J=J if scatter is not None else None,

@@ -27,6 +27,19 @@ class ToyObjective:
         time.sleep(self.delay)
         return np.zeros(theta.shape[:-1], np.int32)
 
+    @property
+    def dtype(self):
+        return jnp.zeros(()).dtype  # JAX's default float: float64 where the worker runs x64
+
+    def check_thetas(self, thetas, name="thetas"):
+        """Every row is a parameter set of the toy (a < 0 fails when it runs)."""
+
+    def fingerprint(self):
+        return None  # nothing cached: every sweep of the toy compiles its own call
+
+    def describe(self):
+        return {"toy": "theta - target", "delay": self.delay}
+
     def residual_fn(self, theta):
         shape = jax.ShapeDtypeStruct((), jnp.int32)
         zero = jax.pure_callback(self._wait, shape, theta, vmap_method="expand_dims")

@@ -295,7 +295,7 @@ def test_composite_with_keys_per_experiment_fits_and_spreads_columns(sharing):
     z = np.asarray(comp.bounds.to_unconstrained(np.array([0.9 * mu1, 0.22, 0.31])))
     with Workers(2) as workers:
         Jz_tasks = jacobians_z(comp, z[None], workers)[1][0]
-    _, Jz, _ = comp.residuals_and_jacobian_z(z)
+    _, Jz, _, _ = comp.residuals_and_jacobian_z(z)
     np.testing.assert_allclose(np.asarray(Jz_tasks), np.asarray(Jz), rtol=1e-10, atol=1e-14)
     result = fit(comp, {"beta@A": 0.2, "beta@B": 0.3, "mu1": mu1}, steps=20, uncertainty=False)
     np.testing.assert_allclose([result.theta["beta@A"], result.theta["beta@B"], result.theta["mu1"]],

@@ -106,7 +106,7 @@ def test_log_density_gradient_matches_finite_differences():
     """The forward-mode custom VJP of χ² (k Jacobian columns, not reverse mode) against central
     differences in float64, inside the bounds and near one (where the log-Jacobian is steep),
     on a nonlinear residual; a failed run gives −∞ and a finite gradient (χ²'s part zero), never NaN."""
-    from calibration.mcmc import _log_density_fn
+    from calibration.mcmc import log_density_fn
 
     class Curved(LinearObjective):
         def residual_fn(self, theta):
@@ -118,7 +118,7 @@ def test_log_density_gradient_matches_finite_differences():
     weights = jnp.asarray([4.0, 1.0, 9.0])
     z_hat = jnp.asarray([0.3, -0.2])
     L = jnp.asarray([[0.8, 0.0], [0.3, 0.5]])
-    log_density, _ = _log_density_fn(objective, weights, z_hat, L, jnp.zeros(2), jnp.ones(2))
+    log_density, _ = log_density_fn(objective, weights, z_hat, L, jnp.zeros(2), jnp.ones(2))
     grad = jax.jit(jax.grad(log_density))
     for w in ([0.1, -0.4], [2.5, -3.0], [-1.0, 1.5]):
         w = jnp.asarray(w)
@@ -145,7 +145,7 @@ def test_one_chain_prints_no_nan():
 
 def _record(objective, result, draws, step_size=1.0):
     """A stored posterior (``to_json`` form) whose chains end at ``draws`` (chains, n, k)."""
-    from calibration.likelihood import _sigma
+    from calibration.likelihood import noise_levels
     keys = objective.keys
     by_key = {key: 0.0 for key in keys}
     chains, n = draws.shape[:2]
@@ -156,7 +156,7 @@ def _record(objective, result, draws, step_size=1.0):
             "gauss_newton_cov": np.asarray(result.uncertainty.cov).tolist(),
             "step_size": [step_size] * chains, "divergences": [0] * chains, "acceptance": [0.9] * chains,
             "leapfrog_steps_per_draw": [3.0] * chains, "gradient_evaluations": 3 * chains * n,
-            "noise": _sigma(objective, result, None), "wall_s": 1.0,
+            "noise": noise_levels(objective, result, None), "wall_s": 1.0,
             "draws": {key: draws[..., j].tolist() for j, key in enumerate(keys)}, "log_density": None}
 
 
@@ -230,9 +230,9 @@ def test_resume_refuses_another_fit_before_sampling():
 
 
 def test_whitening_round_trips():
-    """``_whitened`` inverts the chains' map θ = physical(ẑ + L w), near the bounds too."""
+    """``whitened`` inverts the chains' map θ = physical(ẑ + L w), near the bounds too."""
     from calibration.bounds import physical as to_physical
-    from calibration.mcmc import _whitened
+    from calibration.mcmc import whitened
 
     rng = np.random.default_rng(0)
     lower, upper = np.array([0.0, 0.1]), np.array([1.0, 0.9])
@@ -240,4 +240,4 @@ def test_whitening_round_trips():
     w = rng.standard_normal((50, 2)) * 3
     theta = np.asarray(jax.vmap(lambda v: to_physical(jnp.asarray(z_hat) + jnp.asarray(L) @ v, jnp.asarray(lower),
                                                       jnp.asarray(upper)))(jnp.asarray(w)))
-    np.testing.assert_allclose(_whitened(theta, z_hat, L, lower, upper), w, rtol=1e-7, atol=1e-7)
+    np.testing.assert_allclose(whitened(theta, z_hat, L, lower, upper), w, rtol=1e-7, atol=1e-7)

@@ -21,7 +21,7 @@ from helpers import strict_json
 from calibration import Bounds, fit, read_history
 from calibration.__main__ import main
 from calibration.data import load_profile
-from calibration.objective import Objective
+from calibration.objective import CompositeObjective, Objective
 from calibration.sweep import SweepResult, write_sweep
 from jaxmpm import LEFT_GRID, scenes
 from jaxmpm.scenes import S4_SIDE
@@ -62,10 +62,10 @@ def no_work(monkeypatch):
         raise AssertionError("the model was evaluated: the input should have been refused before")
 
     for name in ("residuals", "residuals_and_jacobian", "residuals_and_jacobian_z", "value_and_grad", "predict",
-                 "residuals_resampled"):
+                 "residuals_resampled", "batched_jacobian_z"):
         monkeypatch.setattr(Objective, name, tripwire)
-    monkeypatch.setattr(SWEEP_MODULE, "_Evaluator", tripwire)
-    monkeypatch.setattr(SEARCH_MODULE, "_batch_fn", tripwire)
+    monkeypatch.setattr(CompositeObjective, "batched_jacobian_z", tripwire)
+    monkeypatch.setattr(SWEEP_MODULE, "compile_batch", tripwire)
 
 
 def listing(folder):
@@ -327,30 +327,42 @@ def test_write_sweep_is_atomic(tmp_path, monkeypatch):
 
 # ---- the library's rules, on a closed-form objective (no rollout to compile) ----------------------------
 class LinearObjective:
-    """r = A θ - b: enough of an Objective for ``fit`` (bounds, residuals and Jacobian, a
-    fingerprint); ``status`` is what every evaluation reports."""
+    """r = A θ - b: enough of an Objective for ``fit`` (bounds, residuals and Jacobians, a
+    fingerprint, or none with ``fingerprint=False``: an objective that cannot be checked on a
+    resume); ``status`` is what every evaluation reports."""
 
     keys = ("beta",)
+    bound_notes = ()
+    jacobian = "ad"
+    A = np.array([[1.0], [2.0], [3.0]])
 
     def __init__(self, b=0.3, status=0, fingerprint=True):
         self.bounds = Bounds.create(self.keys)
-        self.b, self.status = b, status
+        self.b, self.status, self.fingerprinted = b, status, fingerprint
         self.blocks, self.row_scale = {"profile": slice(0, 3)}, np.ones(3)
-        if not fingerprint:
-            self.fingerprint = None
 
     def initial(self):
         return {"beta": 0.5}
 
+    def check_thetas(self, thetas, name="thetas"):
+        """Every θ inside the bounds is a parameter set of the toy."""
+
+    def residuals(self, theta):
+        return self.A @ np.asarray(theta) - self.b * self.A[:, 0], {"status": np.asarray(self.status)}
+
     def residuals_and_jacobian(self, theta):
-        A = np.array([[1.0], [2.0], [3.0]])
-        return A @ np.asarray(theta) - self.b * A[:, 0], A, {"status": np.asarray(self.status)}
+        r, pred = self.residuals(theta)
+        return r, self.A, pred
+
+    def residuals_and_jacobian_z(self, z):
+        r, J, pred = self.residuals_and_jacobian(self.bounds.to_physical(np.asarray(z)))
+        return r, J * np.asarray(self.bounds.jacobian_diag(np.asarray(z)))[None, :], J, pred
 
     def describe(self):
         return {"b": self.b}
 
     def fingerprint(self):
-        return {"data": f"b={self.b}", "dx": 0.1}
+        return {"data": f"b={self.b}", "dx": 0.1} if self.fingerprinted else None
 
 
 def test_fit_overwrite_resume_and_fingerprint_rules(tmp_path):

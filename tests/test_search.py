@@ -12,6 +12,7 @@ import pytest
 
 from calibration import (
     Bounds,
+    CompositeObjective,
     Objective,
     ProfileTarget,
     assess_fit,
@@ -173,8 +174,8 @@ def test_bad_search_options_are_refused_before_any_work(monkeypatch, tmp_path, c
     def tripwire(*args, **kwargs):
         raise AssertionError("the model was compiled: the input should have been refused before")
 
-    monkeypatch.setattr(SEARCH_MODULE, "_batch_fn", tripwire)
-    for name in ("residuals", "residuals_and_jacobian", "residuals_and_jacobian_z"):
+    monkeypatch.setattr(CompositeObjective, "batched_jacobian_z", tripwire)
+    for name in ("residuals", "residuals_and_jacobian", "residuals_and_jacobian_z", "batched_jacobian_z"):
         monkeypatch.setattr(Objective, name, tripwire)
     monkeypatch.chdir(tmp_path)
     with pytest.raises(SystemExit) as exc:

@@ -54,6 +54,15 @@ class ToyObjective:
         status = jnp.where(a > 10.0, jaxmpm.NONFINITE, 0)
         return r, {"status": status, "mean": jnp.mean(r)}
 
+    def check_thetas(self, thetas, name="thetas"):
+        """Every row is a parameter set of the toy."""
+
+    def fingerprint(self):
+        return {"toy": "sin(a k) + sqrt(b) cos(k) - 1/2"}
+
+    def describe(self):
+        return {"toy": "sin"}
+
 
 @pytest.fixture(scope="module")
 def objective():

@@ -53,7 +53,8 @@ def test_jacobian_columns_in_workers_equal_the_calling_process_bit_for_bit(objec
     there = jacobians_z(objective, Z, pool)
     np.testing.assert_array_equal(there[0], here[0])
     np.testing.assert_array_equal(there[1], here[1])
-    np.testing.assert_array_equal(there[2]["h"], here[2]["h"])
+    np.testing.assert_array_equal(there[2], here[2])
+    np.testing.assert_array_equal(there[3]["h"], here[3]["h"])
 
 
 @pytest.mark.slow  # 45-90 s on two cores; the runs they are made of are checked bit for bit above
@@ -62,7 +63,7 @@ def test_a_fit_and_a_search_in_workers_follow_the_single_process(objective, pool
     # compiled lax.map), to round-off.
     Z = _rows(objective)
     here = jacobians_z(objective, Z[1:2], pool)
-    r, Jz, _ = objective.residuals_and_jacobian_z(Z[1])
+    r, Jz, _, _ = objective.residuals_and_jacobian_z(Z[1])
     np.testing.assert_allclose(here[1][0], Jz, rtol=1e-10, atol=1e-14)
     np.testing.assert_allclose(here[0][0], r, rtol=1e-12, atol=1e-15)
     one = fit(objective, {"beta": 0.1, "mu1": 0.3}, steps=4, roundoff_samples=2)
