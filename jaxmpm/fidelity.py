@@ -34,8 +34,9 @@ from .simulate import simulate
 __all__ = ["REFERENCE_S2", "REFERENCE_SOURCE", "SIGMA", "cross_code", "observe", "resolution", "run_case"]
 
 #: The reference code's S2 observables at t = 0.4198 s (m), by (dx, particles per cell): Matter
-#: (Blatny & Gaume, Geosci. Model Dev. 2025), 2D, float64, Poisson-disk sampling, the body half a
-#: cell above the floor, front = outermost particle; runs made for this project and quoted (not
+#: (Blatny & Gaume, Geosci. Model Dev. 2025), 2D, float64, the body half a cell above the floor,
+#: front = outermost particle, Poisson-disk sampling at about 6 per cell (the specification does
+#: not say how the 16-per-cell runs were sampled); runs made for this project and quoted (not
 #: measurements made here). The 2.98 mm rows and the (1.50 mm, 16) row are the scene
 #: specification's (S2). The (1.50 mm, 6) row was quoted with the first 2.98 mm row when the
 #: return map was matched to that code's; the specification does not list it.
@@ -45,8 +46,9 @@ REFERENCE_S2 = {
     (1.50e-3, 6): {"left": 0.0736, "right": 0.0736, "top": 0.0355},
     (1.50e-3, 16): {"left": 0.07347, "right": 0.07474, "top": 0.03556},
 }
-REFERENCE_SOURCE = ("Matter (Blatny & Gaume 2025), C++, 2D, float64, Poisson disk at about 6 and at 16 particles "
-                    "per cell; runs quoted by the scene specification (not measurements made here)")
+REFERENCE_SOURCE = ("Matter (Blatny & Gaume 2025), C++, 2D, float64, a Poisson disk at about 6 particles per "
+                    "cell and 16 per cell; runs quoted for this project, all but the 1.50 mm one at 6 per cell in the "
+                    "scene specification (not measurements made here)")
 
 #: Kernel width of the deposit profile in these studies (m): one width for every resolution.
 SIGMA = 2e-3
