@@ -46,8 +46,8 @@ def strict_json(text: str):
 
 
 def tiny_s4(beta: float = 0.25, dx: float = TINY_DX, t_end: float = 0.1, **values):
-    """The tiny cohesive collapse (S4 at dx = L/6: 144 particles, 0.1 s run well under a
-    second); ``values`` go to ``jaxmpm.scenes.cohesive_collapse``."""
+    """The tiny cohesive collapse (S4 at dx = L/6: 144 particles; a 0.1 s run takes well under
+    a second); ``values`` go to ``jaxmpm.scenes.cohesive_collapse``."""
     from jaxmpm import scenes
 
     return scenes.cohesive_collapse(beta, dx=dx, t_end=t_end, **values)
@@ -55,8 +55,8 @@ def tiny_s4(beta: float = 0.25, dx: float = TINY_DX, t_end: float = 0.1, **value
 
 def placeholder_objective(scene, keys, xs=None, times=None):
     """An ``Objective`` that observes the final profile at ``xs`` and the front at ``times``
-    (either may be None) against placeholder data: the model's prediction at any θ, to be made
-    into data."""
+    (either may be None) against placeholder data (ones), so that its prediction at some θ can
+    be made into data."""
     from calibration import FrontTarget, Objective, ProfileTarget
 
     profile = None if xs is None else ProfileTarget(np.asarray(xs), np.ones(len(xs)))
