@@ -32,9 +32,10 @@ import os
 import pathlib
 import sys
 
+from jaxmpm.cli import add_threads_argument
 from jaxmpm.precision import use_dtype
 from jaxmpm.scenes.collapse import S4_SIDE
-from jaxmpm.threads import add_threads_argument, apply_threads
+from jaxmpm.threads import apply_threads
 
 from .workers import Workers, available_cores
 
@@ -49,7 +50,7 @@ def _keys(text: str, option: str = "--fit") -> tuple[str, ...]:
 
 
 def _pairs(items, option: str) -> dict[str, float]:
-    from jaxmpm.scenes import parse_set
+    from jaxmpm.cli import parse_set
 
     out = {}
     for item in items:
@@ -93,7 +94,7 @@ def _load_data(args, experiment=None):
 def _experiments(args) -> list:
     """The experiment files of ``fit``/``sweep`` (positional), with the command line's scene
     options over their values; [] for a named --scene."""
-    from jaxmpm.scenes import experiment_from_args
+    from jaxmpm.cli import experiment_from_args
 
     files = list(getattr(args, "experiments", None) or [])
     if files and args.scene:
@@ -127,7 +128,8 @@ def _scene_and_objective(args, keys, experiments=()):
     with ``--shared`` those shared and the others per file, labelled by the file's name; the
     scene returned is the first's)."""
 
-    from jaxmpm.scenes import experiments_dtype, scene_dtype, scene_from_args
+    from jaxmpm.cli import scene_dtype, scene_from_args
+    from jaxmpm.scenes import experiments_dtype
 
     from .data import data_end_time
     from .objective import CompositeObjective, FrontTarget, Objective
@@ -193,7 +195,7 @@ def _fit_options_of(args, noise=None):
 def _emit(obj, compact: bool) -> list[str]:
     """Print ``obj`` as valid JSON (NaN and infinities as null, their paths under "nonfinite");
     return those paths."""
-    from jaxmpm.io import json_safe
+    from jaxmpm.cli import json_safe
 
     obj, bad = json_safe(obj)
     if bad:
@@ -533,7 +535,7 @@ def _variants(items) -> dict[str, dict[str, float]]:
 
 
 def _design(args) -> int:
-    from jaxmpm.scenes import scene_dtype, scene_from_args
+    from jaxmpm.cli import scene_dtype, scene_from_args
 
     from .design import design
 
@@ -633,7 +635,8 @@ def _bench(args) -> int:
 
 
 def _common(p, data: bool = True) -> None:
-    from jaxmpm.scenes import SCENE_NAMES, add_scene_arguments
+    from jaxmpm.cli import add_scene_arguments
+    from jaxmpm.scenes import SCENE_NAMES
 
     if data:
         p.add_argument("experiments", nargs="*", metavar="EXPERIMENT.toml",
@@ -840,7 +843,7 @@ def build_parser() -> argparse.ArgumentParser:
     tw = sub.add_parser("twin", help="fit synthetic S4 data made with known parameters")
     _common(tw, data=False)
     _fit_options(tw, "beta,mu1,xi")
-    tw.add_argument("--quick", action="store_true", help="a coarse grid (dx = L/8): about a minute")
+    tw.add_argument("--quick", action="store_true", help="a coarse grid (dx = L/8): about three minutes")
     tw.add_argument("--noise", type=float, default=0.0, help="Gaussian noise, fraction of the peak height")
     tw.add_argument("--noise-seed", type=int, default=0, help="seed of the noise")
     tw.add_argument("--landscape", type=int, default=None, metavar="N",
@@ -852,7 +855,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def _check_options(args) -> None:
     """Checks the library would make later, or with its own argument names."""
-    from jaxmpm.scenes import check_scene_args
+    from jaxmpm.cli import check_scene_args
 
     if hasattr(args, "sampling"):  # the scene options of add_scene_arguments
         check_scene_args(args)
@@ -901,7 +904,7 @@ def _check_outputs(args) -> None:
     for --plot. Nothing is created here."""
     import importlib.util
 
-    from jaxmpm.io import check_output_dir, check_output_file
+    from jaxmpm.cli import check_output_dir, check_output_file
 
     out = getattr(args, "out", None)
     resume, overwrite = getattr(args, "resume", False), getattr(args, "overwrite", False)

@@ -76,8 +76,10 @@ def _run_task(token: str, make_objective: Callable[[], Any], rows: np.ndarray, x
     """One chunk on a worker: build the objective once for this sweep, evaluate ``rows``."""
     import jax
 
+    from jaxmpm.precision import enable_x64
+
     if x64:
-        jax.config.update("jax_enable_x64", True)
+        enable_x64(True)  # a worker process: its parent's precision, once, before anything is traced
     objective = _WORKER_OBJECTIVES.get(token)
     if objective is None:
         _WORKER_OBJECTIVES.clear()  # an earlier sweep's objective and its executables
@@ -210,13 +212,13 @@ def cluster_sweep(make_objective: Callable[[], Any], thetas, *, cluster="local:2
         import distributed  # noqa: F401
     except ImportError:
         raise ImportError("cluster sweeps need Dask distributed: pip install 'jaxmpm[cluster]'") from None
-    import jax
+    from jaxmpm.precision import x64_enabled
 
     objective = make_objective() if objective is None else objective
     keys, thetas = _check_thetas(objective, thetas)
     if hasattr(objective, "check_thetas"):
         objective.check_thetas(thetas, "thetas")
-    x64 = bool(jax.config.jax_enable_x64) if x64 is None else bool(x64)
+    x64 = x64_enabled() if x64 is None else bool(x64)
     dtype = np.float64 if x64 else np.float32
     n_members = thetas.shape[0]
 

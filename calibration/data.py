@@ -75,7 +75,7 @@ from jaxmpm.datasets import DatasetInfo, data_dir, dataset_path, list_datasets  
 __all__ = [
     "UNITS", "DatasetInfo", "FrontHistory", "Profile", "RunoutLaw", "data_dir", "data_end_time", "dataset_path",
     "list_datasets",
-    "load_front_history", "load_profile", "load_scaling_law", "load_setup", "read_table",
+    "load_front_history", "load_measurements", "load_profile", "load_scaling_law", "load_setup", "read_table",
 ]
 
 #: Length units a file may declare, as metres per unit.

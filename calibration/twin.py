@@ -11,7 +11,7 @@ intervals contain the true values. With noise, ``delta_chi2_truth`` is the likel
 distance of the truth from the fit (no linearisation) and ``truth_in_joint_95`` compares it with
 the 95 % quantile of χ² with n degrees of freedom.
 
-``quick=True`` uses a coarse grid (dx = L/8, 256 particles); the default dx = L/16 (1,024
+``quick=True`` uses a coarse grid (dx = L/8, 576 particles); the default dx = L/16 (2,304
 particles) is the project's default S4 resolution.
 
 ``twin(...)`` returns a ``TwinResult`` (the ``FitResult``, the ``Objective`` and the comparison

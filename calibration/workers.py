@@ -52,9 +52,9 @@ def _init_worker(x64: bool, counter, cores: Sequence[int]) -> None:
             os.sched_setaffinity(0, {cores[index % len(cores)]})
         except (AttributeError, OSError):  # pragma: no cover (no affinity on this system)
             pass
-    import jax
+    from jaxmpm.precision import enable_x64
 
-    jax.config.update("jax_enable_x64", x64)
+    enable_x64(x64)  # a fresh process: its parent's precision, once, before anything is traced
 
 
 class Workers:
@@ -75,7 +75,7 @@ class Workers:
 
     def _executor(self) -> concurrent.futures.ProcessPoolExecutor:
         if self._pool is None:
-            import jax
+            from jaxmpm.precision import x64_enabled
 
             context = multiprocessing.get_context("spawn")
             try:
@@ -84,7 +84,7 @@ class Workers:
                 cores = []
             self._pool = concurrent.futures.ProcessPoolExecutor(
                 max_workers=self.n, mp_context=context, initializer=_init_worker,
-                initargs=(bool(jax.config.jax_enable_x64), context.Value("i", 0), cores))
+                initargs=(x64_enabled(), context.Value("i", 0), cores))
         return self._pool
 
     def map(self, fn: Callable, tasks: Iterable[tuple]) -> list[Any]:

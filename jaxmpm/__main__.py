@@ -1,105 +1,55 @@
-"""Command line: ``python -m jaxmpm {run,bench} ...``."""
+"""Command line: ``python -m jaxmpm {run,element,validate,bench} ...``: each command parses its
+options, calls the library and prints."""
 
 from __future__ import annotations
 
 import argparse
 import json
-import os
 import sys
 
 import numpy as np
 
-from .precision import use_dtype
-from .scenes import (
-    SCENE_NAMES,
+from .cli import (
     add_scene_arguments,
+    add_threads_argument,
+    check_figure_file,
     check_repeated_keys,
+    check_run_outputs,
     check_scene_args,
-    is_experiment_file,
+    output_writer,
     parse_set,
+    print_json,
     scene_dtype,
     scene_from_args,
 )
-from .threads import add_threads_argument, apply_threads
+from .precision import use_dtype
+from .scenes import SCENE_NAMES, is_experiment_file
+from .threads import apply_threads
 
 
-def print_json(summary: dict, compact: bool) -> list[str]:
-    """Print ``summary`` as valid JSON: non-finite numbers become null and their paths are listed
-    under ``"nonfinite"``. Returns that list (empty when every number was finite)."""
-    from .io import json_safe
-
-    summary, bad = json_safe(summary)
-    if bad:
-        summary["nonfinite"] = bad
-    print(json.dumps(summary, allow_nan=False) if compact else json.dumps(summary, indent=2, allow_nan=False))
-    return bad
+def _source() -> str:
+    """The command that made a file, for its header."""
+    return "python -m jaxmpm run " + " ".join(sys.argv[2:])
 
 
-def check_figure_file(path, option: str):
-    """A figure file: matplotlib installed, a format it writes, a place it can be written."""
-    import importlib.util
+def _write_run(args, output, summary: dict, scene, result) -> None:
+    """--out and --ply of ``run``: written through ``output`` (an ``output_writer``), their
+    paths added to ``summary``."""
+    from . import io
 
-    from .io import check_output_file
-
-    if importlib.util.find_spec("matplotlib") is None:
-        raise ValueError(f"{option} needs matplotlib: pip install 'jaxmpm[plot]'")
-    from matplotlib.figure import Figure
-
-    kinds = tuple("." + k for k in Figure().canvas.get_supported_filetypes())
-    return check_output_file(path, option, suffixes=kinds)
-
-
-def _check_run_outputs(args, frames: int) -> None:
-    """Every output of ``run`` is checked before the scene is built or anything compiles."""
-    import importlib.util
-
-    from .io import check_output_file
-
-    named = [(opt, getattr(args, attr)) for opt, attr in
-             (("--out", "out"), ("--profile-csv", "profile_csv"), ("--plot", "plot"), ("--gif", "gif"))
-             if getattr(args, attr)]
+    config, state, params = scene
     if args.out:
-        check_output_file(args.out, "--out")
-    if getattr(args, "ply", None):
-        from .io import check_output_dir
-
-        check_output_dir(args.ply, "--ply")
-    if args.profile_csv:
-        check_output_file(args.profile_csv, "--profile-csv")
-    if args.plot:
-        check_figure_file(args.plot, "--plot")
-    if args.gif:
-        if importlib.util.find_spec("matplotlib") is None:
-            raise ValueError("--gif needs matplotlib: pip install 'jaxmpm[plot]'")
-        if importlib.util.find_spec("PIL") is None:
-            raise ValueError("--gif needs Pillow: pip install pillow")
-        if frames < 1:
-            raise ValueError(f"--gif animates the frames: --frames must be >= 1, got {frames}")
-        check_output_file(args.gif, "--gif", suffixes=(".gif",))
-    seen: dict[str, str] = {}
-    for option, path in named:
-        key = os.path.realpath(path)
-        if key in seen:
-            raise ValueError(f"{seen[key]} and {option} name the same file {path!r}")
-        seen[key] = option
-
-
-def _output_writer(errors: dict):
-    """``output(option, write)``: call ``write()``; on an I/O failure record it in ``errors``
-    under ``option`` and return None, so that the other outputs and the summary still appear."""
-
-    def output(option, write):
-        try:
-            return write()
-        except (OSError, ValueError, RuntimeError) as err:
-            errors[option] = f"{type(err).__name__}: {err}"
-            return None
-
-    return output
+        path = output("--out", lambda: io.write_h5(args.out, result, config, params, attrs=scene.run_attrs(),
+                                                   initial=state))
+        if path is not None:
+            summary["out"] = str(path)
+    if args.ply:
+        written = output("--ply", lambda: io.write_ply_frames(args.ply, result, initial=state))
+        if written is not None:
+            summary["ply"] = [str(w) for w in written]
 
 
 def _run(args) -> int:
-
     check_scene_args(args)
     if args.scene == "avalanche":
         return _run_avalanche(args)
@@ -113,58 +63,35 @@ def _run(args) -> int:
     # Without --frames an experiment file keeps its own [numerics] frames.
     frames = args.frames if args.frames is not None else (40 if args.gif else
                                                           (None if is_experiment_file(args.scene) else 0))
-    _check_run_outputs(args, frames or 0)
-    dtype = scene_dtype(args)
-    use_dtype(dtype)
-    from . import io, tables
+    check_run_outputs(args, frames or 0)
+    use_dtype(scene_dtype(args))
+    from . import tables
     from .simulate import simulate
 
     scene = scene_from_args(args, frames=frames)
-    config, state, params = scene
-    result = simulate(config, state, params, throw=False, progress=not args.no_progress, timed=True)
-    x = np.asarray(result.state.x)
+    result = simulate(*scene, throw=False, progress=not args.no_progress, timed=True)
     summary = scene.summary(result)
-    meta = {"scene": scene.name, **scene.info.to_dict()}
-    if scene.experiment is not None:  # the run can be made again from its file: Experiment.from_h5
-        meta["experiment_toml"] = scene.experiment.to_toml()
-        if scene.experiment.path is not None:
-            meta["experiment_path"] = str(scene.experiment.path.resolve())
-        summary["experiment"] = str(scene.experiment.path) if scene.experiment.path else scene.experiment.name
     # The outputs were checked before the run; should one still fail (a full disk, a folder
     # removed meanwhile), the others are written and the summary is printed all the same.
     errors = {}
-    output = _output_writer(errors)
-
-    if args.out:
-        path = output("--out", lambda: io.write_h5(args.out, result, config, params, attrs=meta, initial=state))
-        if path is not None:
-            summary["out"] = str(path)
-    if args.ply:
-        written = output("--ply", lambda: io.write_ply_frames(args.ply, result, initial=state))
-        if written is not None:
-            summary["ply"] = [str(w) for w in written]
+    output = output_writer(errors)
+    _write_run(args, output, summary, scene, result)
     profile = None
-    if (args.profile_csv or args.plot) and not np.all(np.isfinite(x)):
+    if (args.profile_csv or args.plot) and not np.all(np.isfinite(np.asarray(result.state.x))):
         for option in ("--profile-csv", "--plot"):
             if getattr(args, option[2:].replace("-", "_")):
                 errors[option] = "not written: the final positions are not finite (see status_text)"
     elif args.profile_csv or args.plot:
         xs, h = profile = scene.final_profile(result.state)
         if args.profile_csv:
-            output("--profile-csv", lambda: tables.write_profile_csv(args.profile_csv, xs, h, {
-                "experiment": f"{scene.name} (synthetic, jaxmpm {_version()})", "time_s": config.t_end,
-                "units": "m", "synthetic": True, "source": "python -m jaxmpm run " + " ".join(sys.argv[2:]),
-                # float32 leaves printed to the precision they hold (0.3, not 0.30000001192092896)
-                "parameters": {k: float(f"{v:.7g}") if dtype == "float32" else v
-                               for k, v in params.to_dict().items()},
-                "scene": scene.info.to_dict(), "status": result.status,
-            }))
+            output("--profile-csv", lambda: tables.write_profile_csv(args.profile_csv, xs, h,
+                                                                     scene.profile_header(result, _source())))
     if args.plot and profile is not None:
-        from .plots import plot_run
+        from .studies.plots import plot_run
 
         output("--plot", lambda: plot_run(scene, result, args.plot, profile=profile))
     if args.gif:
-        from .plots import animate_run
+        from .studies.plots import animate_run
 
         output("--gif", lambda: animate_run(scene, result, args.gif))
     if errors:
@@ -173,9 +100,8 @@ def _run(args) -> int:
     return 0 if result.ok and not bad and not errors else 1
 
 
-def _run_avalanche(args) -> int:
-    """``run avalanche``: S6 on its terrain, the fields avalanche engineers use."""
-
+def _avalanche_options(args) -> dict:
+    """The avalanche builder's keyword arguments from ``run avalanche``'s options."""
     for option, value in (("--dim", args.dim not in (None, 2)), ("--width", args.width is not None),
                           ("--slope", args.slope is not None), ("--aspect", args.aspect is not None),
                           ("--sampling", args.sampling not in (None, "lattice"))):
@@ -190,13 +116,6 @@ def _run_avalanche(args) -> int:
         from .boundary import Terrain
 
         Terrain.from_csv(args.terrain)  # a bad file fails here, before anything compiles
-    _check_run_outputs(args, args.frames or 1)
-    use_dtype(args.dtype)
-    from . import io, tables
-    from .avalanche import run_avalanche
-    from .scenes.avalanche import avalanche
-    from .state import describe_status
-
     t_end = args.t_end if args.t_end is not None else (20.0 if args.quick else 100.0)
     frames = args.frames if args.frames is not None else max(2, int(round(t_end)))
     kw = {"dx": args.dx if args.dx is not None else (2.0 if args.quick else 1.0), "t_end": t_end, "frames": frames,
@@ -207,38 +126,34 @@ def _run_avalanche(args) -> int:
         if args.station is None:
             raise ValueError("--obstacle needs --station X, the obstacle's place along the path")
         kw["obstacle"] = (args.station, args.obstacle)
-    scene = avalanche(args.terrain, **kw)
-    config, state, params = scene
-    result, fields = run_avalanche(scene, station=args.station, progress=not args.no_progress)
-    summary = {"scene": "avalanche", "snow": args.snow, "n_particles": int(state.n_particles),
-               "n_steps": int(result.state.steps), "dx": config.grid.dx, "t_end": config.t_end,
-               "grid_nodes_dense": config.grid.n_nodes, "active_nodes": config.active_nodes,
-               **fields.summary(), "mu_w": float(params.mu_w), "status": result.status,
-               "status_text": describe_status(result.status), "compile_s": round(result.compile_s, 3),
-               "run_s": round(result.run_s, 3)}
-    errors = {}
-    output = _output_writer(errors)
+    return kw
 
-    if args.out:
-        meta = {"scene": "avalanche", **scene.info.to_dict()}
-        path = output("--out", lambda: io.write_h5(args.out, result, config, params, attrs=meta, initial=state))
-        if path is not None:
-            summary["out"] = str(path)
-    if args.ply:
-        written = output("--ply", lambda: io.write_ply_frames(args.ply, result, initial=state))
-        if written is not None:
-            summary["ply"] = [str(w) for w in written]
+
+def _run_avalanche(args) -> int:
+    """``run avalanche``: S6 on its terrain, the fields avalanche engineers use."""
+    kw = _avalanche_options(args)
+    check_run_outputs(args, args.frames or 1)
+    use_dtype(args.dtype)
+    from . import tables
+    from .scenes.avalanche import avalanche
+    from .studies.avalanche import avalanche_summary, fields_header, run_avalanche
+
+    scene = avalanche(args.terrain, **kw)
+    result, fields = run_avalanche(scene, station=args.station, progress=not args.no_progress)
+    summary = avalanche_summary(scene, result, fields, args.snow)
+    errors = {}
+    output = output_writer(errors)
+    _write_run(args, output, summary, scene, result)
     if args.profile_csv:
-        output("--profile-csv", lambda: tables.write_table(args.profile_csv, fields.columns(), {
-            "experiment": f"avalanche (synthetic, jaxmpm {_version()})", "units": "m, m/s, kPa", "synthetic": True,
-            "source": "python -m jaxmpm run " + " ".join(sys.argv[2:]), "t_end_s": config.t_end,
-            "peaks": "over the frames", "summary": fields.summary(), "status": result.status}))
+        output("--profile-csv", lambda: tables.write_table(args.profile_csv, fields.columns(),
+                                                           fields_header(scene, result, fields, _source())))
     if args.plot or args.gif:
-        from .plots import animate_avalanche, plot_avalanche
+        from .studies.plots import animate_avalanche, plot_avalanche
 
         if args.plot:
-            output("--plot", lambda: plot_avalanche(fields, args.plot, title=f"S6 avalanche, {args.snow} snow, "
-                                                    f"dx = {config.grid.dx:g} m, mu_w = {float(params.mu_w):g}"))
+            title = (f"S6 avalanche, {args.snow} snow, dx = {scene.config.grid.dx:g} m, "
+                     f"mu_w = {float(scene.params.mu_w):g}")
+            output("--plot", lambda: plot_avalanche(fields, args.plot, title=title))
         if args.gif:
             output("--gif", lambda: animate_avalanche(fields, args.gif))
     if errors:
@@ -254,17 +169,10 @@ def _run_scene(text: str) -> str:
                                      f"file (.toml), got {text!r}")
 
 
-def _version() -> str:
-    from . import __version__
-
-    return __version__
-
-
 def _element(args) -> int:
-
     use_dtype("float64")  # a single point: double precision costs nothing
-    from .element import element_test
     from .params import Params
+    from .studies.element import element_test
 
     check_repeated_keys(args.set, "--set")
     if args.plot:
@@ -273,27 +181,54 @@ def _element(args) -> int:
     history = element_test(args.test, params, rate=args.rate, pressure=args.pressure, steps=args.steps,
                            strain=args.strain, dim=args.dim)
     final = history.final()
-    # Any non-finite value in the whole history (not only the last step) fails the command.
-    broken = sorted(name for name, value in vars(history).items() if not np.all(np.isfinite(np.asarray(value))))
-    failed = bool(broken)
-    if broken:
-        rows = [np.isfinite(np.asarray(getattr(history, name))).reshape(args.steps, -1).all(axis=1) for name in broken]
-        first = int(np.argmax(~np.logical_and.reduce(rows)))
-        final["error"] = f"non-finite {', '.join(broken)} (first at step {first})"
-    else:
-        # The triaxial cell must have held the lateral stress (to 1e-6 of the stresses reached).
-        error = np.asarray(history.lateral_error)
-        tol = 1e-6 * max(1.0, float(np.max(np.abs(np.asarray(history.p)))))
-        if np.max(error) > tol:
-            failed = True
-            final["error"] = (f"the triaxial control did not hold the lateral stress: off by up to "
-                              f"{float(np.max(error)):.3g} Pa (step {int(np.argmax(error))})")
+    error = history.failure()
+    if error:
+        final["error"] = error
     bad = print_json(final, args.json)
-    if args.plot and not failed:
-        from .plots import plot_stress_path
+    if args.plot and not error:
+        from .studies.plots import plot_stress_path
 
         plot_stress_path(history, params, args.plot, title=f"{args.test}, rate {args.rate:g} 1/s")
-    return 1 if (failed or bad) else 0
+    return 1 if (error or bad) else 0
+
+
+def _validation_options(args) -> dict:
+    """The bagnold studies' own options (--xpic, --slopes, --divisions) as ``run_study``'s."""
+    options = {}
+    for key in ("xpic", "slopes", "divisions"):
+        value = getattr(args, key)
+        if value is None:
+            continue
+        if args.study != "bagnold" and not (key == "xpic" and args.study == "bagnold-from-rest"):
+            raise ValueError(f"--{key} applies to the bagnold study, not {args.study}")
+        if key == "xpic":
+            options[key] = value
+        else:
+            try:
+                items = [float(v) if key == "slopes" else int(v) for v in value.split(",")]
+            except ValueError:
+                raise ValueError(f"--{key} must be comma-separated numbers, got {value!r}") from None
+            options[key] = tuple(items)
+    return options
+
+
+def _validate(args) -> int:
+    options = _validation_options(args)
+    use_dtype(args.dtype)
+    from .studies.validation import run_study
+
+    out = run_study(args.study, quick=args.quick, plot_dir=args.plot, alpha=args.alpha, **options)
+    print(json.dumps(out) if args.json else json.dumps(out, indent=2))
+    return 0
+
+
+def _bench(args) -> int:
+    from .studies.bench import run_bench
+
+    result = run_bench(args.grad, args.quick, args.dim, args.dtype, args.repeat, args.particles, args.scene,
+                       steps=args.steps, active_nodes=args.active_nodes)
+    print(json.dumps(result) if args.json else json.dumps(result, indent=2))
+    return 0
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -375,38 +310,8 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     try:
         apply_threads(args.threads)
-        if args.command == "run":
-            return _run(args)
-        if args.command == "element":
-            return _element(args)
-        if args.command == "validate":
-            if args.dtype == "float64":
-
-                use_dtype("float64")
-            from .validate import run_study
-
-            options = {}
-            for key in ("xpic", "slopes", "divisions"):
-                value = getattr(args, key)
-                if value is None:
-                    continue
-                if args.study != "bagnold" and not (key == "xpic" and args.study == "bagnold-from-rest"):
-                    raise ValueError(f"--{key} applies to the bagnold study, not {args.study}")
-                if key == "xpic":
-                    options[key] = value
-                else:
-                    try:
-                        items = [float(v) if key == "slopes" else int(v) for v in value.split(",")]
-                    except ValueError:
-                        raise ValueError(f"--{key} must be comma-separated numbers, got {value!r}") from None
-                    options[key] = tuple(items)
-            out = run_study(args.study, quick=args.quick, plot_dir=args.plot, alpha=args.alpha, **options)
-            print(json.dumps(out) if args.json else json.dumps(out, indent=2))
-            return 0
-        from . import bench
-
-        bench.main(args)
-        return 0
+        handler = {"run": _run, "element": _element, "validate": _validate, "bench": _bench}[args.command]
+        return handler(args)
     except ValueError as err:  # invalid input: a clear message, not a traceback
         parser.exit(2, f"python -m jaxmpm {args.command}: error: {err}\n")
 

@@ -33,10 +33,8 @@ The CSV format (deposit profiles and other tables) lives in ``jaxmpm.tables``; i
 from __future__ import annotations
 
 import json
-import math
 import os
 import pathlib
-import tempfile
 import uuid
 from collections.abc import Mapping
 from typing import Any
@@ -54,7 +52,7 @@ from .state import State, describe_status
 from .tables import PROFILE_COLUMNS, write_profile_csv  # the CSV format's home is tables
 
 __all__ = ["write_h5", "read_h5", "write_ply", "write_ply_frames", "atomic_write", "write_profile_csv",
-           "PROFILE_COLUMNS", "check_output_file", "check_output_dir", "json_safe"]
+           "PROFILE_COLUMNS"]
 
 #: Root attributes stored as JSON strings (decoded by ``read_h5``).
 _JSON_KEY_LIST = "json_keys"
@@ -93,7 +91,7 @@ def _leaves(tree) -> dict[str, np.ndarray]:
 
 
 def _version() -> str:
-    from . import __version__
+    from ._version import __version__
 
     return str(__version__)
 
@@ -256,96 +254,6 @@ def read_h5(path: str | os.PathLike) -> dict[str, Any]:
         initial = _datasets(f["initial"]) if "initial" in f else None
         final = _datasets(f["final"])
     return {"attrs": attrs, "frames": frames, "initial": initial, "final": final}
-
-
-# ---- checks made before any work ---------------------------------------------------------------
-def _probe_writable(folder: pathlib.Path, option: str, shown: str) -> None:
-    """Create and remove a temporary file in ``folder``: the one test of writability that also
-    holds for root and for read-only file systems (``os.access`` answers yes to root)."""
-    try:
-        fd, tmp = tempfile.mkstemp(dir=folder, prefix=".jaxmpm-write-check-")
-    except OSError as err:
-        raise ValueError(f"{option} {shown}: cannot write in the folder {str(folder)!r} "
-                         f"({err.strerror or err})") from None
-    os.close(fd)
-    os.unlink(tmp)
-
-
-def check_output_file(path, option: str, suffixes: tuple[str, ...] | None = None) -> pathlib.Path:
-    """Check, before any work, that ``path`` can be written as a file; return it as a Path.
-
-    Raises ``ValueError`` naming ``option`` (e.g. ``"--out"``) when the path is empty, is a
-    folder, lies in a folder that does not exist (or is a file), cannot be written there, names
-    an existing file that is read-only, or (with ``suffixes``) does not end in one of them.
-    Nothing is left behind: writability is probed with a temporary file that is removed at once.
-    """
-    text = os.fspath(path)
-    if not text:
-        raise ValueError(f"{option}: the file name is empty")
-    path = pathlib.Path(text)
-    shown = repr(text)
-    if path.is_dir():
-        raise ValueError(f"{option} {shown} is a folder; give a file name")
-    if suffixes is not None and path.suffix.lower() not in suffixes:
-        raise ValueError(f"{option} {shown}: the file name must end in one of {', '.join(suffixes)}")
-    parent = path.parent
-    if not parent.exists():
-        raise ValueError(f"{option} {shown}: the folder {str(parent)!r} does not exist")
-    if not parent.is_dir():
-        raise ValueError(f"{option} {shown}: {str(parent)!r} is a file, not a folder")
-    if path.exists() and not os.access(path, os.W_OK):
-        raise ValueError(f"{option} {shown} exists and is read-only")
-    _probe_writable(parent, option, shown)
-    return path
-
-
-def check_output_dir(path, option: str) -> pathlib.Path:
-    """Check, before any work, that figures can be written into the folder ``path`` (which is
-    created only when they are). Raises ``ValueError`` naming ``option`` when the path is a file,
-    when a folder above it is a file, or when the nearest existing folder is not writable."""
-    text = os.fspath(path)
-    if not text:
-        raise ValueError(f"{option}: the folder name is empty")
-    path = pathlib.Path(text)
-    shown = repr(text)
-    existing = path
-    while not existing.exists():
-        if existing.parent == existing:
-            break
-        existing = existing.parent
-    if not existing.is_dir():
-        what = "is a file" if existing == path else f"lies under {str(existing)!r}, which is a file"
-        raise ValueError(f"{option} {shown} {what}; give a folder")
-    _probe_writable(existing, option, shown)
-    return path
-
-
-def json_safe(obj) -> tuple[Any, list[str]]:
-    """``obj`` with every non-finite float (NaN, ±inf) replaced by None, and the paths of the
-    replaced values ("stderr.beta", "loss[3]"), so that ``json.dumps(..., allow_nan=False)``
-    gives valid JSON and the caller can report what was not finite. Numpy and JAX arrays and
-    scalars become lists and Python numbers."""
-    bad: list[str] = []
-
-    def walk(value, where):
-        if isinstance(value, dict):
-            return {str(k): walk(v, f"{where}.{k}" if where else str(k)) for k, v in value.items()}
-        if isinstance(value, (list, tuple)):
-            return [walk(v, f"{where}[{i}]") for i, v in enumerate(value)]
-        if isinstance(value, (np.ndarray, jax.Array)):
-            return walk(np.asarray(value).tolist(), where)
-        if isinstance(value, (np.bool_, bool)):
-            return bool(value)
-        if isinstance(value, np.integer):
-            return int(value)
-        if isinstance(value, (float, np.floating)):
-            if math.isfinite(value):
-                return float(value)
-            bad.append(where or "value")
-            return None
-        return value
-
-    return walk(obj, ""), bad
 
 
 def _ply_columns(x: np.ndarray, fields: Mapping[str, Any]) -> dict[str, np.ndarray]:

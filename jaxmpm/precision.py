@@ -2,7 +2,9 @@
 
 JAX holds 64-bit types behind a global flag. A command that runs in float64 turns it on once,
 before anything is traced (``use_dtype``); a study that runs one case in float64 among float32
-ones turns it on for that case only and restores it whatever happens (``x64``).
+ones turns it on for that case only and restores it whatever happens (``x64``); a fresh worker
+process takes its parent's setting once, before it traces anything (``enable_x64`` of the
+parent's ``x64_enabled``). Nothing else in jaxmpm or calibration sets the flag.
 """
 
 from __future__ import annotations
@@ -11,7 +13,7 @@ import contextlib
 
 import jax
 
-__all__ = ["use_dtype", "x64"]
+__all__ = ["enable_x64", "use_dtype", "x64", "x64_enabled"]
 
 
 def use_dtype(dtype: str | None) -> None:
@@ -22,16 +24,28 @@ def use_dtype(dtype: str | None) -> None:
     if dtype not in ("float32", "float64"):
         raise ValueError(f"dtype must be 'float32' or 'float64', got {dtype!r}")
     if dtype == "float64":
-        jax.config.update("jax_enable_x64", True)
+        enable_x64(True)
+
+
+def x64_enabled() -> bool:
+    """Whether JAX's 64-bit mode is on."""
+    return bool(jax.config.jax_enable_x64)
+
+
+def enable_x64(enabled: bool) -> None:
+    """Set JAX's 64-bit mode for the rest of the process, unscoped: for a process that sets it
+    once before tracing anything (a fresh worker taking its parent's setting). A switch for one
+    part of a run is ``x64``, which restores the mode."""
+    jax.config.update("jax_enable_x64", bool(enabled))
 
 
 @contextlib.contextmanager
 def x64(enabled: bool = True):
     """JAX's 64-bit mode set to ``enabled`` inside the block, and restored on leaving it (also
     on an error)."""
-    before = bool(jax.config.jax_enable_x64)
-    jax.config.update("jax_enable_x64", bool(enabled))
+    before = x64_enabled()
+    enable_x64(enabled)
     try:
         yield
     finally:
-        jax.config.update("jax_enable_x64", before)
+        enable_x64(before)

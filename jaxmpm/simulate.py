@@ -30,6 +30,9 @@ class SimulationError(RuntimeError):
 
 @dataclasses.dataclass(frozen=True)
 class Result:
+    """What ``simulate`` returns: the final state, the observer's frames at ``frame_times``, the
+    status bits, and the compile and run times when measured."""
+
     state: State  # final state
     frames: Any  # observer output stacked over config.frame_times (None if none)
     frame_times: tuple[float, ...]

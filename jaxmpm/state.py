@@ -61,6 +61,11 @@ def describe_status(status: int) -> list[str]:
 @jax.tree_util.register_dataclass
 @dataclasses.dataclass(frozen=True)
 class State:
+    """The particles and the clock, a pytree of arrays that evolves step by step: positions,
+    velocities, affine matrices, elastic deformation gradients, Kirchhoff stresses, initial volumes,
+    the material's internal variables, time, step, step count, status bits, the walls' impulse and
+    the time since which the flow has been at rest (each field as the module's docstring says)."""
+
     x: Any
     v: Any
     C: Any

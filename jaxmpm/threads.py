@@ -15,8 +15,7 @@ from __future__ import annotations
 
 import os
 
-__all__ = ["SINGLE_THREAD_FLAGS", "THREAD_CHOICES", "add_threads_argument", "apply_threads", "use_one_thread",
-           "single_threaded"]
+__all__ = ["SINGLE_THREAD_FLAGS", "THREAD_CHOICES", "apply_threads", "use_one_thread", "single_threaded"]
 
 #: XLA's CPU runtime on one thread.
 SINGLE_THREAD_FLAGS = "--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1"
@@ -52,16 +51,10 @@ def use_one_thread() -> None:
 THREAD_CHOICES = ("1", "all")
 
 
-def add_threads_argument(parser) -> None:
-    """The command lines' ``--threads {1,all}`` (default 1, unless XLA_FLAGS is set)."""
-    parser.add_argument("--threads", choices=THREAD_CHOICES, default=None,
-                        help="XLA's CPU threads: 1 (the default; faster below about 1e5 particles, "
-                             "docs/performance.md) or all (XLA's own choice); an XLA_FLAGS you set is kept")
-
-
 def apply_threads(choice: str | None) -> None:
-    """Apply ``--threads`` before the first computation: "1" (or None, the default, when the
-    user has not set XLA_FLAGS) runs XLA on one thread; "all" leaves XLA its own choice."""
+    """Apply the command lines' ``--threads`` (``jaxmpm.cli.add_threads_argument``) before the
+    first computation: "1" (or None, the default, when the user has not set XLA_FLAGS) runs XLA
+    on one thread; "all" leaves XLA its own choice."""
     if choice not in (None, *THREAD_CHOICES):
         raise ValueError(f"--threads must be one of {THREAD_CHOICES}, got {choice!r}")
     if choice == "1" or (choice is None and "XLA_FLAGS" not in os.environ):

@@ -12,11 +12,13 @@ import sys
 import numpy as np
 import pytest
 
+from jaxmpm.scenes import S4_SIDE
+
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 #: The shipped synthetic S4 profile (β = 0.25, t = 0.5 s) that the command-line fits read.
 S4_DATA = ROOT / "experiments_data" / "synthetic" / "S4_beta0.25.csv"
 #: The tiny S4 scene's cell: a sixth of the column's side, 144 particles.
-TINY_DX = 0.089 / 6
+TINY_DX = S4_SIDE / 6
 #: The command lines' flags for the tiny scene, quiet and printing JSON.
 TINY_FLAGS = ("--dx", str(TINY_DX), "--no-progress", "--json")
 

@@ -9,8 +9,8 @@ import pytest
 from helpers import cli
 
 import jaxmpm as jm
-from jaxmpm.avalanche import path_fields
 from jaxmpm.scenes.avalanche import SNOW, avalanche
+from jaxmpm.studies.avalanche import path_fields
 
 
 def _cli(*args, cwd=None):
@@ -143,7 +143,7 @@ def test_smooth_runout_of_a_known_layer():
     import jax
     import jax.numpy as jnp
 
-    from jaxmpm.avalanche import smooth_runout
+    from jaxmpm.studies.avalanche import smooth_runout
 
     terrain = jm.Terrain((-50.0, 300.0), (0.0, 0.0))
     spacing = 0.1
@@ -183,8 +183,8 @@ def test_obstacle_force_closes_the_momentum_balance():
     """A 3 m wall 6 m past the release: the snow hits it within 4 s; the impulses the terrain and
     the wall record close the momentum balance M v̄ = M g t − Σ impulse (float64), the wall is
     pushed downstream, and the force history is the impulse's change over each frame interval."""
-    from jaxmpm.avalanche import run_avalanche
     from jaxmpm.scenes.avalanche import OBSTACLE
+    from jaxmpm.studies.avalanche import run_avalanche
 
     scene = avalanche(dx=2.0, t_end=4.0, frames=4, obstacle=(1351.0, 3.0))
     assert len(scene.config.walls) == 2 and scene.config.walls[OBSTACLE].normal == (-1.0, 0.0)

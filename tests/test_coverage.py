@@ -1,6 +1,6 @@
 """calibration.coverage: the rates, their Clopper–Pearson intervals and the plumbing, on a
 linear-Gaussian stand-in for the twin (exact answers are known there; the real study is
-`python -m calibration coverage`, docs/calibration.md)."""
+`python -m calibration coverage`, docs/twin.md)."""
 
 import dataclasses
 import types

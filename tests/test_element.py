@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 
 import jaxmpm as jm
-from jaxmpm.element import element_test
 from jaxmpm.materials import mu_of_I
+from jaxmpm.studies.element import element_test
 
 
 def test_isotropic_compression_follows_the_hardening_law():
@@ -84,8 +84,8 @@ def test_triaxial_default_pressure_is_half_of_pc0():
 
 def test_triaxial_gradient_through_the_control_matches_central_differences():
     """The control's last Newton step on live values gives the implicit-function derivative."""
-    from jaxmpm.element import drive
     from jaxmpm.materials import CriticalState
+    from jaxmpm.studies.element import drive
 
     base = jm.Params.create(xi=20.0)
     L = np.zeros((2, 2))

@@ -14,6 +14,7 @@ from hypothesis import strategies as st
 
 from jaxmpm.experiment import SHIPPED_EXPERIMENTS, Experiment, ExperimentError, shipped_experiment
 from jaxmpm.scenes import (
+    S4_SIDE,
     aluminium_bars,
     aspect_ratio_collapse,
     cohesive_collapse,
@@ -81,8 +82,8 @@ def test_shipped_experiments_build_the_named_scenes(name):
 def test_named_shortcut_with_options_equals_builder():
     from jaxmpm.scenes import build_scene
 
-    _same_scene(build_scene("cohesive-collapse", dx=0.089 / 8, ppc=2, t_end=0.2, values={"beta": 0.2}, seed=3),
-                cohesive_collapse(beta=0.2, dx=0.089 / 8, ppc=2, t_end=0.2, seed=3))
+    _same_scene(build_scene("cohesive-collapse", dx=S4_SIDE / 8, ppc=2, t_end=0.2, values={"beta": 0.2}, seed=3),
+                cohesive_collapse(beta=0.2, dx=S4_SIDE / 8, ppc=2, t_end=0.2, seed=3))
 
 
 def test_user_experiment_equals_python_set_up(tmp_path):

@@ -1,4 +1,4 @@
-"""The resolution study's analysis (jaxmpm.fidelity.analyse_resolution) on hand-made rows: the
+"""The resolution study's analysis (jaxmpm.studies.fidelity.analyse_resolution) on hand-made rows: the
 converged answer is the seed mean of the last setting, errors are relative to it, the cheapest
 setting within a level is the one with the fewest particle-steps whose every error is inside it,
 and the seed spread is (max − min) / mean."""
@@ -6,7 +6,7 @@ and the seed spread is (max − min) / mean."""
 import numpy as np
 import pytest
 
-from jaxmpm.fidelity import analyse_resolution
+from jaxmpm.studies.fidelity import analyse_resolution
 
 XS = 641  # the study's profile length
 
@@ -46,7 +46,7 @@ def test_s2_with_the_reference_codes_sampling_agrees_with_it_at_its_resolution()
     the mean of three seeds, as its one sample carries 1-3 % of noise) lies within 3 % of the
     reference code's dx = 2.98 mm row at that sampling on the left and right runouts and the
     top (docs/validation.md section 1)."""
-    from jaxmpm.fidelity import REFERENCE_S2, run_case
+    from jaxmpm.studies.fidelity import REFERENCE_S2, run_case
 
     rows = [run_case("gates-collapse", 0.003, 2.45, "poisson", seed) for seed in (0, 1, 2)]
     assert all(r["status"] == 0 for r in rows)
@@ -61,8 +61,8 @@ def test_s2_defaults_at_3mm_within_3_percent_of_the_reference_code():
     (jittered 4 × 4: 16 particles per cell, seed 0), against the reference code's dx = 2.98 mm
     row at 16 per cell: within 3 % on the left and right runouts and the top
     (docs/validation.md section 1; measured +1.6, +2.5 and -0.1 %)."""
-    from jaxmpm.fidelity import REFERENCE_S2, run_case
     from jaxmpm.scenes import build_scene
+    from jaxmpm.studies.fidelity import REFERENCE_S2, run_case
 
     info = build_scene("gates-collapse", dx=0.003).info
     assert (info.ppc, info.sampling) == (4, "jitter")  # 16 per cell, as the reference row

@@ -24,6 +24,7 @@ from calibration.data import load_profile
 from calibration.objective import Objective
 from calibration.sweep import SweepResult, write_sweep
 from jaxmpm import LEFT_GRID
+from jaxmpm.scenes import S4_SIDE
 
 FIT_MODULE = importlib.import_module("calibration.fit")  # calibration.fit is also the function
 SWEEP_MODULE = importlib.import_module("calibration.sweep")
@@ -116,7 +117,7 @@ def test_a_failed_figure_keeps_the_json_and_the_history(history):
 
 @pytest.mark.parametrize("change, message", [
     ("data", "data (--data/--front: their content)"),
-    (["--dx", str(0.089 / 5)], "dx (--dx): 0.0148"),
+    (["--dx", str(S4_SIDE / 5)], "dx (--dx): 0.0148"),
     (["--set", "pc0=400"], "fixed.pc0 (--set): 500.0 in the file, 400.0 now"),
     (["--weight-profile", "2"], "weights.profile (--weight-profile/--weight-front): 1.0 in the file, 2.0 now"),
     (["--t-end", "0.6"], "t_end (--t-end): 0.5 in the file, 0.6 now"),

@@ -14,6 +14,7 @@ from helpers import strict_json
 
 import jaxmpm as jm
 from jaxmpm.__main__ import main
+from jaxmpm.cli import json_safe
 
 SIMULATE_MODULE = importlib.import_module("jaxmpm.simulate")  # jaxmpm.simulate is the function
 
@@ -96,7 +97,7 @@ def test_output_paths_are_checked_before_the_run(capsys, no_simulation, tmp_path
 # ---- JSON ------------------------------------------------------------------------------------------
 def test_json_safe_replaces_non_finite_numbers_and_names_them():
     obj = {"loss": float("nan"), "stderr": {"beta": np.inf, "mu1": 0.1}, "x": np.array([1.0, -np.inf]), "n": 3}
-    safe, bad = jm.io.json_safe(obj)
+    safe, bad = json_safe(obj)
     assert safe == {"loss": None, "stderr": {"beta": None, "mu1": 0.1}, "x": [1.0, None], "n": 3}
     assert bad == ["loss", "stderr.beta", "x[1]"]
     json.dumps(safe, allow_nan=False)
@@ -121,9 +122,9 @@ def test_element_refuses_a_start_beyond_the_yield_surface(capsys):
 
 
 def test_element_exits_non_zero_with_null_on_a_non_finite_result(capsys, monkeypatch):
-    import jaxmpm.element
+    import jaxmpm.studies.element
 
-    real = jaxmpm.element.element_test
+    real = jaxmpm.studies.element.element_test
 
     def broken(*args, **kwargs):
         history = real(*args, **kwargs)
@@ -131,7 +132,7 @@ def test_element_exits_non_zero_with_null_on_a_non_finite_result(capsys, monkeyp
         p[7:] = np.nan
         return type(history)(**{**vars(history), "p": p})
 
-    monkeypatch.setattr(jaxmpm.element, "element_test", broken)
+    monkeypatch.setattr(jaxmpm.studies.element, "element_test", broken)
     code = main(["element", "isotropic", "--json", "--steps", "20"])
     out = strict_json(capsys.readouterr().out)
     assert code == 1

@@ -5,6 +5,7 @@ import pytest
 
 import jaxmpm as jm
 from jaxmpm.sampling import particles_per_cell
+from jaxmpm.scenes import S4_SIDE
 
 BOX = ((0.01, 0.02), (0.09, 0.07))  # 0.08 m × 0.05 m, the S2 column
 DX = 0.003
@@ -90,8 +91,8 @@ def test_bad_sampling_input_names_the_argument(kw, match):
 
 
 def test_scenes_take_the_sampling_options():
-    s = jm.scenes.cohesive_collapse(0.25, dx=0.089 / 8, t_end=0.01, ppc=3, sampling="jitter", seed=2)
+    s = jm.scenes.cohesive_collapse(0.25, dx=S4_SIDE / 8, t_end=0.01, ppc=3, sampling="jitter", seed=2)
     assert s.info.sampling == "jitter" and s.info.ppc == 3 and s.info.seed == 2
     np.testing.assert_allclose(np.sum(s.state.vol0), 0.089 * 0.089, rtol=1e-6)
     with pytest.raises(ValueError, match="sampling must be one of"):
-        jm.scenes.cohesive_collapse(0.25, dx=0.089 / 8, sampling="grid")
+        jm.scenes.cohesive_collapse(0.25, dx=S4_SIDE / 8, sampling="grid")

@@ -10,6 +10,7 @@ import pytest
 import jaxmpm as jm
 from jaxmpm import scenes
 from jaxmpm.observables import deposit_profile, front_position, particle_volumes
+from jaxmpm.scenes import S1_DEPTH, S4_SIDE
 
 
 @pytest.mark.parametrize(
@@ -19,7 +20,7 @@ from jaxmpm.observables import deposit_profile, front_position, particle_volumes
         lambda: scenes.slope_collapse(16.0, dx=0.04, t_end=0.02),
         lambda: scenes.cohesive_collapse(0.25, dx=0.03, t_end=0.02),
         lambda: scenes.aspect_ratio_collapse(2.0, dx=0.025, t_end=0.02),
-        lambda: scenes.incline(26.0, dx=0.038 / 4, t_end=0.01),
+        lambda: scenes.incline(26.0, dx=S1_DEPTH / 4, t_end=0.01),
         lambda: scenes.cohesive_collapse(0.0, dx=0.03, t_end=0.01, dim=3, width=0.06),
     ],
 )
@@ -50,7 +51,7 @@ def test_scene_info_is_one_typed_description():
     import json
 
     column = scenes.aspect_ratio_collapse(2.0, dx=0.025, t_end=0.02)
-    layer = scenes.incline(26.0, dx=0.038 / 4, t_end=0.01)
+    layer = scenes.incline(26.0, dx=S1_DEPTH / 4, t_end=0.01)
     block = scenes.falling_block(n_particles=64, t_end=0.01)
     assert (column.info.length, column.info.height, column.info.aspect) == (0.05, 0.1, 2.0)
     assert column.info.critical_start is None and column.info.width is None and column.info.side_gap > 0
@@ -108,7 +109,7 @@ def test_scene_parameters_follow_scenes_md():
 
 
 def test_flow_reaching_the_grid_edge_sets_the_edge_bit():
-    scene = scenes.cohesive_collapse(0.0, dx=0.089 / 8, runout=0.03)
+    scene = scenes.cohesive_collapse(0.0, dx=S4_SIDE / 8, runout=0.03)
     result = jm.simulate(*scene, throw=False)
     assert result.status & jm.EDGE
     with pytest.raises(jm.SimulationError, match="edge of the grid"):
@@ -116,7 +117,7 @@ def test_flow_reaching_the_grid_edge_sets_the_edge_bit():
 
 
 def test_incline_starts_on_the_bagnold_profile():
-    scene = scenes.incline(24.0, dx=0.038 / 8)
+    scene = scenes.incline(24.0, dx=S1_DEPTH / 8)
     z, v = np.asarray(scene.state.x[:, 1]) - scene.info.wall_gap, np.asarray(scene.state.v[:, 0])
     np.testing.assert_allclose(v, scenes.bagnold_velocity(z, 0.038, 24.0, scene.params), rtol=1e-6)
     # docs/model.md §6 worked example: v_max = 1.483 m/s at 24° for h = 0.038 m.
@@ -152,14 +153,14 @@ def test_incline_critical_start_sets_pc_to_twice_the_lithostatic_pressure():
     pressure (p_c = 2p for β = 0), through ε_v^p and the hardening law."""
     import math
 
-    scene = jm.scenes.incline(24.0, dx=0.038 / 8, critical_start=True)
+    scene = jm.scenes.incline(24.0, dx=S1_DEPTH / 8, critical_start=True)
     params = scene.params
     z = np.asarray(scene.state.x[:, 1]) - scene.info.wall_gap
     p = float(params.rho) * 9.81 * math.cos(math.radians(24.0)) * (0.038 - z)
     pc = float(params.pc0) * np.exp(-float(params.xi) * np.asarray(scene.state.internal["eps_v_p"]))
     np.testing.assert_allclose(pc, 2.0 * p, rtol=1e-10)
     with pytest.raises(ValueError, match="xi > 0"):
-        jm.scenes.incline(24.0, dx=0.038 / 8, critical_start=True, xi=0.0)
+        jm.scenes.incline(24.0, dx=S1_DEPTH / 8, critical_start=True, xi=0.0)
 
 
 def test_profile_mirrored_at_the_back_face_reads_the_full_height_at_the_wall():
@@ -174,5 +175,5 @@ def test_profile_mirrored_at_the_back_face_reads_the_full_height_at_the_wall():
     mirrored = np.asarray(deposit_profile(x, vol, xs, 2 * spacing, mirror=0.0))
     np.testing.assert_allclose(plain[1:], [0.025, 0.05], rtol=0.02)
     np.testing.assert_allclose(mirrored, [0.0, 0.05, 0.05], rtol=0.02, atol=1e-12)
-    assert scenes.cohesive_collapse(dx=0.089 / 4).back_face == 0.0  # the wall plane sits 0.501 dx behind it
+    assert scenes.cohesive_collapse(dx=S4_SIDE / 4).back_face == 0.0  # the wall plane sits 0.501 dx behind it
     assert scenes.gates_collapse(dx=0.004).back_face is None  # lifted gates, no wall to rest against

@@ -12,13 +12,13 @@ import jaxmpm as jm
 from jaxmpm import sparse
 from jaxmpm.kernels import make_stencil
 from jaxmpm.rollout import make_rollout
-from jaxmpm.scenes import cohesive_collapse
+from jaxmpm.scenes import S4_SIDE, cohesive_collapse
 
 
 @pytest.fixture(scope="module")
 def collapse():
     """S4 at dx = L/8 (576 particles, 738 dense nodes; about 110 touched at rest), to 0.15 s."""
-    return cohesive_collapse(dx=0.089 / 8, t_end=0.15, beta=0.25)
+    return cohesive_collapse(dx=S4_SIDE / 8, t_end=0.15, beta=0.25)
 
 
 def test_activate_numbers_the_touched_nodes_in_order():

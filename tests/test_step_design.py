@@ -17,14 +17,14 @@ import pytest
 
 import jaxmpm as jm
 import jaxmpm.step
-from jaxmpm.scenes import cohesive_collapse
+from jaxmpm.scenes import S4_SIDE, cohesive_collapse
 
 jax.config.update("jax_enable_x64", True)
 REFERENCE = pathlib.Path(__file__).parent / "data" / "s4_release_0_2_0.npz"
 
 
 def _scene():
-    return cohesive_collapse(beta=0.25, dx=0.089 / 6, pc0=500.0, xi=50.0, dtype="float64", t_end=0.05, rest=False)
+    return cohesive_collapse(beta=0.25, dx=S4_SIDE / 6, pc0=500.0, xi=50.0, dtype="float64", t_end=0.05, rest=False)
 
 
 def _run(scene):

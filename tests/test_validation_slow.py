@@ -3,7 +3,7 @@
 
 import pytest
 
-from jaxmpm.validate import run_study
+from jaxmpm.studies.validation import run_study
 
 pytestmark = pytest.mark.slow
 

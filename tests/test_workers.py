@@ -11,6 +11,7 @@ from calibration.fit import fit
 from calibration.objective import Objective, jacobians_z, residuals_at
 from calibration.search import search
 from calibration.workers import Workers, as_workers
+from jaxmpm.scenes import S4_SIDE
 
 KEYS = ("beta", "mu1")
 TRUTH = np.array([0.2, 0.4])
@@ -18,7 +19,7 @@ TRUTH = np.array([0.2, 0.4])
 
 @pytest.fixture(scope="module")
 def objective():
-    scene = tiny_s4(beta=0.0, dx=0.089 / 4)
+    scene = tiny_s4(beta=0.0, dx=S4_SIDE / 4)
     profile, _ = model_data(scene, KEYS, TRUTH, xs=np.linspace(0.0, 0.2, 25))
     return Objective(scene, KEYS, profile=profile)
 

@@ -4,7 +4,7 @@ in float64, and a fit of β to a given runout.
 
     python docs/scripts/avalanche_fit.py [--dx 2] [--truth 0.1] [--start 0.2 0.03]
 
-The runout is ``jaxmpm.avalanche.smooth_runout`` of the final state (t = 100 s): where a
+The runout is ``jaxmpm.studies.avalanche.smooth_runout`` of the final state (t = 100 s): where a
 Gaussian-smoothed deposit, counted from the far end, first covers the ground thicker than 0.1 m,
 the ``runout_x`` rule on a smooth field. Its derivative is checked against central differences
 at four steps (1e-2 to 1e-5), because the runout is rough at small scales: the steps disagree
@@ -28,9 +28,9 @@ jax.config.update("jax_enable_x64", True)
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
-from jaxmpm.avalanche import smooth_runout  # noqa: E402
 from jaxmpm.rollout import make_rollout  # noqa: E402
 from jaxmpm.scenes.avalanche import avalanche  # noqa: E402
+from jaxmpm.studies.avalanche import smooth_runout  # noqa: E402
 
 ROOT = pathlib.Path(__file__).resolve().parents[2]
 

@@ -24,7 +24,7 @@ from calibration import FrontTarget, Objective, ProfileTarget, fit, load_profile
 from calibration.likelihood import grid_posterior, predict_heldout, profile_likelihood
 from calibration.plots import plot_heldout, plot_profile_likelihoods
 from calibration.twin import FRONT_TIMES
-from jaxmpm.scenes import aluminium_bars, cohesive_collapse
+from jaxmpm.scenes import S4_SIDE, aluminium_bars, cohesive_collapse
 
 ROOT = pathlib.Path(__file__).resolve().parents[2]
 RESULTS, FIGURES = ROOT / "docs" / "results", ROOT / "docs" / "figures"
@@ -52,7 +52,7 @@ S4_TRUTH, S4_KEYS = np.array([0.25, 0.38]), ("beta", "mu1")
 def s4_twin(cells_per_length):
     """The S4 twin at dx = L / ``cells_per_length``: (scene, points xs, objective of the final
     profile at the truth with 2 % noise, seed 0), the points cut at 1.3 × the deposit's extent."""
-    scene = cohesive_collapse(dx=0.089 / cells_per_length, t_end=0.5, beta=0.25)
+    scene = cohesive_collapse(dx=S4_SIDE / cells_per_length, t_end=0.5, beta=0.25)
     xs = np.linspace(0.0, 0.3, 50)
     gen = Objective(scene, S4_KEYS, profile=ProfileTarget(xs, np.ones_like(xs)), check_data=False)
     h = np.asarray(gen.predict(S4_TRUTH)["h"], float)

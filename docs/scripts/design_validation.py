@@ -26,10 +26,10 @@ from calibration import FrontTarget, Objective, ProfileTarget, fit
 from calibration.design import design
 from calibration.uncertainty import Z95
 from calibration.workers import Workers
-from jaxmpm.scenes import cohesive_collapse
+from jaxmpm.scenes import S4_SIDE, cohesive_collapse
 
 ROOT = pathlib.Path(__file__).resolve().parents[2]
-L = 0.089
+L = S4_SIDE
 TRUTH = {"beta": 0.25, "mu1": 0.38, "xi": 50.0}
 
 

@@ -27,10 +27,11 @@ import numpy as np
 from calibration import FrontTarget, Objective, ProfileTarget
 from jaxmpm import Experiment
 from jaxmpm.experiment import FitSpec, FrontMeasurement, ProfileMeasurement
+from jaxmpm.scenes import S4_SIDE
 
 ROOT = pathlib.Path(__file__).resolve().parents[2]
 OUT = ROOT / "docs" / "five_keys"
-L = 0.089
+L = S4_SIDE
 TRUTH = {"beta": 0.25, "mu1": 0.3818628674187188, "mu2": 0.6434683848584607, "I0": 0.279, "xi": 50.0}
 INIT = {"beta": 0.18, "mu1": 0.42, "mu2": 0.58, "I0": 0.4, "xi": 40.0}
 EXPERIMENTS = {  # label: changes to the S4 file

@@ -18,10 +18,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxmpm.bench import _device, _scene, median_time
 from jaxmpm.kernels import node_strides
 from jaxmpm.rollout import make_rollout
 from jaxmpm.step import make_step
+from jaxmpm.studies.bench import _device, _scene, median_time
 
 
 def timed(fn, *args, repeat=5):

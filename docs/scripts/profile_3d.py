@@ -18,10 +18,10 @@ import jax
 import jax.numpy as jnp
 from profile_step import timed, transfer_phases, whole_step  # the same phases, beside this script
 
-from jaxmpm.bench import _device
 from jaxmpm.linalg import eigh_sym, mm, planes, sym_log, unplanes
 from jaxmpm.rollout import make_rollout
 from jaxmpm.scenes import falling_block
+from jaxmpm.studies.bench import _device
 from jaxmpm.transfer import g2p_planes
 
 

@@ -18,7 +18,6 @@ import json
 import jax
 import jax.numpy as jnp
 
-from jaxmpm.bench import _device, _scene, median_time
 from jaxmpm.boundary import apply_walls
 from jaxmpm.kernels import make_stencil
 from jaxmpm.linalg import mm
@@ -26,6 +25,7 @@ from jaxmpm.materials.critical_state import _surface_residual, bulk_modulus, ret
 from jaxmpm.materials.hencky import hencky_strain
 from jaxmpm.rollout import make_rollout
 from jaxmpm.step import make_step, time_step
+from jaxmpm.studies.bench import _device, _scene, median_time
 from jaxmpm.transfer import g2p, grid_velocities, p2g
 
 

@@ -22,13 +22,13 @@ import json
 import jax
 import jax.numpy as jnp
 
-from jaxmpm.bench import _device, median_time
 from jaxmpm.boundary import apply_walls
 from jaxmpm.kernels import make_stencil
 from jaxmpm.linalg import mm
 from jaxmpm.rollout import make_rollout
 from jaxmpm.scenes import falling_block
 from jaxmpm.step import make_step
+from jaxmpm.studies.bench import _device, median_time
 from jaxmpm.transfer import g2p, grid_velocities, p2g
 
 

@@ -41,11 +41,11 @@ import numpy as np
 from calibration.observe import Observations, model_functions
 from jaxmpm.observables import deposit_profile, particle_volumes
 from jaxmpm.rollout import make_rollout
-from jaxmpm.scenes import cohesive_collapse
+from jaxmpm.scenes import S4_SIDE, cohesive_collapse
 
-L = 0.089
+L = S4_SIDE
 TRUTH = (0.25, 0.38)
-SLOPE = -1.2  # dμ1/dβ along the valley (docs/calibration.md: the fits' pairs lie near this line)
+SLOPE = -1.2  # dμ1/dβ along the valley (docs/twin.md: the fits' pairs lie near this line)
 T_END = 0.5
 PROFILE_TIMES = (0.05, 0.1, 0.2, T_END)  # t_end × (0.1, 0.2, 0.4) and the end
 FRONT_TIMES = np.round(np.linspace(T_END / 20, T_END, 20), 12)  # rounded: a shared time is one frame

@@ -25,10 +25,10 @@ import time
 import numpy as np
 
 from calibration import Objective, ProfileTarget, fit
-from jaxmpm.scenes import cohesive_collapse
+from jaxmpm.scenes import S4_SIDE, cohesive_collapse
 
 ROOT = pathlib.Path(__file__).resolve().parents[2]
-L = 0.089
+L = S4_SIDE
 TRUTH = np.array([0.25, 0.38])
 KEYS = ("beta", "mu1")
 

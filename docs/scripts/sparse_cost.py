@@ -38,13 +38,13 @@ import time
 import jax
 import numpy as np
 
-from jaxmpm.bench import _device, _temp_mb
 from jaxmpm.boundary import Wall
 from jaxmpm.config import Config, Grid
 from jaxmpm.params import Params
 from jaxmpm.rollout import make_rollout
 from jaxmpm.sampling import seed_box
 from jaxmpm.state import BUDGET, describe_status, init_state
+from jaxmpm.studies.bench import _device, _temp_mb
 
 ROOT = pathlib.Path(__file__).resolve().parents[2]
 DX = 1.0 / 64  # a 4,096-particle block is 32 cells (0.5 m) wide

@@ -25,10 +25,10 @@ from scipy.signal import savgol_filter
 
 import calibration as cal
 from calibration.objective import CompositeObjective
-from jaxmpm.scenes import build_scene
+from jaxmpm.scenes import S4_SIDE, build_scene
 
 ROOT = pathlib.Path(__file__).resolve().parents[2]
-DX, VALUES, KEYS, TRUTH = 0.089 / 8, {"pc0": 500.0, "xi": 50.0}, ("beta", "mu1"), np.array([0.1, 0.3])
+DX, VALUES, KEYS, TRUTH = S4_SIDE / 8, {"pc0": 500.0, "xi": 50.0}, ("beta", "mu1"), np.array([0.1, 0.3])
 SIGMA_NOISE, SLOPE = 0.02, -0.24
 CONFIGS = {
     "default (jittered 3 × 3, kernel = spacing)": {},

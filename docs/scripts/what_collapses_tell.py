@@ -20,10 +20,10 @@ import numpy as np
 from calibration.design import design
 from calibration.plots import plot_design
 from calibration.workers import Workers
-from jaxmpm.scenes import cohesive_collapse
+from jaxmpm.scenes import S4_SIDE, cohesive_collapse
 
 ROOT = pathlib.Path(__file__).resolve().parents[2]
-L = 0.089
+L = S4_SIDE
 KEYS = ("beta", "mu1", "mu2", "I0", "xi")
 VARIANTS = {"tall": {"height": 2 * L, "runout": 0.45}, "slope": {"slope_deg": 10.0, "runout": 0.35}}
 

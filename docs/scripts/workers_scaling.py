@@ -30,7 +30,7 @@ def _timed(fn) -> float:
 
 
 def main(mode):
-    scene = scenes.cohesive_collapse(dx=0.089 / 8, pc0=500.0, xi=50.0)
+    scene = scenes.cohesive_collapse(dx=scenes.S4_SIDE / 8, pc0=500.0, xi=50.0)
     xs = np.linspace(0.0, 0.25, 40)
     gen = Objective(scene, KEYS, profile=ProfileTarget(xs, np.ones_like(xs)), check_data=False)
     _, pred = gen.residuals(np.array([0.2, 0.4]))

@@ -28,7 +28,8 @@ from ..step import step_budget
 from .info import SceneInfo
 
 __all__ = [
-    "DEFAULT_PPC", "DEFAULT_SAMPLING", "REST_SPEED", "REST_DURATION", "S2_DEFAULT_PPC", "S4_SIDE", "Scene",
+    "DEFAULT_PPC", "DEFAULT_SAMPLING", "REST_SPEED", "REST_DURATION", "S2_DEFAULT_PPC", "S2_HEIGHT", "S2_LENGTH",
+    "S3_HEIGHT", "S3_LENGTH", "S4_SIDE", "S5_LENGTH", "S7_HEIGHT", "S7_LENGTH", "Scene",
     "floor_lift",
     "S2_PARAMS", "S3_PARAMS",
     "S4_PARAMS", "S5_PARAMS", "S7_PARAMS", "gates_collapse", "slope_collapse", "cohesive_collapse",
@@ -93,8 +94,8 @@ class Scene:
 
     def summary(self, result) -> dict:
         """What a run of this scene ended with (``simulate``'s ``Result``): sizes, extents, the
-        runout beyond the body's initial front, the status and its meaning, the timings; what
-        ``python -m jaxmpm run`` prints."""
+        runout beyond the body's initial front, the status and its meaning, the timings, and the
+        experiment file it was built from; what ``python -m jaxmpm run`` prints."""
         from ..state import describe_status
 
         x = np.asarray(result.state.x)
@@ -106,6 +107,34 @@ class Scene:
             "status": result.status, "status_text": describe_status(result.status),
             "compile_s": None if result.compile_s is None else round(result.compile_s, 3),
             "run_s": None if result.run_s is None else round(result.run_s, 3),
+            **({} if self.experiment is None else {
+                "experiment": str(self.experiment.path) if self.experiment.path else self.experiment.name}),
+        }
+
+    def run_attrs(self) -> dict:
+        """The root attributes that record a run of this scene in its HDF5 file (``write_h5``'s
+        ``attrs``): the scene's name and facts and, for a scene built from an experiment file, the
+        file's TOML (``Experiment.from_h5`` makes the run again from it) and its path."""
+        attrs = {"scene": self.name, **self.info.to_dict()}
+        if self.experiment is not None:
+            attrs["experiment_toml"] = self.experiment.to_toml()
+            if self.experiment.path is not None:
+                attrs["experiment_path"] = str(self.experiment.path.resolve())
+        return attrs
+
+    def profile_header(self, result, source: str) -> dict:
+        """The header of this scene's final deposit profile as CSV (``tables.write_profile_csv``):
+        a synthetic profile made by ``source`` (the command that ran it), with the run's time,
+        parameters, scene facts and status."""
+        from .._version import __version__
+
+        float32 = np.asarray(self.state.x).dtype == np.float32
+        return {
+            "experiment": f"{self.name} (synthetic, jaxmpm {__version__})", "time_s": self.config.t_end,
+            "units": "m", "synthetic": True, "source": source,
+            # float32 leaves printed to the precision they hold (0.3, not 0.30000001192092896)
+            "parameters": {k: float(f"{v:.7g}") if float32 else v for k, v in self.params.to_dict().items()},
+            "scene": self.info.to_dict(), "status": result.status,
         }
 
     def final_profile(self, state) -> tuple[np.ndarray, np.ndarray]:
@@ -342,6 +371,10 @@ def collapse(
 #: S2's own default particles per cell: with dx = 1.5 mm, the cheapest setting whose runouts, top
 #: and deposit profile all lie within 2 % of the converged answer (docs/validation.md §1).
 S2_DEFAULT_PPC = 4
+#: S2's column length (docs/scenes.md S2), m.
+S2_LENGTH = 0.08
+#: S2's column height, m.
+S2_HEIGHT = 0.05
 
 
 def gates_collapse(dx: float = 0.0015, ppc: float | None = None, dim: int = 2, width: float | None = None,
@@ -353,9 +386,15 @@ def gates_collapse(dx: float = 0.0015, ppc: float | None = None, dim: int = 2, w
     ppc = S2_DEFAULT_PPC if ppc is None else ppc
     kw.setdefault("runout", 0.09)
     kw.setdefault("backward_runout", kw["runout"])
-    return collapse("gates-collapse", 0.08, 0.05, dx=dx, ppc=ppc, dim=dim, width=width, back_wall=False,
+    return collapse("gates-collapse", S2_LENGTH, S2_HEIGHT, dx=dx, ppc=ppc, dim=dim, width=width, back_wall=False,
                     front_gate_speed=0.45, back_gate_speed=0.45, t_end=t_end, frames=frames,
                     base_params=S2_PARAMS, **kw)
+
+
+#: S3's column length (docs/scenes.md S3, Mangeney et al. 2010), m.
+S3_LENGTH = 0.20
+#: S3's column height, m.
+S3_HEIGHT = 0.14
 
 
 def slope_collapse(slope_deg: float = 10.0, dx: float = 0.01, ppc: float | None = None, dim: int = 2,
@@ -364,8 +403,8 @@ def slope_collapse(slope_deg: float = 10.0, dx: float = 0.01, ppc: float | None 
     on a no-slip bed inclined at ``slope_deg``, released at t = 0 with no gate."""
     t_end = t_end if t_end is not None else (1.0 if slope_deg < 15 else 1.5)
     # Runout estimate: the flat-bed law 1.2 a L (a = 0.7) grows on a slope; generous factors.
-    kw.setdefault("runout", 0.2 * (1.2 * 0.7) * 2.0 * (1.0 + max(slope_deg, 0.0) / 8.0))
-    return collapse("slope-collapse", 0.20, 0.14, dx=dx, ppc=ppc, dim=dim, width=width, slope_deg=slope_deg,
+    kw.setdefault("runout", S3_LENGTH * (1.2 * 0.7) * 2.0 * (1.0 + max(slope_deg, 0.0) / 8.0))
+    return collapse("slope-collapse", S3_LENGTH, S3_HEIGHT, dx=dx, ppc=ppc, dim=dim, width=width, slope_deg=slope_deg,
                     t_end=t_end, frames=frames, base_params=S3_PARAMS, **kw)
 
 
@@ -409,7 +448,11 @@ def height_law(a):
     return np.where(a <= 0.7, a, a ** (1.0 / 3.0))
 
 
-def aspect_ratio_collapse(a: float = 1.0, L0: float = 0.05, dx: float | None = None, ppc: float | None = None,
+#: S5's default column length L0 (docs/scenes.md S5), m.
+S5_LENGTH = 0.05
+
+
+def aspect_ratio_collapse(a: float = 1.0, L0: float = S5_LENGTH, dx: float | None = None, ppc: float | None = None,
                           dim: int = 2, width: float | None = None, t_end: float | None = None,
                           frames: int = 0, **kw) -> Scene:
     """S5: a column L0 × a L0 on a horizontal no-slip floor against a slip-free back wall,
@@ -427,6 +470,11 @@ def aspect_ratio_collapse(a: float = 1.0, L0: float = 0.05, dx: float | None = N
         remake=lambda **c: aspect_ratio_collapse(**{"a": a, "L0": L0, "dx": dx, "ppc": ppc, "dim": dim, "width": width,
                                                     "t_end": t_end, "frames": frames, **kw, **c}))
 
+
+#: S7's column length (docs/scenes.md S7), m.
+S7_LENGTH = 0.20
+#: S7's column height, m.
+S7_HEIGHT = 0.10
 
 #: S7 aluminium bars (Bui, Fukagawa, Sako & Ohno 2008), every value with its source
 #: (experiments_data/experiments/S7_aluminium_bars.toml holds the same with longer notes):
@@ -456,9 +504,7 @@ def aspect_ratio_collapse(a: float = 1.0, L0: float = 0.05, dx: float | None = N
 #: - xi = 50: the reference code's scenes' value (S2, S4), a modelling choice.
 S7_PARAMS = {"mu1": math.tan(math.radians(19.8)), "mu2": math.tan(math.radians(32.76)), "I0": 0.279,
              "beta": 0.0, "rho": 2650.0, "rho_s": 2700.0, "E": 0.84e6, "nu": 0.3, "d": 1.2e-3,
-             "pc0": round(2650.0 * G * 0.10), "xi": 50.0}
-#: S7's column (docs/scenes.md S7), m.
-S7_LENGTH, S7_HEIGHT = 0.20, 0.10
+             "pc0": round(2650.0 * G * S7_HEIGHT), "xi": 50.0}
 
 
 def aluminium_bars(dx: float = S7_HEIGHT / 16, ppc: float | None = None, dim: int = 2, width: float | None = None,

@@ -22,7 +22,10 @@ from ..step import step_budget
 from .collapse import G, Scene, floor_lift
 from .info import SceneInfo
 
-__all__ = ["incline", "S1_PARAMS", "bagnold_velocity"]
+__all__ = ["incline", "S1_DEPTH", "S1_PARAMS", "bagnold_velocity"]
+
+#: S1's layer depth h (docs/scenes.md S1), m.
+S1_DEPTH = 0.038
 
 #: S1 material: glass beads, β = 0. docs/scenes.md gives no p_c0, ξ: ξ = 50 lets p_c grow by
 #: compaction to the critical state under the layer's weight (p_c0 = 100 Pa as S2).
@@ -46,7 +49,7 @@ def bagnold_velocity(z, depth, slope_deg, params):
     return scale * (depth**1.5 - (depth - z) ** 1.5)
 
 
-def incline(slope_deg: float = 24.0, dx: float | None = None, ppc: int = 2, depth: float = 0.038,
+def incline(slope_deg: float = 24.0, dx: float | None = None, ppc: int = 2, depth: float = S1_DEPTH,
             length_cells: int = 4, t_end: float = 2.0, frames: int = 0, max_steps: int | None = None,
             start_from_analytic: bool = True, critical_start: bool = False, transfer: str = "aflip",
             alpha: float = 0.95, dtype=None, sampling: str = "lattice", seed: int = 0,

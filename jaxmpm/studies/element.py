@@ -25,10 +25,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .linalg import det, mm, safe_div
-from .materials.base import Material, invariants
-from .materials.critical_state import CriticalState, bulk_modulus
-from .params import Params, validate_params
+from ..linalg import det, mm, safe_div
+from ..materials.base import Material, invariants
+from ..materials.critical_state import CriticalState, bulk_modulus
+from ..params import Params, validate_params
 
 __all__ = ["TESTS", "ElementHistory", "drive", "element_test"]
 
@@ -50,6 +50,24 @@ class ElementHistory:
     mu_eff: Any
     F: Any  # elastic deformation gradient
     lateral_error: Any  # triaxial: |lateral Cauchy stress + pressure| after the step (Pa); else 0
+
+    def failure(self) -> str | None:
+        """Why this history cannot be trusted, or None: a non-finite value anywhere in it (not
+        only at the last step), or, in the triaxial test, a lateral stress the control did not
+        hold to 1e-6 of the stresses reached."""
+        broken = sorted(f.name for f in dataclasses.fields(self)
+                        if not np.all(np.isfinite(np.asarray(getattr(self, f.name)))))
+        if broken:
+            steps = len(np.asarray(self.t))
+            rows = [np.isfinite(np.asarray(getattr(self, name))).reshape(steps, -1).all(axis=1) for name in broken]
+            first = int(np.argmax(~np.logical_and.reduce(rows)))
+            return f"non-finite {', '.join(broken)} (first at step {first})"
+        error = np.asarray(self.lateral_error)
+        tol = 1e-6 * max(1.0, float(np.max(np.abs(np.asarray(self.p)))))
+        if np.max(error) > tol:
+            return (f"the triaxial control did not hold the lateral stress: off by up to "
+                    f"{float(np.max(error)):.3g} Pa (step {int(np.argmax(error))})")
+        return None
 
     def final(self) -> dict[str, float]:
         return {

@@ -11,7 +11,8 @@
 - ``stability``: settings pushed until methods fail, and how each failure is reported;
 - ``avalanche``: S6 against dx and against the snow's parameters, with an obstacle's force.
 
-Every study returns a JSON-ready dict and, with a plot directory, writes its figure there.
+Every study returns a JSON-ready dict and, with a plot directory, draws its figure there through
+``jaxmpm.studies.plots``.
 ``--quick`` runs a reduced version (coarser, shorter) that finishes in a minute or two.
 """
 
@@ -25,23 +26,16 @@ import time
 import jax
 import numpy as np
 
-from . import fidelity, scenes
-from .materials.base import invariants
-from .observables import deposit_profile, front_from_profile, particle_volumes
-from .precision import x64
-from .scenes.collapse import S4_SIDE
-from .simulate import simulate
+from .. import scenes
+from ..materials.base import invariants
+from ..observables import deposit_profile, front_from_profile, particle_volumes
+from ..precision import x64, x64_enabled
+from ..scenes import S1_DEPTH, S3_LENGTH, S4_SIDE, S5_LENGTH
+from ..simulate import simulate
+from . import fidelity
 
 __all__ = ["STUDIES", "run_study", "bagnold", "convergence", "aspect_ratio", "cohesion", "speed_accuracy",
            "stability", "avalanche"]
-
-
-def _save(fig, plot_dir, name, dpi):
-    import matplotlib.pyplot as plt
-
-    fig.tight_layout()
-    fig.savefig(pathlib.Path(plot_dir) / name, dpi=dpi)
-    plt.close(fig)
 
 
 def _profile_observer(state, params):
@@ -73,7 +67,7 @@ def bagnold(quick=False, plot_dir=None, alpha=0.95, slopes=(22.0, 24.0, 26.0, 28
     cases, profiles = [], {}
     for slope in slopes:
         for div in divisions:
-            scene = scenes.incline(slope, dx=0.038 / div, t_end=t_end, frames=16, alpha=alpha, critical_start=True)
+            scene = scenes.incline(slope, dx=S1_DEPTH / div, t_end=t_end, frames=16, alpha=alpha, critical_start=True)
             if xpic:
                 scene = dataclasses.replace(scene, config=dataclasses.replace(scene.config, xpic=xpic))
             gap = scene.info.wall_gap
@@ -84,7 +78,7 @@ def bagnold(quick=False, plot_dir=None, alpha=0.95, slopes=(22.0, 24.0, 26.0, 28
             late = range(12, 16)
             v_s, v_a, prof = [], [], []
             row = scene.config.grid.cells[0] * scene.info.ppc
-            v_max = float(scenes.bagnold_velocity(0.038, 0.038, slope, scene.params))
+            v_max = float(scenes.bagnold_velocity(S1_DEPTH, S1_DEPTH, slope, scene.params))
             for k in late:
                 vx, z, vol = frames["vx"][k], frames["y"][k] - gap, frames["vol"][k]
                 h = vol.sum() / scene.info.length
@@ -109,7 +103,9 @@ def bagnold(quick=False, plot_dir=None, alpha=0.95, slopes=(22.0, 24.0, 26.0, 28
     if plot_dir:
         suffix = ("" if alpha == 0.95 else f"_alpha{alpha:g}") + (f"_xpic{xpic}" if xpic else "")
         suffix += "" if out["dtype"] == "float32" else "_" + out["dtype"]
-        _plot_bagnold(profiles, slopes, divisions, cases, plot_dir, f"bagnold{suffix}.png")
+        from .plots import plot_bagnold
+
+        plot_bagnold(profiles, slopes, divisions, cases, scene.params, pathlib.Path(plot_dir) / f"bagnold{suffix}.png")
     return out
 
 
@@ -121,24 +117,24 @@ def bagnold_from_rest(quick=False, plot_dir=None, alpha=0.95, slope=24.0, divisi
     v/(g cos θ μ'(I) I) (about 4 s at 24°), so the run lasts several of them."""
     t_end = (2.0 if quick else 12.0) if t_end is None else t_end
     frames = 24 if not quick else 8
-    scene = scenes.incline(slope, dx=0.038 / division, t_end=t_end, frames=frames, alpha=alpha,
+    scene = scenes.incline(slope, dx=S1_DEPTH / division, t_end=t_end, frames=frames, alpha=alpha,
                            critical_start=True, start_from_analytic=False)
     if xpic:
         scene = dataclasses.replace(scene, config=dataclasses.replace(scene.config, xpic=xpic))
     gap = scene.info.wall_gap
     result, wall = _timed(scene, _profile_observer)
     fr = {k: np.asarray(v) for k, v in result.frames.items()}
-    v_max = float(scenes.bagnold_velocity(0.038, 0.038, slope, scene.params))
-    edges = np.linspace(0.0, 0.038, 20)
+    v_max = float(scenes.bagnold_velocity(S1_DEPTH, S1_DEPTH, slope, scene.params))
+    edges = np.linspace(0.0, S1_DEPTH, 20)
     mid = 0.5 * (edges[1:] + edges[:-1])
-    analytic_mid = scenes.bagnold_velocity(mid, 0.038, slope, scene.params)
+    analytic_mid = scenes.bagnold_velocity(mid, S1_DEPTH, slope, scene.params)
     row = scene.config.grid.cells[0] * scene.info.ppc
     snapshots = []
     for k, t in enumerate(result.frame_times):
         vx, z = fr["vx"][k], fr["y"][k] - gap
         which = np.digitize(z, edges) - 1
         prof = np.array([vx[which == b].mean() if np.any(which == b) else np.nan for b in range(len(mid))])
-        analytic = scenes.bagnold_velocity(z, 0.038, slope, scene.params)
+        analytic = scenes.bagnold_velocity(z, S1_DEPTH, slope, scene.params)
         top = np.argsort(z)[-row:]
         snapshots.append({"t": float(t), "v_surface": float(vx[top].mean()),
                           "surface_rel": float(vx[top].mean() / v_max),
@@ -149,64 +145,12 @@ def bagnold_from_rest(quick=False, plot_dir=None, alpha=0.95, slope=24.0, divisi
            "z_bins": mid.tolist(), "analytic": analytic_mid.tolist(), "snapshots": snapshots,
            "status": result.status, "wall_s": round(wall, 1)}
     if plot_dir:
-        _plot_from_rest(out, plot_dir)
+        from .plots import plot_bagnold_from_rest
+
+        suffix = ("" if alpha == 0.95 else f"_alpha{alpha:g}") + (f"_xpic{xpic}" if xpic else "")
+        suffix += "" if out["dtype"] == "float32" else "_" + out["dtype"]
+        plot_bagnold_from_rest(out, pathlib.Path(plot_dir) / f"bagnold_from_rest{suffix}.png")
     return out
-
-
-def _plot_from_rest(out, plot_dir):
-    from .plots import _pyplot
-
-    plt = _pyplot()
-    fig, (a1, a2) = plt.subplots(1, 2, figsize=(10, 4))
-    z = np.asarray(out["z_bins"]) * 1e3
-    shown = [s for s in out["snapshots"]][:: max(1, len(out["snapshots"]) // 6)]
-    cmap = plt.get_cmap("viridis")
-    for i, snap in enumerate(shown):
-        prof = np.array([np.nan if v is None else v for v in snap["profile"]])
-        a1.plot(prof, z, "-", color=cmap(i / max(1, len(shown) - 1)), label=f"t = {snap['t']:.1f} s")
-    a1.plot(out["analytic"], z, "k--", lw=1.5, label="Bagnold (docs/model.md §6)")
-    a1.set_xlabel("v (m/s)")
-    a1.set_ylabel("height above bed (mm)")
-    a1.set_title(f"S1, θ = {out['slope_deg']:g}° from rest, dx = h/{round(0.038 / out['dx'])}, {out['dtype']}"
-                 + (f", XPIC({out['xpic']})" if out["xpic"] else ""), fontsize=9)
-    a1.legend(fontsize=7)
-    t = [s["t"] for s in out["snapshots"]]
-    a2.plot(t, [s["surface_rel"] for s in out["snapshots"]], "o-", label="surface velocity / v_max")
-    a2.plot(t, [s["profile_rel_error"] for s in out["snapshots"]], "s-", label="profile RMS error / v_max")
-    a2.axhline(1.0, color="k", lw=0.6)
-    a2.axhline(0.03, color="k", lw=0.6, ls=":")
-    a2.set_xlabel("t (s)")
-    a2.legend(fontsize=7)
-    suffix = (("" if out["alpha"] == 0.95 else f"_alpha{out['alpha']:g}")
-              + (f"_xpic{out['xpic']}" if out["xpic"] else ""))
-    suffix += "" if out["dtype"] == "float32" else "_" + out["dtype"]
-    _save(fig, plot_dir, f"bagnold_from_rest{suffix}.png", 100)
-
-
-def _plot_bagnold(profiles, slopes, divisions, cases, plot_dir, name="bagnold.png"):
-    from .plots import _pyplot
-
-    plt = _pyplot()
-    fig, axes = plt.subplots(1, len(slopes) + 1, figsize=(4 * (len(slopes) + 1), 3.6))
-    params = scenes.incline(22.0).params
-    for ax, slope in zip(axes, slopes):
-        for div in divisions:
-            vx, y, h = profiles[(slope, div)]
-            ax.plot(vx, y * 1e3, ".", ms=2, label=f"dx = h/{div}")
-        z = np.linspace(0, h, 100)
-        ax.plot(scenes.bagnold_velocity(z, h, slope, params), z * 1e3, "k-", lw=1.2, label="Bagnold (docs/model.md §6)")
-        ax.set_title(f"θ = {slope:g}°")
-        ax.set_xlabel("v (m/s)")
-        ax.set_ylabel("height above bed (mm)")
-    axes[0].legend(fontsize=7)
-    ax = axes[-1]
-    for slope in slopes:
-        rows = [c for c in cases if c["slope_deg"] == slope]
-        ax.loglog([c["dx"] for c in rows], [abs(c["rel_error"]) + 1e-6 for c in rows], "o-", label=f"{slope:g}°")
-    ax.set_xlabel("dx (m)")
-    ax.set_ylabel("|surface velocity error|")
-    ax.legend(fontsize=7)
-    _save(fig, plot_dir, name, 90)
 
 
 def convergence(quick=False, plot_dir=None) -> dict:
@@ -239,25 +183,9 @@ def convergence(quick=False, plot_dir=None) -> dict:
            "front_threshold_m": S3_FRONT_THRESHOLD, "runs": rows,
            "successive_front_differences": diffs, "observed_order": orders}
     if plot_dir:
-        from .plots import _pyplot
+        from .plots import plot_convergence
 
-        plt = _pyplot()
-        fig, (a1, a2) = plt.subplots(1, 2, figsize=(11, 3.6))
-        for row, h in zip(rows, profiles):
-            a1.plot(xs, h * 1e3, label=f"dx = {row['dx'] * 1e3:g} mm, {row['sampling']} ppc {row['ppc']:g}")
-        a1.set_xlabel("x along the bed (m)")
-        a1.set_ylabel(f"h (mm), kernel σ = {S3_SIGMA * 1e3:g} mm")
-        a1.legend(fontsize=7)
-        a1.set_title(f"S3, θ = 10°, t = {t_end} s")
-        coarse = rows[:-1]
-        a2.loglog([r["dx"] for r in coarse], [max(r["front_diff"], 1e-6) for r in coarse], "o-", label="front (m)")
-        a2.loglog([r["dx"] for r in coarse], [max(r["runout_diff"], 1e-6) for r in coarse], "^-",
-                  label="max-particle runout (m)")
-        a2.loglog([r["dx"] for r in coarse], [r["profile_l2_rel"] for r in coarse], "s-", label="profile (rel. L2)")
-        a2.set_xlabel("dx (m)")
-        a2.set_ylabel("difference to the finest run")
-        a2.legend(fontsize=7)
-        _save(fig, plot_dir, "convergence.png", 90)
+        plot_convergence(xs, rows, profiles, S3_SIGMA, t_end, pathlib.Path(plot_dir) / "convergence.png")
     return out
 
 
@@ -267,33 +195,19 @@ def aspect_ratio(quick=False, plot_dir=None) -> dict:
     ratios = (0.5, 1.0, 2.0) if quick else (0.5, 1.0, 2.0, 4.0, 8.0)
     rows = []
     for a in ratios:
-        scene = scenes.aspect_ratio_collapse(a, L0=0.05, dx=0.05 / (6 if quick else 10))
+        scene = scenes.aspect_ratio_collapse(a, L0=S5_LENGTH, dx=S5_LENGTH / (6 if quick else 10))
         result, wall = _timed(scene)
         x = np.asarray(result.state.x)
-        rows.append({"a": a, "runout_over_L0": float((x[:, 0].max() - 0.05) / 0.05),
+        rows.append({"a": a, "runout_over_L0": float((x[:, 0].max() - S5_LENGTH) / S5_LENGTH),
                      "law_runout_over_L0": float(scenes.runout_law(a)),
-                     "height_over_L0": float(x[:, 1].max() / 0.05), "law_height_over_L0": float(scenes.height_law(a)),
+                     "height_over_L0": float(x[:, 1].max() / S5_LENGTH),
+                     "law_height_over_L0": float(scenes.height_law(a)),
                      "status": result.status, "wall_s": round(wall, 2)})
     out = {"study": "aspect-ratio", "laws": "Lajeunesse et al. 2005 via Kumar (secondary)", "runs": rows}
     if plot_dir:
-        from .plots import _pyplot
+        from .plots import plot_aspect_ratio
 
-        plt = _pyplot()
-        fig, (a1, a2) = plt.subplots(1, 2, figsize=(10, 3.6))
-        a = np.array([r["a"] for r in rows])
-        fine = np.linspace(0.3, 10, 200)
-        a1.loglog(a, [r["runout_over_L0"] for r in rows], "o", label="jaxmpm")
-        a1.loglog(fine, scenes.runout_law(fine), "k-", label="glass beads (secondary)")
-        a1.loglog(fine, scenes.runout_law(fine, sand=True), "k--", label="sand, Lube 2005 (secondary)")
-        a1.set_xlabel("a = H0/L0")
-        a1.set_ylabel("ΔL/L0")
-        a1.legend(fontsize=7)
-        a2.loglog(a, [r["height_over_L0"] for r in rows], "o", label="jaxmpm")
-        a2.loglog(fine, scenes.height_law(fine), "k-", label="glass beads (secondary)")
-        a2.set_xlabel("a = H0/L0")
-        a2.set_ylabel("H_f/L0")
-        a2.legend(fontsize=7)
-        _save(fig, plot_dir, "aspect_ratio.png", 90)
+        plot_aspect_ratio(rows, pathlib.Path(plot_dir) / "aspect_ratio.png")
     return out
 
 
@@ -309,21 +223,9 @@ def cohesion(quick=False, plot_dir=None) -> dict:
         shown.append((beta, x, np.asarray(invariants(result.state.tau)[0])))
     out = {"study": "cohesion", "runs": rows}
     if plot_dir:
-        from .plots import _pyplot
+        from .plots import plot_cohesion
 
-        plt = _pyplot()
-        fig, axes = plt.subplots(2, 1, figsize=(8, 5), sharex=True)
-        for ax, (beta, x, p) in zip(axes, shown):
-            ax.plot([0, 0, S4_SIDE, S4_SIDE], [0, S4_SIDE, S4_SIDE, 0], "k:", lw=1)
-            # colour range from the 1st to the 99th percentile: a few particles pressed against a
-            # wall carry p an order of magnitude above the rest and would wash the map out
-            art = ax.scatter(x[:, 0], x[:, 1], c=p, s=2, lw=0, vmin=min(0.0, float(np.percentile(p, 1))),
-                             vmax=float(np.percentile(p, 99)))
-            fig.colorbar(art, ax=ax, label="p (Pa)", shrink=0.8)
-            ax.set_aspect("equal")
-            ax.set_title(f"S4, β = {beta}, t = 0.5 s")
-        axes[-1].set_xlabel("x (m)")
-        _save(fig, plot_dir, "cohesion.png", 90)
+        plot_cohesion(shown, pathlib.Path(plot_dir) / "cohesion.png")
     return out
 
 
@@ -343,8 +245,8 @@ S3_FRONT_THRESHOLD = 3e-3
 
 def _s3_observe(scene, state, xs):
     h = np.asarray(deposit_profile(state.x, particle_volumes(state), xs, S3_SIGMA))
-    front = float(front_from_profile(xs, h, S3_FRONT_THRESHOLD, x_ref=0.0)) - 0.2
-    return h, front, float(np.asarray(state.x)[:, 0].max()) - 0.2
+    front = float(front_from_profile(xs, h, S3_FRONT_THRESHOLD, x_ref=0.0)) - S3_LENGTH
+    return h, front, float(np.asarray(state.x)[:, 0].max()) - S3_LENGTH
 
 
 def speed_accuracy(quick=False, plot_dir=None) -> dict:
@@ -370,7 +272,7 @@ def speed_accuracy(quick=False, plot_dir=None) -> dict:
     h_ref, front_ref, runout_ref = _s3_observe(ref_scene, ref.state, xs)
     rows = []
     for v in variants:
-        with x64(v.get("dtype") == "float64" or bool(jax.config.jax_enable_x64)):
+        with x64(v.get("dtype") == "float64" or x64_enabled()):
             scene = _s3(t_end=t_end, **v)
             result = simulate(*scene, throw=False, timed=True)  # compiled before the clock starts
             h, front, runout = _s3_observe(scene, result.state, xs)
@@ -392,31 +294,14 @@ def speed_accuracy(quick=False, plot_dir=None) -> dict:
                          "transfer": "aflip", "wall_s": round(ref.run_s, 2), "front": front_ref, "runout": runout_ref},
            "runs": rows}
     if plot_dir:
-        from .plots import _pyplot
+        from .plots import plot_speed_accuracy
 
-        plt = _pyplot()
-        fig, axes = plt.subplots(1, 2, figsize=(12, 4.5))
-        for ax, key, label in ((axes[0], "front_rel_error", "front error (h < 3 mm)"),
-                               (axes[1], "profile_rel_error", "deposit profile error (rel. L2)")):
-            for r in rows:
-                marker = {"aflip": "o", "apic": "s", "pic": "^"}[r["transfer"]]
-                ax.loglog(r["wall_s"], max(r[key], 1e-4), marker, color="C3" if r["pareto"] else "C0", ms=7)
-                ax.annotate(f"{r['dx'] * 1e3:g}mm {r['transfer']} {r['sampling'][:3]} ppc{r['ppc']:g}"
-                            + (f" xpic{r['xpic']}" if r["xpic"] else "")
-                            + (" f64" if r["dtype"] == "float64" else "")
-                            + (f" cfl{r['cfl']}" if r["cfl"] != 0.5 else ""),
-                            (r["wall_s"], max(r[key], 1e-4)), fontsize=5.5, xytext=(3, 3), textcoords="offset points")
-            for level in (0.01, 0.02, 0.05):
-                ax.axhline(level, color="k", lw=0.6, ls=":")
-            ax.set_xlabel("run time on 2 CPU cores (s), compilation apart")
-            ax.set_ylabel(label)
-        axes[0].set_title("o AFLIP  s APIC  ^ PIC;  red: Pareto front (front error)", fontsize=9)
-        _save(fig, plot_dir, "speed_accuracy.png", 110)
+        plot_speed_accuracy(rows, pathlib.Path(plot_dir) / "speed_accuracy.png")
     return out
 
 
 def _stability_case(label, scene, baseline_runout):
-    from .state import describe_status
+    from ..state import describe_status
 
     clock = time.perf_counter()
     result = simulate(*scene, throw=False)
@@ -477,8 +362,8 @@ AVALANCHE_STATION = 3800.0  # on the run-out plain, where the study's obstacle s
 
 
 def _avalanche_row(label, dx, snow="dry", obstacle=None, **values):
+    from ..scenes.avalanche import avalanche as make
     from .avalanche import run_avalanche
-    from .scenes.avalanche import avalanche as make
 
     scene = make(dx=dx, snow=snow, t_end=100.0, frames=100, obstacle=obstacle, **values)
     clock = time.perf_counter()
@@ -525,38 +410,13 @@ def avalanche(quick=False, plot_dir=None) -> dict:
     out = {"study": "avalanche", "scene": "avalanche", "terrain": "ISeeSnow CoulombOnly centre line", "mu_w": 0.4,
            "runs": rows, "runout_change_finest_pair": abs(runouts[-1] - runouts[-2]) / (runouts[-1] - 1345.0)}
     if plot_dir:
-        from .plots import animate_avalanche, plot_avalanche
+        from .plots import animate_avalanche, plot_avalanche, plot_obstacle_force
 
         plot_avalanche(shown["open"], pathlib.Path(plot_dir) / "avalanche.png",
                        title=f"S6 avalanche (ISeeSnow CoulombOnly terrain), dry snow, dx = {base:g} m, mu_w = 0.4")
         animate_avalanche(shown["open"], pathlib.Path(plot_dir) / "avalanche.gif", fps=8)
-        _plot_obstacle(shown["open"], shown["obstacle"], base, plot_dir)
+        plot_obstacle_force(shown["open"], shown["obstacle"], base, pathlib.Path(plot_dir) / "avalanche_obstacle.png")
     return out
-
-
-def _plot_obstacle(open_path, obstacle, dx, plot_dir):
-    from .plots import _pyplot
-
-    plt = _pyplot()
-    fig, (top, low) = plt.subplots(2, 1, figsize=(8, 6))
-    t = obstacle.times
-    top.step(t, obstacle.obstacle_force_kn_per_m[:, 0], where="pre", color="k",
-             label="simulated 5 m wall: its impulse's change over each 1 s frame")
-    top.plot(t, open_path.force_kn_per_m, "r--", label="open path: momentum flux ρu²h through the station")
-    top.set_xlabel("t (s)")
-    top.set_ylabel(f"force at x = {obstacle.station:g} m (kN/m)")
-    top.set_xlim(t[np.argmax(obstacle.obstacle_force_kn_per_m[:, 0] > 0)] - 5, t[-1])
-    top.legend(fontsize=8)
-    top.set_title(f"S6, dry snow, dx = {dx:g} m: the force on an obstacle", fontsize=10)
-    near = (open_path.x > obstacle.station - 400) & (open_path.x < obstacle.station + 500)
-    low.plot(open_path.x[near], open_path.deposit[near], "r--", label="deposit, open path")
-    near = (obstacle.x > obstacle.station - 400) & (obstacle.x < obstacle.station + 500)
-    low.plot(obstacle.x[near], obstacle.deposit[near], "k-", label="deposit, with the wall")
-    low.axvline(obstacle.station, color="grey", lw=3, alpha=0.5, label="wall")
-    low.set_xlabel("x along the path (m)")
-    low.set_ylabel("deposit thickness (m, at release density)")
-    low.legend(fontsize=8)
-    _save(fig, plot_dir, "avalanche_obstacle.png", 110)
 
 
 STUDIES = {"bagnold": bagnold, "bagnold-from-rest": bagnold_from_rest, "convergence": convergence,

@@ -26,10 +26,10 @@ import pathlib
 
 import numpy as np
 
-from . import scenes
-from .observables import deposit_profile, front_from_profile, particle_volumes
-from .scenes.collapse import S4_SIDE
-from .simulate import simulate
+from .. import scenes
+from ..observables import deposit_profile, front_from_profile, particle_volumes
+from ..scenes import S4_SIDE
+from ..simulate import simulate
 
 __all__ = ["REFERENCE_S2", "REFERENCE_SOURCE", "SIGMA", "cross_code", "observe", "resolution", "run_case"]
 
@@ -177,7 +177,9 @@ def analyse_resolution(rows, plot_dir=None) -> dict:
             "runs": [{k: (v.tolist() if isinstance(v, np.ndarray) else v) for k, v in r.items()} for r in runs],
         }
     if plot_dir:
-        _plot_resolution(out, plot_dir)
+        from .plots import plot_resolution
+
+        plot_resolution(out, pathlib.Path(plot_dir) / "resolution.png")
     return out
 
 
@@ -205,40 +207,6 @@ def _summary(row):
         return None
     return {k: row[k] for k in ("dx", "ppc", "sampling", "seed", "n_particles", "particle_steps", "run_s", "error")
             if k in row}
-
-
-def _plot_resolution(out, plot_dir):
-    """Worst scalar error and profile error of every run against its cost (particle-steps)."""
-    from .plots import _pyplot
-
-    plt = _pyplot()
-    names = list(out["scenes"])
-    fig, axes = plt.subplots(2, len(names), figsize=(6.5 * len(names), 8), squeeze=False)
-    markers = {"lattice": "o", "jitter": "s", "poisson": "^"}
-    colors = {2.0: "C0", 2.45: "C1", 3.0: "C2", 4.0: "C3"}
-    for col, name in enumerate(names):
-        data = out["scenes"][name]
-        for row, (label, value) in enumerate((
-                ("worst scalar error (" + ", ".join(data["scalars"]) + ")",
-                 lambda r, data=data: max(abs(r["error"][k]) for k in data["scalars"])),  # used in this iteration
-                (f"deposit profile error (rel. L2, σ = {SIGMA * 1e3:g} mm)", lambda r: r["error"]["profile"]))):
-            ax = axes[row, col]
-            for r in data["runs"]:
-                cost, err = r["particle_steps"], max(value(r), 1e-4)
-                ax.loglog(cost, err, markers[r["sampling"]], color=colors.get(float(r["ppc"]), "C4"), ms=6,
-                          mfc="none" if r["seed"] else None)
-                ax.annotate(f"{r['dx'] * 1e3:.2g}", (cost, err), fontsize=6, xytext=(3, 2), textcoords="offset points")
-            for level in (0.01, 0.02, 0.05):
-                ax.axhline(level, color="k", lw=0.6, ls=":")
-            ax.set_xlabel("cost: particle-steps of the run")
-            ax.set_ylabel(label, fontsize=8)
-        ref = data["reference"]
-        axes[0, col].set_title(f"{name} against {ref['sampling']} ppc {ref['ppc']:g}, dx {ref['dx'] * 1e3:.2g} mm "
-                               f"(mean of seeds {ref['seeds']})\no lattice, s jitter, ^ Poisson; colour: ppc 2, 2.45, "
-                               "3, 4; open: seeds > 0; label: dx (mm)", fontsize=8)
-    fig.tight_layout()
-    fig.savefig(pathlib.Path(plot_dir) / "resolution.png", dpi=100)
-    plt.close(fig)
 
 
 def cross_code(quick=False, plot_dir=None, converged=None, seeds=(0, 1, 2)) -> dict:
@@ -301,7 +269,7 @@ def run_logged(names, log_path, quick=False):
     return analyse_resolution(rows)
 
 
-if __name__ == "__main__":  # python -m jaxmpm.fidelity LOG.jsonl [quick] [SCENE ...]
+if __name__ == "__main__":  # python -m jaxmpm.studies.fidelity LOG.jsonl [quick] [SCENE ...]
     import json
     import sys
 

@@ -32,7 +32,7 @@ import math
 import jax
 import numpy as np
 
-__all__ = ["PathFields", "path_fields", "run_avalanche", "smooth_runout"]
+__all__ = ["PathFields", "avalanche_summary", "fields_header", "path_fields", "run_avalanche", "smooth_runout"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -199,8 +199,8 @@ def run_avalanche(scene, station: float | None = None, progress: bool = False, t
     ``simulate`` result (``throw=False``: its status says whether the run is trusted; timed) and
     the ``PathFields`` on its frames. ``station`` defaults to the obstacle's where the scene has
     one, else half way along the flow's reach."""
-    from .scenes.avalanche import OBSTACLE
-    from .simulate import simulate
+    from ..scenes.avalanche import OBSTACLE
+    from ..simulate import simulate
 
     config, state, params = scene
     result = simulate(config, state, params, observer=_observer, throw=False, progress=progress, timed=not progress)
@@ -211,3 +211,28 @@ def run_avalanche(scene, station: float | None = None, progress: bool = False, t
                          np.asarray(config.frame_times), float(params.rho), config.grid.dx, threshold=threshold,
                          station=station, impulse=result.frames["impulse"][:, OBSTACLE] if has_obstacle else None)
     return result, fields
+
+
+def avalanche_summary(scene, result, fields: PathFields, snow: str) -> dict:
+    """What an S6 run ended with (``run_avalanche``'s ``result`` and ``fields``): sizes, the
+    fields' summary, the basal friction, the status and its meaning, the timings; what
+    ``python -m jaxmpm run avalanche`` prints."""
+    from ..state import describe_status
+
+    config, state, params = scene
+    return {"scene": "avalanche", "snow": snow, "n_particles": int(state.n_particles),
+            "n_steps": int(result.state.steps), "dx": config.grid.dx, "t_end": config.t_end,
+            "grid_nodes_dense": config.grid.n_nodes, "active_nodes": config.active_nodes,
+            **fields.summary(), "mu_w": float(params.mu_w), "status": result.status,
+            "status_text": describe_status(result.status), "compile_s": round(result.compile_s, 3),
+            "run_s": round(result.run_s, 3)}
+
+
+def fields_header(scene, result, fields: PathFields, source: str) -> dict:
+    """The header of the fields along the path as CSV (``tables.write_table`` of
+    ``fields.columns()``): a synthetic table made by ``source`` (the command that ran it)."""
+    from .._version import __version__
+
+    return {"experiment": f"avalanche (synthetic, jaxmpm {__version__})", "units": "m, m/s, kPa",
+            "synthetic": True, "source": source, "t_end_s": scene.config.t_end, "peaks": "over the frames",
+            "summary": fields.summary(), "status": result.status}

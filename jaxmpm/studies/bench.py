@@ -9,7 +9,6 @@ without the checkpointed blocks. Timings are medians over ``--repeat`` runs.
 from __future__ import annotations
 
 import dataclasses
-import json
 import math
 import os
 import platform
@@ -20,11 +19,11 @@ import time
 import jax
 import jax.numpy as jnp
 
-from .precision import use_dtype
-from .rollout import make_rollout
-from .scenes import falling_block, gates_collapse
+from ..precision import use_dtype
+from ..rollout import make_rollout
+from ..scenes import S2_HEIGHT, S2_LENGTH, falling_block, gates_collapse
 
-__all__ = ["bench_forward", "bench_gradient", "main", "median_time"]
+__all__ = ["bench_forward", "bench_gradient", "median_time", "run_bench"]
 
 
 def _device() -> str:
@@ -63,7 +62,7 @@ def _scene(scene: str, quick: bool, dim: int, dtype, n_particles=None):
         # ~10,240 particles at dx = 1.25 mm (2x2 per cell); the first 0.05 s (~2,000 steps).
         dx = 0.0025 if quick else 0.00125
         if n_particles:
-            dx = math.sqrt(0.08 * 0.05 / n_particles * 4)
+            dx = math.sqrt(S2_LENGTH * S2_HEIGHT / n_particles * 4)
         # A fixed 2 x 2 lattice, whatever the scenes' default sampling: the benchmark's particle
         # count (and so its throughput) stays comparable over time and with the Taichi reference.
         return gates_collapse(dx=dx, t_end=0.01 if quick else 0.05, dtype=dtype, ppc=2, sampling="lattice")
@@ -150,13 +149,12 @@ def bench_gradient(quick=False, dim=2, dtype="float32", repeat=3, n_particles=No
     return out
 
 
-def main(args) -> dict:
-    dtype = "float64" if args.dtype == "float64" else "float32"
+def run_bench(grad=False, quick=False, dim=2, dtype="float32", repeat=3, n_particles=None, scene="block",
+              steps=None, active_nodes=None) -> dict:
+    """The benchmark ``python -m jaxmpm bench`` runs: ``bench_gradient`` with ``grad`` (which
+    takes neither ``scene`` nor ``active_nodes``), else ``bench_forward``; float64 turns JAX's
+    64-bit mode on first (``precision.use_dtype``)."""
     use_dtype(dtype)
-    if args.grad:
-        result = bench_gradient(args.quick, args.dim, dtype, args.repeat, args.particles, args.steps)
-    else:
-        result = bench_forward(args.quick, args.dim, dtype, args.repeat, args.particles, args.scene,
-                               steps=args.steps, active_nodes=args.active_nodes)
-    print(json.dumps(result) if args.json else json.dumps(result, indent=2))
-    return result
+    if grad:
+        return bench_gradient(quick, dim, dtype, repeat, n_particles, steps)
+    return bench_forward(quick, dim, dtype, repeat, n_particles, scene, steps=steps, active_nodes=active_nodes)
