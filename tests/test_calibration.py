@@ -3,16 +3,15 @@ uncertainty. Tiny S4 scenes (dx = L/6, 144 particles) keep each run well under a
 
 import json
 import os
-import pathlib
 import signal
 import subprocess
 import sys
-import time
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from helpers import ROOT, S4_DATA, TINY_FLAGS, model_data, tiny_s4
 
 from calibration import (
     Bounds,
@@ -24,33 +23,18 @@ from calibration import (
     gauss_newton_uncertainty,
     read_history,
 )
-from jaxmpm import scenes
 from jaxmpm.observables import deposit_profile, front_from_profile
-from jaxmpm.scenes import S4_SIDE
 
-ROOT = pathlib.Path(__file__).resolve().parents[1]
 KEYS = ("beta", "mu1")
-
-
-def tiny_scene(t_end=0.1, **values):
-    return scenes.cohesive_collapse(dx=S4_SIDE / 6, t_end=t_end, **{"beta": 0.25, **values})
-
-
-def synthetic(scene, keys, theta, xs=None, times=(0.05, 0.1)):
-    """Data made by the model itself at ``theta`` (``xs``: default 17 points over [0, 0.16] m)."""
-    xs = np.linspace(0.0, 0.16, 17) if xs is None else xs
-    gen = Objective(scene, keys, profile=ProfileTarget(xs, np.ones_like(xs)),
-                    front=FrontTarget(np.asarray(times), np.ones(len(times))), check_data=False)  # placeholders
-    _, pred = gen.residuals(theta)
-    assert int(pred["status"]) == 0
-    return ProfileTarget(xs, np.asarray(pred["h"])), FrontTarget(np.asarray(times), np.asarray(pred["front"]))
+#: Where the model's own data observe the tiny scene: the final profile and the front.
+XS, TIMES = np.linspace(0.0, 0.16, 17), (0.05, 0.1)
 
 
 @pytest.fixture(scope="module")
 def problem():
-    scene = tiny_scene()
+    scene = tiny_s4()
     truth = np.array([0.25, float(scene.params.mu1)])
-    profile, front = synthetic(scene, KEYS, truth)
+    profile, front = model_data(scene, KEYS, truth, XS, TIMES)
     return scene, truth, Objective(scene, KEYS, profile=profile, front=front)
 
 
@@ -107,7 +91,7 @@ def test_init_outside_bounds_is_an_error_naming_the_key(problem):
 # ---- objective -----------------------------------------------------------------------------
 
 def test_objective_rejects_bad_input():
-    scene = tiny_scene()
+    scene = tiny_s4()
     xs = np.linspace(0, 0.1, 5)
     with pytest.raises(ValueError, match="nothing to fit"):
         Objective(scene, KEYS)
@@ -248,11 +232,11 @@ def test_row_weighting_weighs_every_point_alike(problem):
 @pytest.fixture(scope="module")
 def sharing():
     """Two experiments of one scene at β 0.25 and 0.35 sharing μ1: (composite, a, b, μ1)."""
-    scene = tiny_scene()
+    scene = tiny_s4()
     mu1 = float(scene.params.mu1)
     members = []
     for beta in (0.25, 0.35):
-        profile, front = synthetic(scene, KEYS, np.array([beta, mu1]))
+        profile, front = model_data(scene, KEYS, np.array([beta, mu1]), XS, TIMES)
         members.append(Objective(scene, KEYS, profile=profile, front=front))
     return CompositeObjective.sharing(members, shared=("mu1",), labels=("A", "B")), *members, mu1
 
@@ -370,43 +354,61 @@ def test_resume_compares_every_run_option(problem, tmp_path, change):
         fit(objective, {"beta": 0.2}, steps=2, out=tmp_path / "f.h5", resume=True, uncertainty=False, **change)
 
 
+#: ``python KILLED.py OUT ROWS ARGS...`` runs ``python -m calibration ARGS...`` and SIGKILLs it
+#: at a known point: when the fit is about to rename a newly written history onto OUT (the
+#: temporary file already complete beside it) while OUT holds ROWS iterations. Python's audit
+#: hook on ``os.rename`` (which ``os.replace`` raises) finds the moment, so the kill depends on
+#: no timing: a fast machine cannot finish the fit first.
+KILLED = """
+import os, runpy, signal, sys
+
+out, rows, argv = os.path.abspath(sys.argv[1]), int(sys.argv[2]), sys.argv[3:]
+busy = []
+
+
+def kill_at_rows(event, args):
+    if event != "os.rename" or busy or os.path.abspath(os.fspath(args[1])) != out or not os.path.exists(out):
+        return
+    busy.append(True)
+    from calibration.history import read_history
+
+    if read_history(out)["history"]["loss"].size >= rows:
+        os.kill(os.getpid(), signal.SIGKILL)
+    busy.pop()
+
+
+sys.addaudithook(kill_at_rows)
+sys.argv = ["calibration", *argv]
+runpy.run_module("calibration", run_name="__main__", alter_sys=True)
+"""
+
+
 # 40-60 s; the resume logic itself is tested in-process above and by the CLI in test_robust_calibration.
 @pytest.mark.slow
 def test_killed_command_line_fit_resumes(tmp_path):
-    """SIGKILL a running ``python -m calibration fit`` once its file holds two iterations; the
-    resumed run keeps them and finishes with the same history as an uninterrupted one."""
-    data = ROOT / "experiments_data" / "synthetic" / "S4_beta0.25.csv"
-    args = [sys.executable, "-m", "calibration", "fit", "--scene", "cohesive-collapse", "--data", str(data),
-            "--fit", "beta,mu1", "--init", "beta=0.15", "--dx", str(S4_SIDE / 6),
-            "--steps", "4", "--roundoff-samples", "0", "--grid-check", "0", "--no-progress", "--json"]
+    """SIGKILL a running ``python -m calibration fit`` as it writes its third iteration (its file
+    holds two); the resumed run keeps them and finishes with the same history as an
+    uninterrupted one."""
+    args = ["fit", "--scene", "cohesive-collapse", "--data", str(S4_DATA), "--fit", "beta,mu1", "--init", "beta=0.15",
+            "--steps", "4", "--roundoff-samples", "0", "--grid-check", "0", *TINY_FLAGS]
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
     out = tmp_path / "fit.h5"
-    proc = subprocess.Popen(args + ["--out", str(out)], cwd=tmp_path, env=env, stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE)
-    deadline = time.time() + 120
-    n_before = 0
-    while time.time() < deadline and proc.poll() is None:
-        if out.exists():
-            try:
-                n_before = read_history(out)["history"]["loss"].size
-            except (OSError, KeyError, ValueError):
-                n_before = 0
-            if n_before >= 2:
-                proc.send_signal(signal.SIGKILL)
-                break
-        time.sleep(0.05)
-    proc.wait(timeout=30)
-    assert n_before >= 2, proc.stderr.read().decode()[-2000:]
+    script = tmp_path / "killed.py"
+    script.write_text(KILLED)
+    killed = subprocess.run([sys.executable, str(script), str(out), "2", *args, "--out", str(out)], cwd=tmp_path,
+                            env=env, capture_output=True, text=True, timeout=180)
+    assert killed.returncode == -signal.SIGKILL, killed.stderr[-2000:]
     before = read_history(out)["history"]
-    if before["loss"].size >= 4:
-        pytest.skip("the fit finished before it could be killed")
-    done = subprocess.run(args + ["--out", str(out), "--resume"], cwd=tmp_path, env=env, capture_output=True,
+    assert before["loss"].size == 2
+    assert list(tmp_path.glob(".fit.h5.*.tmp")), "killed between writing the third iteration and renaming it"
+    command = [sys.executable, "-m", "calibration", *args]
+    done = subprocess.run([*command, "--out", str(out), "--resume"], cwd=tmp_path, env=env, capture_output=True,
                           text=True, timeout=180)
     assert done.returncode == 0, done.stderr[-2000:]
     after = read_history(out)["history"]
     np.testing.assert_array_equal(after["loss"][: before["loss"].size], before["loss"])
     assert after["loss"].size == 4
-    ref = subprocess.run(args + ["--out", str(tmp_path / "ref.h5")], cwd=tmp_path, env=env, capture_output=True,
+    ref = subprocess.run([*command, "--out", str(tmp_path / "ref.h5")], cwd=tmp_path, env=env, capture_output=True,
                          text=True, timeout=180)
     assert ref.returncode == 0, ref.stderr[-2000:]
     np.testing.assert_array_equal(read_history(tmp_path / "ref.h5")["history"]["theta"], after["theta"])

@@ -5,14 +5,13 @@ import pathlib
 
 import numpy as np
 import pytest
+from helpers import ROOT, S4_DATA, TINY_DX, TINY_FLAGS
 
 from calibration.__main__ import main
-from jaxmpm.scenes import S4_SIDE
 
-ROOT = pathlib.Path(__file__).resolve().parents[1]
-S4 = str(ROOT / "experiments_data" / "synthetic" / "S4_beta0.25.csv")
+S4 = str(S4_DATA)
 WPD = str(ROOT / "experiments_data" / "examples" / "wpd_example.csv")
-TINY = ["--dx", str(S4_SIDE / 6), "--no-progress", "--json"]
+TINY = list(TINY_FLAGS)
 
 
 def run(capsys, *argv):
@@ -129,7 +128,7 @@ def test_fit_with_profiles_and_posterior_draws_them(capsys, tmp_path):
     from jaxmpm.__main__ import main as run_main
 
     profile = tmp_path / "p.csv"
-    assert run_main(["run", "cohesive-collapse", "--dx", str(S4_SIDE / 6), "--set", "beta=0.25", "--t-end", "0.3",
+    assert run_main(["run", "cohesive-collapse", "--dx", str(TINY_DX), "--set", "beta=0.25", "--t-end", "0.3",
                      "--profile-csv", str(profile), "--no-progress", "--json"]) == 0
     capsys.readouterr()
     from calibration import load_profile

@@ -12,14 +12,11 @@ import time
 import h5py
 import numpy as np
 import pytest
+from cluster_toy import make_toy
+from helpers import S4_DATA, TINY_FLAGS
 
-pytest.importorskip("distributed")
-
-from cluster_toy import make_toy  # noqa: E402
-
-from calibration.cluster import cluster_sweep, parse_cluster, write_cluster_sweep  # noqa: E402
-from calibration.sweep import sweep  # noqa: E402
-from jaxmpm.scenes import S4_SIDE  # noqa: E402
+from calibration.cluster import cluster_sweep, parse_cluster, write_cluster_sweep
+from calibration.sweep import sweep
 
 
 def test_cluster_specs_are_checked_before_anything_starts():
@@ -100,10 +97,8 @@ def test_the_sweep_command_runs_on_a_local_cluster_with_the_in_process_numbers(t
 
     from calibration.__main__ import main
 
-    root = pathlib.Path(__file__).resolve().parents[1]
-    data = str(root / "experiments_data" / "synthetic" / "S4_beta0.25.csv")
-    common = ["sweep", "--scene", "cohesive-collapse", "--data", data, "--over", "beta=0.1:0.4:4",
-              "--dx", str(S4_SIDE / 6), "--no-progress", "--json", "--chunk", "2"]
+    common = ["sweep", "--scene", "cohesive-collapse", "--data", str(S4_DATA), "--over", "beta=0.1:0.4:4",
+              *TINY_FLAGS, "--chunk", "2"]
     assert main([*common, "--cluster", "local:2", "--out", str(tmp_path / "c.h5")]) == 0
     clustered = json.loads(capsys.readouterr().out)
     assert main(common) == 0
@@ -134,10 +129,8 @@ def test_the_sweep_command_does_not_exit_0_when_a_task_was_lost(monkeypatch, cap
         return cluster.ClusterSweepResult(sweep=result, task=np.zeros(n, int), tasks=(task,), cluster="local:2")
 
     monkeypatch.setattr(cluster, "cluster_sweep", lost_sweep)
-    root = pathlib.Path(__file__).resolve().parents[1]
-    data = str(root / "experiments_data" / "synthetic" / "S4_beta0.25.csv")
-    code = main(["sweep", "--scene", "cohesive-collapse", "--data", data, "--over", "beta=0.1:0.3:2",
-                 "--dx", str(S4_SIDE / 6), "--cluster", "local:2", "--no-progress", "--json"])
+    code = main(["sweep", "--scene", "cohesive-collapse", "--data", str(S4_DATA), "--over", "beta=0.1:0.3:2",
+                 "--cluster", "local:2", *TINY_FLAGS])
     out = json.loads(capsys.readouterr().out)
     assert code == 1
     assert out["n_members"] == 2 and [f["index"] for f in out["failed"]] == [0, 1]

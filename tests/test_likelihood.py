@@ -6,11 +6,10 @@ import dataclasses
 
 import numpy as np
 import pytest
+from helpers import placeholder_objective, tiny_s4
 
 from calibration import FrontTarget, Objective, ProfileTarget, fit
 from calibration.likelihood import DELTA_CHI2_95, grid_posterior, predict_heldout, profile_likelihood
-from jaxmpm import scenes
-from jaxmpm.scenes import S4_SIDE
 
 KEYS = ("beta", "mu1")
 TRUTH = np.array([0.25, 0.38])
@@ -20,8 +19,8 @@ XS = np.linspace(0.0, 0.16, 17)
 
 @pytest.fixture(scope="module")
 def twin():
-    scene = scenes.cohesive_collapse(dx=S4_SIDE / 6, t_end=0.1, beta=0.25)
-    gen = Objective(scene, KEYS, profile=ProfileTarget(XS, np.ones_like(XS)), check_data=False)  # placeholder
+    scene = tiny_s4()
+    gen = placeholder_objective(scene, KEYS, xs=XS)
     h = np.asarray(gen.predict(TRUTH)["h"])
     noisy = h + NOISE * h.max() * np.random.default_rng(3).standard_normal(h.shape)
     objective = Objective(scene, KEYS, profile=ProfileTarget(XS, noisy))
@@ -77,7 +76,7 @@ def test_held_out_prediction_with_its_band(twin):
     point, a band from its covariance (twice the covariance's square root: twice the band)."""
     scene, _, result = twin
     times = np.array([0.05, 0.1])
-    gen = Objective(scene, KEYS, front=FrontTarget(times, np.full(2, 0.1)), check_data=False)
+    gen = placeholder_objective(scene, KEYS, times=times)
     truth_front = np.asarray(gen.predict(TRUTH)["front"])
     held = Objective(scene, KEYS, front=FrontTarget(times, truth_front))
     out = predict_heldout(result, held)
@@ -123,7 +122,12 @@ def test_nuts_through_the_twin(twin):
     lower, upper = np.asarray(objective.bounds.lower), np.asarray(objective.bounds.upper)
     assert np.all((post.flat() > lower) & (post.flat() < upper))
     assert np.all(np.isfinite(post.log_density)) and post.gradient_evaluations >= 2 * 6
-    assert all(0 <= d <= 4 for d in post.divergences) and all(np.isfinite(post.step_size))
+    # Per chain: an adapted step size, a divergence count and at least one leapfrog step per draw,
+    # each step one Jacobian that the count of evaluations holds (the 3 warm-up steps and a start
+    # per chain on top of the 4 draws' steps).
+    assert len(post.divergences) == len(post.steps) == 2 and all(np.isfinite(post.step_size))
+    assert all(s > 0 for s in post.step_size) and min(post.steps) >= 1
+    assert post.gradient_evaluations >= 2 * (1 + 3) + round(4 * sum(post.steps))
     se = result.uncertainty.stderr
     assert np.all(np.abs(post.flat() - [result.theta[k] for k in KEYS]) < 6 * se)
     pred = posterior_predictive(objective, post, n=3)

@@ -16,23 +16,22 @@ import shutil
 import h5py
 import numpy as np
 import pytest
-from helpers import strict_json
+from helpers import ROOT, S4_DATA, TINY_FLAGS, strict_json, tiny_s4
 
 from calibration import Bounds, fit, read_history
 from calibration.__main__ import main
 from calibration.data import load_profile
 from calibration.objective import CompositeObjective, Objective
 from calibration.sweep import SweepResult, write_sweep
-from jaxmpm import LEFT_GRID, scenes
+from jaxmpm import LEFT_GRID
 from jaxmpm.scenes import S4_SIDE
 
 FIT_MODULE = importlib.import_module("calibration.fit")  # calibration.fit is also the function
 SWEEP_MODULE = importlib.import_module("calibration.sweep")
 SEARCH_MODULE = importlib.import_module("calibration.search")
-ROOT = pathlib.Path(__file__).resolve().parents[1]
-S4 = ROOT / "experiments_data" / "synthetic" / "S4_beta0.25.csv"
+S4 = S4_DATA
 WPD = ROOT / "experiments_data" / "examples" / "wpd_example.csv"
-TINY = ["--dx", str(S4_SIDE / 6), "--no-progress", "--json"]
+TINY = list(TINY_FLAGS)
 FIT = ["fit", "--scene", "cohesive-collapse", "--fit", "beta"]
 SWEEP = ["sweep", "--scene", "cohesive-collapse"]
 
@@ -392,7 +391,7 @@ def test_a_failed_start_names_its_status():
 
 
 def test_objective_refuses_a_zero_weight_and_invalid_starts():
-    scene = scenes.cohesive_collapse(dx=S4_SIDE / 6, t_end=0.5, beta=0.25)
+    scene = tiny_s4(t_end=0.5)
     from calibration.objective import ProfileTarget
 
     target = ProfileTarget(S4_X, S4_H, 0.5, source="S4.csv")

@@ -60,7 +60,6 @@ def test_jitter_keeps_one_particle_per_sub_cell_and_is_reproducible():
 def test_poisson_disk_keeps_its_radius_and_is_reproducible(dim):
     """No two particles closer than the sampling radius r = dx (0.62 / ppc^2)^(1/2) (2D;
     (0.63 / ppc^3)^(1/3) in 3D); the same seed gives the same sample, another seed another."""
-    pytest.importorskip("scipy")
     from scipy.spatial.distance import pdist
 
     lower, upper = ((0.0,) * dim, (0.04,) * (dim - 1) + (0.03,))

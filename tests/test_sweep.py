@@ -17,6 +17,7 @@ import textwrap
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from helpers import tiny_s4
 
 import jaxmpm
 from calibration.objective import FrontTarget, Objective, ProfileTarget
@@ -33,7 +34,7 @@ FAILED = [1, 3]
 
 def make_objective():
     """A tiny cohesive collapse (144 particles, 0.05 s, about 230 steps) against made-up data."""
-    scene = jaxmpm.scenes.cohesive_collapse(beta=0.25, dx=jaxmpm.scenes.S4_SIDE / 6, t_end=0.05)
+    scene = tiny_s4(t_end=0.05)
     x = np.linspace(0.01, 0.15, 8)
     h = np.maximum(0.089 * (1.0 - x / 0.15), 0.0) + 1e-3
     return Objective(scene, ["beta", "E"], profile=ProfileTarget(x, h, None),

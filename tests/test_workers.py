@@ -5,12 +5,12 @@ and failing tasks are reported."""
 
 import numpy as np
 import pytest
+from helpers import model_data, tiny_s4
 
 from calibration.fit import fit
-from calibration.objective import Objective, ProfileTarget, jacobians_z, residuals_at
+from calibration.objective import Objective, jacobians_z, residuals_at
 from calibration.search import search
 from calibration.workers import Workers, as_workers
-from jaxmpm import scenes
 from jaxmpm.scenes import S4_SIDE
 
 KEYS = ("beta", "mu1")
@@ -19,11 +19,9 @@ TRUTH = np.array([0.2, 0.4])
 
 @pytest.fixture(scope="module")
 def objective():
-    scene = scenes.cohesive_collapse(dx=S4_SIDE / 4, t_end=0.1)
-    xs = np.linspace(0.0, 0.2, 25)
-    gen = Objective(scene, KEYS, profile=ProfileTarget(xs, np.ones_like(xs)), check_data=False)
-    _, pred = gen.residuals(TRUTH)
-    return Objective(scene, KEYS, profile=ProfileTarget(xs, np.asarray(pred["h"])))
+    scene = tiny_s4(beta=0.0, dx=S4_SIDE / 4)
+    profile, _ = model_data(scene, KEYS, TRUTH, xs=np.linspace(0.0, 0.2, 25))
+    return Objective(scene, KEYS, profile=profile)
 
 
 @pytest.fixture(scope="module")
