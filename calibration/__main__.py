@@ -28,7 +28,7 @@ import functools
 import pathlib
 import sys
 
-from jaxmpm.cli import add_threads_argument
+from jaxmpm.cli import add_threads_argument, print_json
 from jaxmpm.precision import use_dtype
 from jaxmpm.scenes.collapse import S4_SIDE
 from jaxmpm.threads import apply_threads
@@ -48,8 +48,7 @@ def _fit(args) -> int:
     request = cli.fit_request(args, experiments)
     starts = cli.start_count(args, request.init)
     scene, objective = cli.scene_and_objective(args, request.keys, experiments)
-    # a plain key's start for each experiment's own value
-    init = objective.expand(request.init) if getattr(objective, "shared", None) is not None else request.init
+    init = objective.expand(request.init)  # a plain key's start for each experiment's own value
     options, judge = cli.fit_options(args, request.noise)
     coarse = (cli.coarse_objective(args, scene, request.keys, experiments)
               if starts > 1 and args.coarse is not None else None)
@@ -191,7 +190,7 @@ def _bench(args) -> int:
     kw = {"dx": S4_SIDE / 8, "t_end": 0.2} if args.quick else {"dx": args.dx}
     values = {k: float(v) for k, v in cli.parse_pairs(args.set, "--set").items()}
     result = bench(cli.parse_keys(args.fit), repeat=args.repeat, dtype=args.dtype, values=values, **kw)
-    return 1 if cli.emit(result.to_json(), args.json) else 0
+    return 1 if print_json(result.to_json(), args.json) else 0
 
 
 def _common(p, data: bool = True) -> None:

@@ -9,19 +9,19 @@ from __future__ import annotations
 import argparse
 import copy
 import importlib.util
-import json
 import math
 import os
 import pathlib
 import sys
 
+from jaxmpm.cli import print_json
 from jaxmpm.precision import use_dtype
 
 from .options import DataOptions, FitOptions, JudgeOptions, OptionError, cli_steps
 from .workers import available_cores
 
 __all__ = ["check_args", "check_command", "check_options", "check_outputs", "coarse_objective", "data_options",
-           "design_noise", "design_scene", "emit", "experiment_files", "finish", "fit_fields", "fit_meta",
+           "design_noise", "design_scene", "experiment_files", "finish", "fit_fields", "fit_meta",
            "fit_options", "fit_request", "guard", "load_data", "objective_from_args", "parse_floats", "parse_keys",
            "parse_over", "parse_pairs", "parse_variants", "scene_and_objective", "single_start_reason",
            "start_count", "worker_count"]
@@ -455,18 +455,6 @@ def check_outputs(args) -> None:
 
 
 # ---- output -------------------------------------------------------------------------------------
-def emit(obj, compact: bool) -> list[str]:
-    """Print ``obj`` as valid JSON (NaN and infinities as null, their paths under "nonfinite");
-    return those paths."""
-    from jaxmpm.cli import json_safe
-
-    obj, bad = json_safe(obj)
-    if bad:
-        obj["nonfinite"] = bad
-    print(json.dumps(obj, allow_nan=False, default=str, indent=None if compact else 2))
-    return bad
-
-
 def guard(errors: dict, option: str, write):
     """Run one output step after the work; on failure keep the message under ``option`` in
     ``errors`` (the JSON still prints) and return None."""
@@ -482,5 +470,5 @@ def finish(out: dict, args, errors: dict) -> int:
     was not finite or an output failed, else 0."""
     if errors:
         out["output_errors"] = errors
-    bad = emit(out, args.json)
+    bad = print_json(out, args.json)
     return 1 if (bad or errors) else 0

@@ -734,6 +734,14 @@ class Objective:
         """The scene's values of the fitted keys."""
         return {k: float(getattr(self._base, k)) for k in self.keys}
 
+    def expand(self, values: Mapping[str, float]) -> dict[str, float]:
+        """Values by key as values of this objective's keys (``CompositeObjective.expand`` spreads
+        a plain key over the experiments; here every key is its own)."""
+        stray = [k for k in values if k not in self.keys]
+        if stray:
+            raise ValueError(f"{stray[0]!r} is not fitted (keys: {list(self.keys)})")
+        return {k: float(v) for k, v in values.items()}
+
     def check_thetas(self, thetas, name: str = "thetas") -> None:
         """Raise ``ValueError`` unless every row of ``thetas`` (B, n), with the scene's values for
         the other keys, passes ``jaxmpm.validate_params`` (the rules ``python -m jaxmpm run --set``

@@ -66,7 +66,8 @@ class ObjectiveLike(ResidualModel, Protocol):
     - ``blocks``: each residual block's name and rows; ``row_scale``: every row's weight factor
       (``r / row_scale`` is the unweighted residual); ``n_residuals``: the rows.
     - ``in_metres(r)``: the residuals ``r`` in metres by block (model − data).
-    - ``initial()``: the scene's values of the keys (a fit's default start).
+    - ``initial()``: the scene's values of the keys (a fit's default start); ``expand(values)``:
+      values by plain key as values of the objective's keys (a composite spreads them).
     - ``members``: the single objectives this one is made of (an ``Objective``: itself).
 
     Evaluations (θ physical, z unconstrained; J = dr/dθ, J_z = dr/dz):
@@ -112,6 +113,8 @@ class ObjectiveLike(ResidualModel, Protocol):
     def sampling_seed(self) -> int | None: ...
 
     def initial(self) -> dict[str, float]: ...
+
+    def expand(self, values: Mapping[str, float]) -> dict[str, float]: ...
 
     def in_metres(self, r) -> dict[str, np.ndarray]: ...
 

@@ -251,11 +251,12 @@ def json_safe(obj) -> tuple[Any, list[str]]:
 
 def print_json(summary: dict, compact: bool) -> list[str]:
     """Print ``summary`` as valid JSON: non-finite numbers become null and their paths are listed
-    under ``"nonfinite"``. Returns that list (empty when every number was finite)."""
+    under ``"nonfinite"``; any other object that JSON cannot hold (a path) as its text. Returns that
+    list (empty when every number was finite)."""
     summary, bad = json_safe(summary)
     if bad:
         summary["nonfinite"] = bad
-    print(json.dumps(summary, allow_nan=False) if compact else json.dumps(summary, indent=2, allow_nan=False))
+    print(json.dumps(summary, allow_nan=False, default=str, indent=None if compact else 2))
     return bad
 
 

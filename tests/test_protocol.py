@@ -16,7 +16,7 @@ from jaxmpm import scenes
 
 #: The modules that take an objective (``__main__``, the command line, is not a consumer's library).
 CONSUMERS = ("fit", "search", "sweep", "uncertainty", "mcmc", "likelihood", "plots", "cluster", "design", "report",
-             "coverage", "twin", "scaling")
+             "coverage", "twin", "scaling", "problem", "cli", "__main__")
 
 
 def _objective(profile_h=1.0):
@@ -67,6 +67,16 @@ def test_both_objectives_implement_every_member_of_the_protocol(objectives):
     assert one.members == (one,) and both.members[0] is one
     assert one.jacobian == "ad" and both.jacobian == "ad"
     assert one.sampling_seed == one.scene.info.seed and both.sampling_seed is None
+
+
+def test_expand_spreads_plain_keys_and_refuses_strays(objectives):
+    """Starting values by plain key: an objective takes its own keys as they are, and neither kind
+    accepts a key it does not fit (the command line calls ``expand`` on every objective)."""
+    one, both = objectives
+    assert one.expand({"beta": 0.2}) == {"beta": 0.2} and both.expand({"mu1": 0.4}) == {"mu1": 0.4}
+    for objective in objectives:
+        with pytest.raises(ValueError, match="'xi' is not fitted"):
+            objective.expand({"xi": 30.0})
 
 
 def test_the_consumers_probe_no_objective():
