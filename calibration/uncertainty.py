@@ -45,7 +45,8 @@ step, and the deposit moves by what that rounding adds up to (coherently, not as
 change J d_k taken off, scatter only by the run's round-off; their spread gives the noise σ_num of
 each block and, mapped through the least-squares solution, the covariance of θ that the round-off
 alone produces. It enters twice: a stopped optimiser whose remaining Gauss–Newton step is within
-that scatter (Mahalanobis distance below the 99 % quantile of χ²_n) has converged as far as the
+that scatter (Mahalanobis distance below the 99 % quantile of Hotelling's T² for a covariance
+estimated from that many runs, ``roundoff_limit``; χ²_n as the runs grow) has converged as far as the
 run can tell, and is a verified minimum; and the reported covariance is the statistical one plus
 the numerical one (``stderr`` the total; ``stderr_statistical`` and ``stderr_numerical`` apart).
 For noise-free twins made by the same program that numerical part is what is left, and it is
@@ -79,7 +80,7 @@ from .protocol import ObjectiveLike
 
 __all__ = [
     "GRID_RATIO", "GridCheck", "GRID_DRAWS", "NOISE_FLOOR", "ROUNDOFF_SAMPLES", "ModelScatter", "Uncertainty",
-    "Verdict", "assess_fit", "block_noise", "check_grid_options", "chi2_of", "chi2_quantile",
+    "Verdict", "assess_fit", "block_noise", "check_grid_options", "chi2_of", "chi2_quantile", "roundoff_limit",
     "gauss_newton_uncertainty", "grid_shift", "judge_point", "model_scatter", "sampling_scatter",
     "structural_noise",
 ]
@@ -103,9 +104,25 @@ GRID_RATIO = 1.5
 GRID_DRAWS = 2
 #: Roache's safety factor for a two-grid study, and the order of convergence assumed.
 GCI_SAFETY, GRID_ORDER = 3.0, 1.0
-#: A stopped optimiser's remaining Gauss–Newton step within this quantile of χ²_n (in the metric
-#: of the run's scatter) counts as converged.
+#: A stopped optimiser's remaining Gauss–Newton step within this quantile (``roundoff_limit``, in
+#: the metric of the run's scatter) counts as converged.
 ROUNDOFF_P = 0.99
+
+
+def roundoff_limit(n: int, samples: int, p: float = ROUNDOFF_P) -> float:
+    """The largest remaining Gauss–Newton step, in standard deviations of a round-off scatter whose
+    covariance was estimated from ``samples`` degrees of freedom, that counts as converged.
+
+    A step δ independent of the estimate S, with δ ~ N(0, Σ) in n dimensions, has
+    δᵀS⁻¹δ · (ν − n + 1)/(n ν) ~ F(n, ν − n + 1) for ν = ``samples`` (Hotelling's T²): a handful of
+    runs understates Σ often enough that χ²_n's quantile would refuse true minima (with six runs,
+    five of eight points one standard deviation from a float32 twin's truth). Returns the square
+    root of the ``p`` quantile; χ²_n's where ν < n (S singular: nothing better is known)."""
+    if samples < n:
+        return math.sqrt(chi2_quantile(p, n))
+    from scipy.stats import f
+
+    return math.sqrt(n * samples / (samples - n + 1) * float(f.ppf(p, n, samples - n + 1)))
 
 
 def chi2_quantile(p: float, dof: float) -> float:
@@ -473,7 +490,7 @@ def assess_fit(r, row_scale, blocks: Mapping[str, slice], theta, *, converged: b
     convergence = message if converged else ""
     if not converged and scatter is not None and J is not None:
         distance = scatter.gauss_newton_distance(J, r)
-        limit_d = math.sqrt(chi2_quantile(ROUNDOFF_P, n))
+        limit_d = roundoff_limit(n, scatter.samples)
         if distance <= limit_d:
             converged = True
             convergence = (f"converged within the run's round-off: the remaining Gauss–Newton step is {distance:.2g} "
