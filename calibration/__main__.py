@@ -57,9 +57,10 @@ def _fit(args) -> int:
                                         refine=args.refine, seed=args.search_seed, out=args.out, resume=args.resume,
                                         overwrite=args.overwrite, progress=not args.no_progress,
                                         meta=cli.fit_meta(args, experiments), workers=workers)
+        checks = posterior_checks(objective, result, profiles=args.profiles, posterior=args.posterior, nuts=args.nuts,
+                                  chains=args.chains, emulated=args.emulated, noise=args.noise, workers=workers,
+                                  progress=not args.json)
     out = {**fit_report(objective, result, found), **cli.fit_fields(args, scene, experiments, init, found)}
-    checks = posterior_checks(objective, result, profiles=args.profiles, posterior=args.posterior, nuts=args.nuts,
-                              chains=args.chains, noise=args.noise, progress=not args.json)
     out.update(checks.report)
     errors: dict[str, str] = {}
     if args.plot:
@@ -302,6 +303,11 @@ def build_parser() -> argparse.ArgumentParser:
     fit.add_argument("--nuts", type=int, default=0, metavar="N",
                      help="the posterior of every fitted key by NUTS (calibration.mcmc, needs the [bayes] extra): N "
                           "draws per chain after N/2 (at least 20) warm-up steps, with R-hat and ESS (default 0: off)")
+    fit.add_argument("--emulated", type=int, default=0, metavar="N",
+                     help="the posterior of every fitted key from NUTS on a quadratic emulator of the residuals, "
+                          "corrected by the model's runs at N >= 30 draws (calibration.emulator, needs [bayes]; 3k+1 "
+                          "Jacobians and 2k+1 more per re-centring, at most 6, and N runs; also where the verdict "
+                          "refuses an interval, with --noise or the estimated noise; default 0: off)")
     fit.add_argument("--chains", type=int, default=4, metavar="C",
                      help="NUTS chains, run one after the other (default 4)")
     fit.add_argument("--refine", type=int, default=2, metavar="N",

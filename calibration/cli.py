@@ -326,10 +326,15 @@ def check_args(args) -> None:
             raise ValueError(f"--{name} must be 0 (off) or >= 3, got {value}")
     if getattr(args, "nuts", 0) and args.nuts < 4:
         raise ValueError(f"--nuts must be 0 (off) or >= 4 draws per chain, got {args.nuts}")
+    if getattr(args, "emulated", 0) and args.emulated < 30:
+        raise ValueError(f"--emulated must be 0 (off) or >= 30 checked draws, got {args.emulated}")
+    if getattr(args, "emulated", 0) and getattr(args, "chains", 4) < 2:
+        raise ValueError(f"--chains must be >= 2 with --emulated (R-hat compares chains), got {args.chains}")
     if getattr(args, "chains", 1) < 1:
         raise ValueError(f"--chains must be >= 1, got {args.chains}")
-    if getattr(args, "nuts", 0) and importlib.util.find_spec("blackjax") is None:
-        raise ValueError("--nuts needs blackjax: pip install 'jaxmpm[bayes]'")
+    for flag in ("nuts", "emulated"):
+        if getattr(args, flag, 0) and importlib.util.find_spec("blackjax") is None:
+            raise ValueError(f"--{flag} needs blackjax: pip install 'jaxmpm[bayes]'")
     noise = getattr(args, "noise", None)
     if noise is not None and not (math.isfinite(noise) and noise >= 0):
         raise ValueError(f"--noise must be >= 0, got {noise}")

@@ -12,9 +12,10 @@ import numpy as np
 
 from .protocol import ObjectiveLike
 
-__all__ = ["fit_figures", "law_figures", "likelihood_figures", "plot_coverage", "plot_fit", "plot_heldout",
-           "plot_history", "plot_landscape", "plot_loss_curve", "plot_nuts", "plot_posterior_predictive",
-           "plot_profile_likelihoods", "plot_runout_law", "sweep_figures", "twin_landscape_figure"]
+__all__ = ["fit_figures", "law_figures", "likelihood_figures", "plot_coverage", "plot_emulated", "plot_fit",
+           "plot_heldout", "plot_history", "plot_landscape", "plot_loss_curve", "plot_nuts",
+           "plot_posterior_predictive", "plot_profile_likelihoods", "plot_runout_law", "sweep_figures",
+           "twin_landscape_figure"]
 
 
 def _plt():
@@ -363,6 +364,69 @@ def plot_nuts(posterior, path, *, grid=None, truth=None):
                          f"{np.mean(posterior.steps):.1f}\n{posterior.gradient_evaluations} Jacobians, "
                          f"{posterior.wall_s / 60:.0f} min", fontsize=9, va="center")
     return _save(plt, fig, path, dpi=120)
+
+
+def plot_emulated(posterior, path, *, truth=None, reference=None, title: str | None = None):
+    """A ``calibration.emulator.EmulatedPosterior`` as a corner plot: on the diagonal each key's
+    marginal, the emulator's NUTS draws (grey) against the model's posterior (the checked draws
+    weighted, blue), with ``reference`` posteriors' means ± sd ({label: (mean, sd) by key}, e.g.
+    NUTS on the model) beside them; below it the checked draws of every pair, sized by their
+    importance weight; the diagnostics in the corner above."""
+    plt = _plt()
+    keys = posterior.keys
+    k = len(keys)
+    thetas, log_w = posterior.checks
+    from .emulator import psis
+
+    w = np.exp(psis(log_w)[0])
+    flat = posterior.emulated.flat()
+    fig, axes = plt.subplots(k, k, figsize=(2.3 * k + 1.2, 2.3 * k + 0.6), squeeze=False)
+    for i in range(k):
+        for j in range(k):
+            ax = axes[i][j]
+            if j > i:
+                ax.axis("off")
+                continue
+            if i == j:
+                bins = np.linspace(*np.quantile(flat[:, i], [0.001, 0.999]), 31)
+                ax.hist(flat[:, i], bins=bins, density=True, color="0.7", label="emulator's NUTS")
+                ax.hist(thetas[:, i], bins=bins, weights=w, density=True, histtype="step", lw=1.5, color="C0",
+                        label="model's (weighted)")
+                for n, (label, ref) in enumerate((reference or {}).items()):
+                    if keys[i] in ref:
+                        mu, sd = ref[keys[i]]
+                        y = ax.get_ylim()[1] * (0.9 - 0.1 * n)
+                        ax.errorbar([mu], [y], xerr=[sd], fmt="o", ms=3, color=f"C{n + 2}", label=label)
+                if truth is not None and keys[i] in truth:
+                    ax.axvline(truth[keys[i]], color="k", lw=1, label="truth")
+                ax.set_yticks([])
+                ax.set_title(f"{keys[i]}: {posterior.mean[keys[i]]:.3g} ± {posterior.sd[keys[i]]:.2g}", fontsize=8)
+            else:
+                ax.scatter(thetas[:, j], thetas[:, i], s=4 + 400 * w, alpha=0.5, color="C0", lw=0)
+                if truth is not None and keys[i] in truth and keys[j] in truth:
+                    ax.plot(truth[keys[j]], truth[keys[i]], "kx", ms=7)
+            if i == k - 1:
+                ax.set_xlabel(keys[j])
+            if j == 0 and i > 0:
+                ax.set_ylabel(keys[i])
+            ax.tick_params(labelsize=7)
+    em = posterior.emulated
+    text = (f"{posterior.jacobians} model Jacobians, {posterior.runs} runs, {posterior.wall_s / 60:.0f} min\n"
+            f"emulator's chains: R-hat max {max(em.rhat.values()):.3f}, ESS min {min(em.ess_bulk.values()):.0f}\n"
+            f"importance: Pareto k {posterior.pareto_k:.2f}, ESS {posterior.ess_importance:.0f}"
+            f"{', failed runs ' + str(posterior.failed_checks) if posterior.failed_checks else ''}\n"
+            f"{'converged' if posterior.converged else 'NOT converged'}")
+    if k > 1:  # the empty corner above the diagonal: the legend and the diagnostics
+        handles, labels = axes[0][0].get_legend_handles_labels()
+        info = axes[0][k - 1]
+        info.legend(handles, labels, fontsize=7, loc="upper right", frameon=False)
+        info.text(1.0, 0.0, text, fontsize=7, ha="right", va="bottom", transform=info.transAxes)
+    else:
+        axes[0][0].legend(fontsize=6)
+        axes[0][0].set_xlabel(text, fontsize=7)
+    if title:
+        fig.suptitle(title, fontsize=10)
+    return _save(plt, fig, path, dpi=110)
 
 
 def plot_posterior_predictive(predictive, path, *, title: str | None = None, split: float | None = None):

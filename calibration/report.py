@@ -51,19 +51,44 @@ class PosteriorChecks:
 
 
 def posterior_checks(objective, result, *, profiles: int = 0, posterior: int = 0, nuts: int = 0, chains: int = 4,
-                     noise=None, progress: bool = False) -> PosteriorChecks:
+                     emulated: int = 0, noise=None, workers=None, progress: bool = False) -> PosteriorChecks:
     """The profile likelihood of every fitted key at ``profiles`` points, the grid posterior of
     one or two keys at ``posterior`` points per key and a NUTS posterior of ``nuts`` draws per
     chain on ``chains`` chains (each 0: off) around ``result``, a fit of ``objective``
     (``noise``: the data's known noise, None: estimated). Skipped, with the reason in the
     report, where the point has no interval to scan around; the grid posterior also for more
-    than two keys. What ``python -m calibration fit --profiles N --posterior N --nuts N`` adds."""
-    if not (profiles or posterior or nuts):
+    than two keys. ``emulated``: the posterior of every key from NUTS on an emulator, corrected
+    with the model's runs at ``emulated`` draws (``calibration.emulator``; on ``workers``): it
+    needs no interval, so it runs where the verdict refuses one too, centred on the point with
+    the noise given or estimated. What ``python -m calibration fit --profiles N --posterior N
+    --nuts N --emulated N`` adds."""
+    if not (profiles or posterior or nuts or emulated):
         return PosteriorChecks()
-    if result.uncertainty is None or result.uncertainty.withheld:
-        return PosteriorChecks({"profile_likelihood_skipped": "the point is not a fit of the data: no interval to "
-                                                              "scan around"})
     report: dict[str, Any] = {}
+    if emulated:
+        from .emulator import emulated_posterior
+
+        unc = result.uncertainty
+        sigma = noise if noise is not None else (None if unc is None or not unc.noise else dict(unc.noise))
+        lower, upper = objective.bounds.lower, objective.bounds.upper
+        at_bound = [k for k, lo, hi in zip(objective.keys, lower, upper) if not lo < result.theta[k] < hi]
+        if at_bound:
+            report["emulated_posterior_skipped"] = f"{at_bound} at a bound: the chains' coordinates end there"
+        elif unc is not None and not unc.withheld:
+            found = emulated_posterior(objective, result, noise=noise, checks=emulated, chains=chains,
+                                       workers=workers, progress=progress)
+            report["emulated_posterior"] = found.to_json()
+        elif sigma is None:
+            report["emulated_posterior_skipped"] = "no noise level: give --noise"
+        else:
+            found = emulated_posterior(objective, dict(result.theta), noise=sigma, checks=emulated, chains=chains,
+                                       workers=workers, progress=progress)
+            report["emulated_posterior"] = found.to_json()
+    if not (profiles or posterior or nuts):
+        return PosteriorChecks(report)
+    if result.uncertainty is None or result.uncertainty.withheld:
+        return PosteriorChecks({**report, "profile_likelihood_skipped": "the point is not a fit of the data: no "
+                                                                        "interval to scan around"})
     if nuts:
         from .mcmc import nuts_posterior
 

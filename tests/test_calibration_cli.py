@@ -68,6 +68,8 @@ def test_fit_reads_a_webplotdigitizer_export_with_units(capsys):
     (["--fit", "beta", "--init", "beta"], "--init expects key=value"),
     (["--fit", "beta", "--nuts", "2"], "--nuts must be 0 (off) or >= 4"),
     (["--fit", "beta", "--nuts", "8", "--chains", "0"], "--chains must be >= 1"),
+    (["--fit", "beta", "--emulated", "5"], "--emulated must be 0 (off) or >= 30"),
+    (["--fit", "beta", "--emulated", "40", "--chains", "1"], "--chains must be >= 2 with --emulated"),
 ])
 def test_fit_input_errors_name_the_argument(capsys, argv, message):
     with pytest.raises(SystemExit) as exc:
@@ -118,6 +120,25 @@ def test_twin_quick_with_noise_intervals_contain_the_truth(capsys):
     code, out = run(capsys, "twin", "--quick", "--noise", "0.02", "--no-progress", "--json")
     assert code == 0
     assert all(out["in_ci95"].values()), out["ci95"]
+
+
+@pytest.mark.slow  # 160 s; the library's emulated posterior is tested by default (test_emulator.py, test_likelihood.py)
+def test_fit_emulated_posterior_where_the_verdict_refuses_an_interval(capsys):
+    """One iteration is no verified minimum, so Gauss–Newton gives no interval; --emulated samples
+    the posterior anyway, around the point with the estimated noise, and reports its diagnostics
+    (whether it converged is the diagnostics' verdict, which the JSON states)."""
+    code, out = run(capsys, "fit", "--scene", "cohesive-collapse", "--data", S4, "--t-end", "0.5", "--fit", "mu1",
+                    "--init", "mu1=0.4", "--steps", "1", "--roundoff-samples", "0", "--grid-check", "0",
+                    "--emulated", "30", "--chains", "2", *TINY)
+    assert code == 0 and not out["verdict"]["is_fit"]
+    em = out["emulated_posterior"]
+    assert em["keys"] == ["mu1"] and em["model_runs"] == 30 and em["model_jacobians"] == 4 + 3 * (len(em["rounds"]) - 1)
+    assert em["failed_checks"] == 0 and np.isfinite(em["pareto_k"]) and em["ess_importance"] > 0
+    # 30 checks leave fewer than 100 effective draws: reported, and never called converged.
+    assert em["ess_importance"] <= 30 and not em["converged"]
+    lo, hi = em["ci95"]["mu1"]
+    assert lo < em["mean"]["mu1"] < hi and em["sd"]["mu1"] > 0
+    assert em["converged"] == (em["emulated"]["converged"] and em["pareto_k"] < 0.7 and em["ess_importance"] >= 100)
 
 
 @pytest.mark.slow  # 90 s; the library's checks beyond Gauss-Newton are tested by default (test_likelihood.py)

@@ -134,3 +134,21 @@ def test_nuts_through_the_twin(twin):
     b = pred["blocks"]["profile"]
     assert b["predicted"].shape == (3, XS.size) and pred["failed"] == 0
     np.testing.assert_allclose(b["data"], np.asarray(objective.data["h"]), rtol=1e-12)
+
+
+def test_emulated_posterior_through_the_twin_agrees_with_the_quadrature(twin):
+    """The emulated posterior (calibration.emulator) through real runs: 7 to 12 Jacobians and 60
+    checked runs give the corrected moments of the grid quadrature on the same target (its 15 × 15
+    points: a finer answer than the emulator's Monte Carlo error), with the importance weights
+    nearly equal (the emulator is close) and every check run a good one."""
+    from calibration.emulator import emulated_posterior
+
+    _, objective, result = twin
+    grid = grid_posterior(objective, result, span=5.0, n=15)
+    post = emulated_posterior(objective, result, rounds=1, checks=60, warmup=100, draws=300, seed=1)
+    assert post.failed_checks == 0 and post.jacobians == 7 + 5 * (len(post.rounds) - 1) and post.runs == 60
+    assert post.ess_importance > 45 and post.emulated.converged
+    for key in KEYS:
+        tol = 3 * grid.sd[key] / np.sqrt(post.ess_importance)  # the importance sample's Monte Carlo error
+        assert abs(post.mean[key] - grid.mean[key]) < tol, (key, post.mean[key], grid.mean[key])
+        assert 0.75 < post.sd[key] / grid.sd[key] < 1.3, (key, post.sd[key], grid.sd[key])

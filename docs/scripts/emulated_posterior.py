@@ -1,0 +1,98 @@
+"""The emulated posterior (``calibration.emulator``) against the model's own: the S4 twin's
+(β, μ1) at dx = L/6, where NUTS on the model (docs/results/nuts_s4.json, 7,490 Jacobians) and the
+grid quadrature are stored, and the five keys of the three filmed collapses (docs/five_keys/).
+
+    python docs/scripts/emulated_posterior.py s4 [--workers 2]       (needs [bayes])
+    python docs/scripts/emulated_posterior.py five [--workers 2] [--fit-steps N]
+
+Writes docs/results/emulated_{s4,five}.json and docs/figures/emulated_{s4,five}.png.
+"""
+
+import argparse
+import json
+import pathlib
+import sys
+import time
+
+sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent))
+from beyond_gauss_newton import S4_KEYS, S4_TRUTH, s4_twin  # noqa: E402  (this folder)
+
+from calibration import fit  # noqa: E402
+from calibration.emulator import emulated_posterior  # noqa: E402
+from calibration.workers import Workers  # noqa: E402
+
+ROOT = pathlib.Path(__file__).resolve().parents[2]
+RESULTS, FIGURES = ROOT / "docs" / "results", ROOT / "docs" / "figures"
+
+
+def s4(workers, args):
+    _, _, objective = s4_twin(6)
+    t0 = time.perf_counter()
+    result = fit(objective, dict(zip(S4_KEYS, 0.9 * S4_TRUTH)), steps=25, noise=0.02)
+    fit_s = time.perf_counter() - t0
+    print(f"fit {result.theta} in {fit_s:.0f} s", flush=True)
+    post = emulated_posterior(objective, result, checks=args.checks, workers=workers, progress=True)
+    stored = json.loads((RESULTS / "nuts_s4.json").read_text())
+    out = {"case": "S4 twin (beta, mu1) at dx = L/6: final profile, 2 % noise",
+           "truth": dict(zip(S4_KEYS, S4_TRUTH.tolist())), "fit": result.theta, "fit_wall_s": round(fit_s, 1),
+           "emulated": post.to_json(),
+           "model_nuts": {k: stored["nuts"][k] for k in ("mean", "sd", "ci95", "rhat", "ess_bulk",
+                                                         "gradient_evaluations", "wall_s")},
+           "grid_quadrature": {k: stored["grid_posterior"][k] for k in ("mean", "sd", "ci95", "wall_s")}}
+    return out, post
+
+
+FIVE = ("beta", "mu1", "mu2", "I0", "xi")
+FIVE_TRUTH = {"beta": 0.25, "mu1": 0.3818628674187188, "mu2": 0.6434683848584607, "I0": 0.279, "xi": 50.0}
+FIVE_FILES = [ROOT / "docs" / "five_keys" / f"{name}.toml" for name in ("column", "slope20", "tall_slope20")]
+
+
+def five(workers, args):
+    """The five keys from the three filmed collapses (docs/five_keys/, files at L/12, data made at
+    L/18 with 2 % noise), centred where the four-key fit stopped (docs/results/five_keys_fit_L12.json)
+    with I0 at the files' start; ``--coarsen R``: the same on a grid R times coarser (the grid term)."""
+    from calibration import CompositeObjective, Objective
+    from jaxmpm import Experiment
+
+    objective = CompositeObjective([Objective.from_experiment(Experiment.from_toml(f), FIVE) for f in FIVE_FILES])
+    if args.coarsen != 1.0:
+        objective = objective.coarsened(args.coarsen)
+    four = json.loads((RESULTS / "five_keys_fit_L12.json").read_text())["params"]
+    centre = {**four, "I0": 0.4}
+    post = emulated_posterior(objective, centre, noise=0.02, checks=args.checks, workers=workers, progress=True)
+    out = {"case": f"five keys, three filmed collapses at dx = L/{0.089 / objective.dx:.0f} (data L/18, 2 % noise)",
+           "dx": objective.dx, "coarsen": args.coarsen, "truth": FIVE_TRUTH, "centre": centre, "noise": 0.02,
+           "emulated": post.to_json(),
+           "truth_inside_ci95": {k: bool(post.ci95[k][0] <= FIVE_TRUTH[k] <= post.ci95[k][1]) for k in FIVE},
+           "box": dict(zip(FIVE, zip(map(float, objective.bounds.lower), map(float, objective.bounds.upper))))}
+    return out, post
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("which", choices=("s4", "five"))
+    parser.add_argument("--workers", type=int, default=1)
+    parser.add_argument("--checks", type=int, default=200)
+    parser.add_argument("--coarsen", type=float, default=1.0, help="five: a grid this many times coarser")
+    args = parser.parse_args()
+    with Workers(args.workers) as workers:
+        out, post = {"s4": s4, "five": five}[args.which](workers if args.workers > 1 else None, args)
+    name = args.which if args.coarsen == 1.0 else f"{args.which}_coarse{args.coarsen:g}"
+    (RESULTS / f"emulated_{name}.json").write_text(json.dumps(out, indent=1))
+    from calibration.plots import plot_emulated
+
+    reference = None
+    if args.which == "s4":
+        reference = {label: {k: (out[name]["mean"][k], out[name]["sd"][k]) for k in post.keys}
+                     for label, name in (("NUTS on the model", "model_nuts"), ("grid quadrature", "grid_quadrature"))}
+    plot_emulated(post, FIGURES / f"emulated_{name}.png", truth=out["truth"], reference=reference,
+                  title=out["case"])
+    for k in post.keys:
+        print(f"{k}: emulated+IS {post.mean[k]:.5g} ± {post.sd[k]:.3g} {post.ci95[k]}; chains R-hat "
+              f"{post.emulated.rhat[k]:.4f} ESS {post.emulated.ess_bulk[k]:.0f}")
+    print(f"pareto k {post.pareto_k:.3f}, IS ESS {post.ess_importance:.0f}, failed {post.failed_checks}, "
+          f"jacobians {post.jacobians}, runs {post.runs}, {post.wall_s:.0f} s; rounds {post.rounds}")
+
+
+if __name__ == "__main__":
+    main()
