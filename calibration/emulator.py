@@ -51,12 +51,11 @@ import jax.numpy as jnp
 import numpy as np
 
 from .bounds import dphysical_dz, physical, unconstrained
-from .likelihood import noise_levels
+from .likelihood import noise_levels, weighted_quantile
 from .objective import jacobians_z, residuals_at
 from .protocol import ObjectiveLike
 
-__all__ = ["EmulatedObjective", "EmulatedPosterior", "QuadraticEmulator", "emulated_posterior", "psis",
-           "weighted_quantile"]
+__all__ = ["EmulatedObjective", "EmulatedPosterior", "QuadraticEmulator", "emulated_posterior", "psis"]
 
 #: The least effective sample size of a reported posterior (``calibration.mcmc``'s, Vehtari et al. 2021).
 ESS_MIN = 100.0
@@ -214,17 +213,6 @@ def _gpd_fit(x) -> tuple[float, float]:
     return k_post, sigma
 
 
-def weighted_quantile(values, weights, q) -> np.ndarray:
-    """The ``q`` quantiles of ``values`` (n,) under normalised ``weights`` (n,): the inverse of the
-    weighted empirical distribution, with each point's mass centred on it."""
-    values, weights = np.asarray(values, float), np.asarray(weights, float)
-    values, weights = values[weights > 0], weights[weights > 0]  # no mass: not in the distribution
-    order = np.argsort(values)
-    v, w = values[order], weights[order]
-    cum = np.cumsum(w) - 0.5 * w
-    return np.interp(np.asarray(q, float), cum / np.sum(w), v)
-
-
 @dataclasses.dataclass(frozen=True)
 class EmulatedPosterior:
     """The model's posterior from NUTS on an emulator and the importance correction (module
@@ -310,7 +298,7 @@ def emulated_posterior(objective: ObjectiveLike, centre, *, noise: Mapping[str, 
     ``warmup``, ``draws``: the emulator's NUTS (cheap: long chains cost seconds); ``workers``:
     processes for the model's runs (``calibration.workers``). The model is run 3k + 1 + (2k + 1) per
     re-centring with its Jacobian and ``checks`` times without."""
-    from .mcmc import _row_weights, nuts_posterior
+    from .mcmc import _row_weights, gauss_newton_point, nuts_posterior
 
     keys = tuple(objective.keys)
     k = len(keys)
@@ -333,15 +321,8 @@ def emulated_posterior(objective: ObjectiveLike, centre, *, noise: Mapping[str, 
         sigma = noise_levels(objective, None, noise)
         gn_cov = None
     else:
-        if tuple(centre.keys) != keys:
-            raise ValueError(f"centre fits {tuple(centre.keys)}, the objective {keys}")
-        unc = getattr(centre, "uncertainty", None)
-        if unc is None or unc.withheld:
-            raise ValueError("centre: the fit carries no Gauss-Newton covariance (its verdict withheld it); pass "
-                             "its point as a mapping of values and the noise, for the Laplace whitening there")
-        theta_hat = np.array([centre.theta[key] for key in keys], float)
-        sigma = noise_levels(objective, centre, noise)
-        gn_cov = np.asarray(unc.cov, float)
+        theta_hat, sigma, gn_cov = gauss_newton_point(objective, centre, noise, name="centre", hint=(
+            "; pass its point as a mapping of values and the noise, for the Laplace whitening there"))
     if not np.all((theta_hat > lower) & (theta_hat < upper)):
         raise ValueError(f"centre: {dict(zip(keys, theta_hat.tolist()))} is not strictly inside the bounds")
     clock = time.perf_counter()

@@ -40,7 +40,7 @@ from .sweep import sweep
 from .uncertainty import NOISE_FLOOR, chi2_of, chi2_quantile
 
 __all__ = ["GridPosterior", "HeldOut", "ProfileLikelihood", "grid_posterior", "noise_levels", "predict_heldout",
-           "profile_likelihood"]
+           "profile_likelihood", "weighted_quantile"]
 
 #: Δχ² of a 95 % interval of one parameter (Wilks' theorem).
 DELTA_CHI2_95 = chi2_quantile(0.95, 1)
@@ -291,11 +291,16 @@ class GridPosterior:
                                                     if self.whitened else ""), "wall_s": round(self.wall_s, 2)}
 
 
-def _weighted_quantile(x, w, q):
-    order = np.argsort(x)
-    x, w = x[order], w[order]
-    cdf = np.cumsum(w) - 0.5 * w
-    return float(np.interp(q, cdf / cdf[-1] if cdf[-1] > 0 else cdf, x))
+def weighted_quantile(values, weights, q):
+    """The ``q`` quantiles of ``values`` (n,) under ``weights`` (n,, not all zero): the inverse of
+    the weighted empirical distribution, with each point's mass centred on it (points without mass
+    are not in it)."""
+    values, weights = np.asarray(values, float), np.asarray(weights, float)
+    values, weights = values[weights > 0], weights[weights > 0]
+    order = np.argsort(values)
+    v, w = values[order], weights[order]
+    cum = np.cumsum(w) - 0.5 * w
+    return np.interp(np.asarray(q, float), cum / np.sum(w), v)
 
 
 def grid_posterior(objective: ObjectiveLike, fit_result, *, span: float = 4.0, n: int = 21,
@@ -351,7 +356,7 @@ def grid_posterior(objective: ObjectiveLike, fit_result, *, span: float = 4.0, n
         x = thetas[:, j]
         mean[k] = float(np.sum(weight * x))
         sd[k] = float(math.sqrt(max(np.sum(weight * (x - mean[k]) ** 2), 0.0)))
-        ci[k] = (_weighted_quantile(x, weight, 0.025), _weighted_quantile(x, weight, 0.975))
+        ci[k] = tuple(float(v) for v in weighted_quantile(x, weight, [0.025, 0.975]))
     on_edge = np.any(np.abs(mesh) >= span * (1 - 1e-12), axis=1)
     return GridPosterior(keys, thetas, chi2, weight, (n,) * len(keys), whitened, mean, sd, ci,
                          dict(zip(keys, theta_hat.tolist())), None if se is None else dict(zip(keys, se.tolist())),

@@ -58,8 +58,9 @@ from .observe import jacobian_by_columns
 from .protocol import ObjectiveLike
 from .uncertainty import NOISE_FLOOR
 
-__all__ = ["ChainDraws", "McmcPosterior", "Sampler", "diagnose", "log_density_fn", "nuts_posterior", "nuts_sampler",
-           "posterior_predictive", "sample_chain", "start_chain", "warm_up", "whitened"]
+__all__ = ["ChainDraws", "McmcPosterior", "Sampler", "diagnose", "gauss_newton_point", "log_density_fn",
+           "nuts_posterior", "nuts_sampler", "posterior_predictive", "sample_chain", "start_chain", "warm_up",
+           "whitened"]
 
 #: The fields ``_summary`` computes, in its order.
 _SUMMARY = ("mean", "sd", "ci95", "rhat", "ess_bulk", "ess_tail")
@@ -234,6 +235,23 @@ def _support(objective: ObjectiveLike, theta):
         return jnp.bool_(True)
     params = objective.members[0].params_of(theta)
     return params.mu2 >= params.mu1
+
+
+def gauss_newton_point(objective: ObjectiveLike, fit_result, noise, *, name: str = "fit_result",
+                       hint: str = "") -> tuple[np.ndarray, dict[str, float], np.ndarray]:
+    """(θ̂, σ by block, Gauss–Newton covariance) of ``fit_result``, a fit of ``objective``'s keys
+    that carries an interval: what whitens the chains here and the emulator's first design
+    (``calibration.emulator``). Raises ``ValueError`` naming ``name`` (with ``hint`` after the
+    reason) for another objective's fit or a fit without a covariance."""
+    keys = tuple(objective.keys)
+    if tuple(fit_result.keys) != keys:
+        raise ValueError(f"{name} fits {tuple(fit_result.keys)}, the objective {keys}")
+    unc = getattr(fit_result, "uncertainty", None)
+    if unc is None or unc.withheld:
+        raise ValueError(f"{name}: the fit carries no Gauss-Newton covariance (not a fit of the data, or fitted "
+                         f"without uncertainty){hint}")
+    theta_hat = np.array([fit_result.theta[k] for k in keys], float)
+    return theta_hat, noise_levels(objective, fit_result, noise), np.asarray(unc.cov, float)
 
 
 def log_density_fn(objective: ObjectiveLike, weights, z_hat, L, lower, upper):
@@ -457,13 +475,8 @@ def nuts_posterior(objective: ObjectiveLike, fit_result, *, chains: int | None =
     if not (math.isfinite(spread) and spread > 0):
         raise ValueError(f"spread must be a positive number, got {spread!r}")
     keys = tuple(objective.keys)
-    if tuple(fit_result.keys) != keys:
-        raise ValueError(f"fit_result fits {tuple(fit_result.keys)}, the objective {keys}")
-    unc = getattr(fit_result, "uncertainty", None)
-    if unc is None or unc.withheld:
-        raise ValueError("fit_result: no Gauss-Newton covariance (not a fit of the data, or fitted without "
-                         "uncertainty); the sampler needs one to precondition the chains")
-    sigma = noise_levels(objective, fit_result, noise)
+    theta_hat, sigma, gn_cov = gauss_newton_point(objective, fit_result, noise,
+                                                  hint="; the sampler needs one to precondition the chains")
     if resume is not None:
         _check_resume(resume, keys, fit_result, sigma)
     clock = time.perf_counter()
@@ -471,12 +484,11 @@ def nuts_posterior(objective: ObjectiveLike, fit_result, *, chains: int | None =
     # whose residuals are cast: blackjax's own arrays follow the default and must not mix).
     dtype = jnp.result_type(float)
     lower_np, upper_np = np.asarray(objective.bounds.lower, float), np.asarray(objective.bounds.upper, float)
-    theta_hat = np.array([fit_result.theta[k] for k in keys], float)
     if np.any((theta_hat <= lower_np) | (theta_hat >= upper_np)):
         raise ValueError(f"fit_result: the point {dict(zip(keys, theta_hat))} is not strictly inside the bounds")
     z_hat = unconstrained(theta_hat, lower_np, upper_np)
     dtheta_dz = np.asarray(dphysical_dz(jnp.asarray(z_hat), jnp.asarray(lower_np), jnp.asarray(upper_np)), float)
-    L = np.linalg.cholesky(np.asarray(unc.cov, float) / np.outer(dtheta_dz, dtheta_dz))
+    L = np.linalg.cholesky(gn_cov / np.outer(dtheta_dz, dtheta_dz))
     as_dtype = lambda a: jnp.asarray(a, dtype)  # noqa: E731
     log_density, theta_of = log_density_fn(objective, as_dtype(_row_weights(objective, sigma)), as_dtype(z_hat),
                                            as_dtype(L), as_dtype(lower_np), as_dtype(upper_np))

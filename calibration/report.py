@@ -74,15 +74,12 @@ def posterior_checks(objective, result, *, profiles: int = 0, posterior: int = 0
         at_bound = [k for k, lo, hi in zip(objective.keys, lower, upper) if not lo < result.theta[k] < hi]
         if at_bound:
             report["emulated_posterior_skipped"] = f"{at_bound} at a bound: the chains' coordinates end there"
-        elif unc is not None and not unc.withheld:
-            found = emulated_posterior(objective, result, noise=noise, checks=emulated, chains=chains,
-                                       workers=workers, progress=progress)
-            report["emulated_posterior"] = found.to_json()
         elif sigma is None:
             report["emulated_posterior_skipped"] = "no noise level: give --noise"
-        else:
-            found = emulated_posterior(objective, dict(result.theta), noise=sigma, checks=emulated, chains=chains,
-                                       workers=workers, progress=progress)
+        else:  # a fit whitens by its interval; a point without one, by the Laplace covariance there
+            interval = unc is not None and not unc.withheld
+            found = emulated_posterior(objective, result if interval else dict(result.theta), noise=sigma,
+                                       checks=emulated, chains=chains, workers=workers, progress=progress)
             report["emulated_posterior"] = found.to_json()
     if not (profiles or posterior or nuts):
         return PosteriorChecks(report)

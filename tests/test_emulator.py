@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 
 from calibration.bounds import Bounds, dphysical_dz, physical
-from calibration.emulator import EmulatedObjective, QuadraticEmulator, emulated_posterior, psis, weighted_quantile
+from calibration.emulator import EmulatedObjective, QuadraticEmulator, emulated_posterior, psis
+from calibration.likelihood import weighted_quantile
 
 SIGMA = 0.1
 
