@@ -57,9 +57,13 @@ def _fit(args) -> int:
                                         refine=args.refine, seed=args.search_seed, out=args.out, resume=args.resume,
                                         overwrite=args.overwrite, progress=not args.no_progress,
                                         meta=cli.fit_meta(args, experiments), workers=workers)
+        error = cli.posterior_model_error(args, objective, result, workers)
         checks = posterior_checks(objective, result, profiles=args.profiles, posterior=args.posterior, nuts=args.nuts,
-                                  chains=args.chains, emulated=args.emulated, noise=args.noise, workers=workers,
+                                  chains=args.chains, emulated=args.emulated, noise=args.noise,
+                                  model_error=error if not isinstance(error, str) else None, workers=workers,
                                   progress=not args.json)
+        if isinstance(error, str):
+            checks.report["model_error_skipped"] = error
     out = {**fit_report(objective, result, found), **cli.fit_fields(args, scene, experiments, init, found)}
     out.update(checks.report)
     errors: dict[str, str] = {}
@@ -308,6 +312,11 @@ def build_parser() -> argparse.ArgumentParser:
                           "corrected by the model's runs at N >= 30 draws (calibration.emulator, needs [bayes]; 3k+1 "
                           "Jacobians and 2k+1 more per re-centring, at most 6, and N runs; also where the verdict "
                           "refuses an interval, with --noise or the estimated noise; default 0: off)")
+    fit.add_argument("--model-error", type=int, default=4, metavar="K",
+                     help="the model's own error in the likelihood of --profiles, --posterior, --nuts and --emulated: "
+                          "K other particle draws and the grid term's coarse runs at the fit's point, added to the "
+                          "data's noise by block (calibration.likelihood.model_error; K + 3 forward runs; default 4; "
+                          "0: the data's noise alone)")
     fit.add_argument("--chains", type=int, default=4, metavar="C",
                      help="NUTS chains, run one after the other (default 4)")
     fit.add_argument("--refine", type=int, default=2, metavar="N",

@@ -293,6 +293,23 @@ def scene_and_objective(args, keys, experiments=()):
     return first.scene, objective
 
 
+def posterior_model_error(args, objective, result, workers):
+    """The model's own error at the fit's point for the posterior checks' likelihood
+    (``calibration.likelihood.model_error`` with ``--model-error`` draws, on the grid
+    ``--grid-check`` times coarser, 1.5 where that is off): None where no check is asked for or
+    ``--model-error 0``; the reason, a string, where it cannot be measured (the JSON says so)."""
+    from .likelihood import model_error
+    from .uncertainty import GRID_RATIO
+
+    if not (args.model_error and (args.profiles or args.posterior or args.nuts or args.emulated)):
+        return None
+    try:
+        return model_error(objective, result.theta, draws=args.model_error, ratio=args.grid_check or GRID_RATIO,
+                           workers=workers)
+    except ValueError as err:
+        return str(err)
+
+
 def coarse_objective(args, scene, keys, experiments):
     """The coarse stage's objective of ``fit --coarse F``: the same data on F times the grid
     spacing of ``scene`` (one experiment)."""
@@ -332,6 +349,9 @@ def check_args(args) -> None:
         raise ValueError(f"--chains must be >= 2 with --emulated (R-hat compares chains), got {args.chains}")
     if getattr(args, "chains", 1) < 1:
         raise ValueError(f"--chains must be >= 1, got {args.chains}")
+    draws = getattr(args, "model_error", 0)
+    if draws < 0 or draws == 1:
+        raise ValueError(f"--model-error must be 0 (off) or >= 2 particle draws, got {args.model_error}")
     for flag in ("nuts", "emulated"):
         if getattr(args, flag, 0) and importlib.util.find_spec("blackjax") is None:
             raise ValueError(f"--{flag} needs blackjax: pip install 'jaxmpm[bayes]'")

@@ -35,12 +35,13 @@ from typing import Any
 import jax.numpy as jnp
 import numpy as np
 
+from . import uncertainty
 from .protocol import ObjectiveLike
 from .sweep import sweep
-from .uncertainty import NOISE_FLOOR, chi2_of, chi2_quantile
+from .uncertainty import NOISE_FLOOR, chi2_of, chi2_quantile, coarse_residuals, redrawn_residuals
 
-__all__ = ["GridPosterior", "HeldOut", "ProfileLikelihood", "grid_posterior", "noise_levels", "predict_heldout",
-           "profile_likelihood", "weighted_quantile"]
+__all__ = ["GridPosterior", "HeldOut", "ModelError", "ProfileLikelihood", "grid_posterior", "model_error",
+           "noise_levels", "predict_heldout", "profile_likelihood", "weighted_quantile"]
 
 #: Δχ² of a 95 % interval of one parameter (Wilks' theorem).
 DELTA_CHI2_95 = chi2_quantile(0.95, 1)
@@ -62,6 +63,108 @@ def noise_levels(objective: ObjectiveLike, fit_result, noise) -> dict[str, float
     if missing:
         raise ValueError(f"noise: no level for the block(s) {missing} of the objective")
     return sigma
+
+
+@dataclasses.dataclass(frozen=True)
+class ModelError:
+    """The model's own error in the residuals, σ by block in the blocks' relative units, beside
+    the data's noise (``model_error``): ``draw``, a residual's spread over particle draws (the
+    texture that makes χ²(θ) rough); ``grid``, the residuals' estimated discretisation error,
+    |r̄(dx) − r̄(ρ dx)| / (ρ^p − 1) root-mean-squared over the block with the draws' share of that
+    difference taken off (Richardson's estimate for order p; the error against the continuum,
+    which real data measure). ``noise(data)`` is what a likelihood uses:
+    σ_b² = σ_data,b² + draw_b² + grid_b², every residual independent."""
+
+    draw: dict[str, float]
+    grid: dict[str, float]
+    draws: int  # runs that gave the draw term (the objective's own draw and the redrawn ones)
+    coarse_draws: int  # runs averaged on the coarse grid
+    ratio: float
+    order: float
+    dx: float
+    wall_s: float
+
+    def total(self) -> dict[str, float]:
+        """σ of the model's error by block: sqrt(draw² + grid²)."""
+        return {b: math.hypot(self.draw[b], self.grid[b]) for b in self.draw}
+
+    def noise(self, data: Mapping[str, float] | float) -> dict[str, float]:
+        """σ by block of a likelihood with this model error beside the data's ``data`` (a float:
+        every block; a mapping: by block): sqrt(σ_data² + draw² + grid²)."""
+        sigma = ({b: float(data) for b in self.draw} if not isinstance(data, Mapping)
+                 else {b: float(v) for b, v in data.items()})
+        missing = sorted(set(self.draw) - set(sigma))
+        if missing:
+            raise ValueError(f"data: no noise level for the block(s) {missing}")
+        return {b: math.sqrt(sigma[b] ** 2 + self.draw[b] ** 2 + self.grid[b] ** 2) for b in self.draw}
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"draw": self.draw, "grid": self.grid, "total": self.total(), "draws": self.draws,
+                "coarse_draws": self.coarse_draws, "ratio": self.ratio, "order_assumed": self.order, "dx": self.dx,
+                "wall_s": round(self.wall_s, 2)}
+
+
+def model_error(objective: ObjectiveLike, theta, *, draws: int = uncertainty.SAMPLING_SEEDS,
+                ratio: float = uncertainty.GRID_RATIO, coarse_draws: int = uncertainty.GRID_DRAWS,
+                order: float = uncertainty.GRID_ORDER, workers=None) -> ModelError:
+    """The model's error in ``objective``'s residuals at ``theta`` (a mapping of the keys' values
+    or an array in key order), by block (``ModelError``): the objective's own particle draw and
+    ``draws`` others at θ give the draw term; ``coarse_draws`` draws on the grid ``ratio`` times
+    coarser (``Objective.coarsened``) the grid term, for a convergence of order ``order``. Runs
+    ``1 + draws + coarse_draws`` forward runs (on ``workers``). Raises ``ValueError`` when the
+    particles cannot be drawn again (a lattice sampling) or fewer than two draws, or no coarse
+    run, ran without status bits: an unmeasured term is not taken as zero."""
+    for name, value in (("draws", draws), ("coarse_draws", coarse_draws)):
+        if not (isinstance(value, int) and not isinstance(value, bool)):
+            raise ValueError(f"{name} must be an integer, got {value!r}")
+    if draws < 2:
+        raise ValueError(f"draws must be >= 2 (a spread beside the objective's own draw), got {draws!r}")
+    if not (_number(ratio) and ratio > 1.0):
+        raise ValueError(f"ratio must be a finite factor > 1 of the grid spacing, got {ratio!r}")
+    if coarse_draws < 1:
+        raise ValueError(f"coarse_draws must be >= 1, got {coarse_draws!r}")
+    if not (_number(order) and order > 0):
+        raise ValueError(f"order must be > 0, got {order!r}")
+    if not objective.seeded:
+        raise ValueError("objective: its particles cannot be drawn again (a lattice sampling), so the draw term "
+                         "cannot be measured; sample the body at random (a seed)")
+    if isinstance(theta, Mapping):
+        missing = [k for k in objective.keys if k not in theta]
+        if missing:
+            raise ValueError(f"theta: no value for the key(s) {missing}")
+        theta = [theta[k] for k in objective.keys]
+    theta = np.asarray(theta, float)
+    if theta.shape != (len(objective.keys),) or not np.all(np.isfinite(theta)):
+        raise ValueError(f"theta must be {len(objective.keys)} finite values for the keys {objective.keys}, got "
+                         f"{theta.tolist()}")
+    objective.check_thetas(theta[None, :], "theta")
+    clock = time.perf_counter()
+    own = objective.residuals(theta)
+    fine = [np.asarray(own[0], float)] if int(np.asarray(own[1]["status"])) == 0 else []
+    fine += redrawn_residuals(objective, theta, draws, workers)
+    if len(fine) < 2:
+        raise ValueError(f"theta: {len(fine)} of {draws + 1} particle draws ran without status bits; the draw "
+                         "term needs two")
+    _, coarse = coarse_residuals(objective, theta, ratio, coarse_draws, workers)
+    if not coarse:
+        raise ValueError(f"theta: no run on the grid {ratio:g} times coarser ran without status bits")
+    scale = np.asarray(objective.row_scale, float)
+    F, C = np.stack(fine) / scale, np.stack(coarse) / scale
+    var = np.var(F, axis=0, ddof=1)
+    diff2 = (F.mean(axis=0) - C.mean(axis=0)) ** 2
+    factor = ratio ** order - 1.0
+    draw, grid = {}, {}
+    for name, sl in objective.blocks.items():
+        v = float(np.mean(var[sl]))
+        draw[name] = math.sqrt(v)
+        # E (F̄ − C̄)² = δ² + v (1/n_F + 1/n_C), v the fine draws' variance (the coarse's is larger: kept, conservatively)
+        grid[name] = math.sqrt(max(float(np.mean(diff2[sl])) - v * (1 / len(fine) + 1 / len(coarse)), 0.0)) / factor
+    return ModelError(draw, grid, len(fine), len(coarse), float(ratio), float(order), objective.dx,
+                      time.perf_counter() - clock)
+
+
+def _number(value) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
 
 
 def _stderr(fit_result) -> np.ndarray | None:

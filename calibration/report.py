@@ -51,7 +51,8 @@ class PosteriorChecks:
 
 
 def posterior_checks(objective, result, *, profiles: int = 0, posterior: int = 0, nuts: int = 0, chains: int = 4,
-                     emulated: int = 0, noise=None, workers=None, progress: bool = False) -> PosteriorChecks:
+                     emulated: int = 0, noise=None, model_error=None, workers=None,
+                     progress: bool = False) -> PosteriorChecks:
     """The profile likelihood of every fitted key at ``profiles`` points, the grid posterior of
     one or two keys at ``posterior`` points per key and a NUTS posterior of ``nuts`` draws per
     chain on ``chains`` chains (each 0: off) around ``result``, a fit of ``objective``
@@ -60,16 +61,24 @@ def posterior_checks(objective, result, *, profiles: int = 0, posterior: int = 0
     than two keys. ``emulated``: the posterior of every key from NUTS on an emulator, corrected
     with the model's runs at ``emulated`` draws (``calibration.emulator``; on ``workers``): it
     needs no interval, so it runs where the verdict refuses one too, centred on the point with
-    the noise given or estimated. What ``python -m calibration fit --profiles N --posterior N
-    --nuts N --emulated N`` adds."""
+    the noise given or estimated. ``model_error``: the model's own error at the point
+    (``calibration.likelihood.ModelError``), added to the noise of every check's likelihood in
+    quadrature (reported as "model_error" and "posterior_noise"). What ``python -m calibration
+    fit --profiles N --posterior N --nuts N --emulated N`` adds."""
     if not (profiles or posterior or nuts or emulated):
         return PosteriorChecks()
     report: dict[str, Any] = {}
+    unc = result.uncertainty
+    sigma = noise if noise is not None else (None if unc is None or not unc.noise else dict(unc.noise))
+    if model_error is not None:
+        if sigma is None:
+            report["model_error_skipped"] = "no noise level of the data to add it to: give --noise"
+        else:
+            sigma = noise = model_error.noise(sigma)
+            report.update(model_error=model_error.to_dict(), posterior_noise=noise)
     if emulated:
         from .emulator import emulated_posterior
 
-        unc = result.uncertainty
-        sigma = noise if noise is not None else (None if unc is None or not unc.noise else dict(unc.noise))
         lower, upper = objective.bounds.lower, objective.bounds.upper
         at_bound = [k for k, lo, hi in zip(objective.keys, lower, upper) if not lo < result.theta[k] < hi]
         if at_bound:

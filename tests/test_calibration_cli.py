@@ -60,6 +60,20 @@ def test_fit_reads_a_webplotdigitizer_export_with_units(capsys):
     assert out["method"] == "lm-search" and out["search"]["starts"] == 2 and out["search"]["minima"]
 
 
+def test_fit_measures_the_model_error_for_the_posterior_checks(capsys):
+    """Asked for a check beyond Gauss–Newton, fit measures the model's own error at its point
+    (--model-error draws, the grid term's coarse runs) and adds it to the data's noise; the check
+    itself is skipped here (one iteration is no fit), the likelihood it would use is reported."""
+    code, out = run(capsys, "fit", "--scene", "cohesive-collapse", "--data", S4, "--t-end", "0.5", "--fit", "mu1",
+                    "--init", "mu1=0.4", "--steps", "1", "--roundoff-samples", "0", "--noise", "0.02",
+                    "--profiles", "3", "--model-error", "2", *TINY)
+    assert code == 0 and "profile_likelihood_skipped" in out
+    error = out["model_error"]
+    assert error["draws"] == 3 and error["coarse_draws"] == 2 and error["ratio"] == 1.5
+    assert error["draw"]["profile"] > 0 and error["grid"]["profile"] >= 0
+    assert out["posterior_noise"]["profile"] == pytest.approx(np.hypot(0.02, error["total"]["profile"]))
+
+
 @pytest.mark.parametrize("argv, message", [
     (["--fit", "beta,friction"], "keys: unknown parameter"),
     (["--fit", "beta", "--init", "beta=2"], "init: beta = 2.0 must lie strictly inside"),
@@ -70,6 +84,8 @@ def test_fit_reads_a_webplotdigitizer_export_with_units(capsys):
     (["--fit", "beta", "--nuts", "8", "--chains", "0"], "--chains must be >= 1"),
     (["--fit", "beta", "--emulated", "5"], "--emulated must be 0 (off) or >= 30"),
     (["--fit", "beta", "--emulated", "40", "--chains", "1"], "--chains must be >= 2 with --emulated"),
+    (["--fit", "beta", "--profiles", "5", "--model-error", "1"], "--model-error must be 0 (off) or >= 2"),
+    (["--fit", "beta", "--profiles", "5", "--model-error", "-3"], "--model-error must be 0 (off) or >= 2"),
 ])
 def test_fit_input_errors_name_the_argument(capsys, argv, message):
     with pytest.raises(SystemExit) as exc:
@@ -160,7 +176,7 @@ def test_fit_with_profiles_and_posterior_draws_them(capsys, tmp_path):
     profile.write_text("\n".join(lines + ["x_m,h_m"] + [f"{a:.6e},{b:.6e}" for a, b in zip(data.x, noisy)]) + "\n")
     code, out = run(capsys, "fit", "--scene", "cohesive-collapse", "--data", str(profile), "--fit", "mu1",
                     "--set", "beta=0.25", "--init", "mu1=0.4", "--steps", "8", "--roundoff-samples", "0",
-                    "--grid-check", "0",
+                    "--grid-check", "0", "--model-error", "0",
                     "--profiles", "5", "--posterior", "7", "--nuts", "40", "--chains", "2",
                     "--plot", str(tmp_path / "figs"), *TINY)
     assert code == 0 and out["verdict"]["is_fit"]

@@ -3,9 +3,11 @@
 grid quadrature are stored, and the five keys of the three filmed collapses (docs/five_keys/).
 
     python docs/scripts/emulated_posterior.py s4 [--workers 2]       (needs [bayes])
-    python docs/scripts/emulated_posterior.py five [--workers 2] [--fit-steps N]
+    python docs/scripts/emulated_posterior.py five [--workers 2] [--coarsen R] [--model-error]
 
-Writes docs/results/emulated_{s4,five}.json and docs/figures/emulated_{s4,five}.png.
+Writes docs/results/emulated_{s4,five}.json and docs/figures/emulated_{s4,five}.png (``--coarsen R``:
+``five_coarse{R}``; ``--model-error``: ``five_model_error``, the likelihood's σ by block the data's 2 %
+and the model's own error there, ``calibration.likelihood.model_error``, in quadrature).
 """
 
 import argparse
@@ -19,6 +21,7 @@ from beyond_gauss_newton import S4_KEYS, S4_TRUTH, s4_twin  # noqa: E402  (this 
 
 from calibration import fit  # noqa: E402
 from calibration.emulator import emulated_posterior  # noqa: E402
+from calibration.likelihood import model_error  # noqa: E402
 from calibration.workers import Workers  # noqa: E402
 
 ROOT = pathlib.Path(__file__).resolve().parents[2]
@@ -59,10 +62,15 @@ def five(workers, args):
         objective = objective.coarsened(args.coarsen)
     four = json.loads((RESULTS / "five_keys_fit_L12.json").read_text())["params"]
     centre = {**four, "I0": 0.4}
-    post = emulated_posterior(objective, centre, noise=0.02, checks=args.checks, workers=workers, progress=True)
+    noise, error = 0.02, None
+    if args.model_error:
+        error = model_error(objective, centre, workers=workers)
+        noise = error.noise(0.02)
+        print("model error by block", error.total(), flush=True)
+    post = emulated_posterior(objective, centre, noise=noise, checks=args.checks, workers=workers, progress=True)
     out = {"case": f"five keys, three filmed collapses at dx = L/{0.089 / objective.dx:.0f} (data L/18, 2 % noise)",
-           "dx": objective.dx, "coarsen": args.coarsen, "truth": FIVE_TRUTH, "centre": centre, "noise": 0.02,
-           "emulated": post.to_json(),
+           "dx": objective.dx, "coarsen": args.coarsen, "truth": FIVE_TRUTH, "centre": centre, "noise": noise,
+           "data_noise": 0.02, "model_error": None if error is None else error.to_dict(), "emulated": post.to_json(),
            "truth_inside_ci95": {k: bool(post.ci95[k][0] <= FIVE_TRUTH[k] <= post.ci95[k][1]) for k in FIVE},
            "box": dict(zip(FIVE, zip(map(float, objective.bounds.lower), map(float, objective.bounds.upper))))}
     return out, post
@@ -74,10 +82,13 @@ def main():
     parser.add_argument("--workers", type=int, default=1)
     parser.add_argument("--checks", type=int, default=200)
     parser.add_argument("--coarsen", type=float, default=1.0, help="five: a grid this many times coarser")
+    parser.add_argument("--model-error", action="store_true",
+                        help="five: the model's own error (particle draws, grid) beside the data's noise")
     args = parser.parse_args()
     with Workers(args.workers) as workers:
         out, post = {"s4": s4, "five": five}[args.which](workers if args.workers > 1 else None, args)
     name = args.which if args.coarsen == 1.0 else f"{args.which}_coarse{args.coarsen:g}"
+    name += "_model_error" if args.model_error else ""
     (RESULTS / f"emulated_{name}.json").write_text(json.dumps(out, indent=1))
     from calibration.plots import plot_emulated
 
