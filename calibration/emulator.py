@@ -55,7 +55,8 @@ from .likelihood import noise_levels, weighted_quantile
 from .objective import jacobians_z, residuals_at
 from .protocol import ObjectiveLike
 
-__all__ = ["EmulatedObjective", "EmulatedPosterior", "QuadraticEmulator", "emulated_posterior", "psis"]
+__all__ = ["EMULATORS", "CorrectedQuadratic", "EmulatedObjective", "EmulatedPosterior", "QuadraticEmulator",
+           "emulated_posterior", "psis"]
 
 #: The least effective sample size of a reported posterior (``calibration.mcmc``'s, Vehtari et al. 2021).
 ESS_MIN = 100.0
@@ -122,12 +123,77 @@ class QuadraticEmulator:
         return _features(w) @ jnp.asarray(self.coef, w.dtype)
 
 
+def _gradient_kernel(X, Y, length: float) -> np.ndarray:
+    """The covariance of a Gaussian process with the squared-exponential kernel of ``length``
+    (unit variance) between its values and gradients at the rows of X (P, k) and at those of Y
+    (Q, k): (P (1 + k), Q (1 + k)), each point's value first, then its k derivatives."""
+    d = X[:, None, :] - Y[None, :, :]
+    K0 = np.exp(-0.5 * np.sum(d**2, axis=-1) / length**2)
+    P, Q, k = d.shape
+    out = np.zeros((P, 1 + k, Q, 1 + k))
+    out[:, 0, :, 0] = K0
+    out[:, 0, :, 1:] = K0[..., None] * d / length**2  # cov(f(x), ∂_b f(y))
+    out[:, 1:, :, 0] = np.moveaxis(-K0[..., None] * d / length**2, -1, 1)  # cov(∂_a f(x), f(y))
+    cross = K0[..., None, None] * (np.eye(k) / length**2 - d[..., :, None] * d[..., None, :] / length**4)
+    out[:, 1:, :, 1:] = np.transpose(cross, (0, 2, 1, 3))
+    return out.reshape(P * (1 + k), Q * (1 + k))
+
+
+@dataclasses.dataclass(frozen=True)
+class CorrectedQuadratic:
+    """A ``QuadraticEmulator`` plus the mean of a Gaussian process on what it misses: the
+    quadratic's errors in the values and the Jacobians at the design points are interpolated
+    (squared-exponential kernel of length ``length``, the median distance from a point to its
+    nearest neighbour, at least 0.5; a relative nugget ``NUGGET``), so that the emulator follows
+    every design point's value and slope, and returns to the quadratic away from the design. The
+    quadratic's global shape where the design is sparse, the model's own where it is dense;
+    ``rms`` is the quadratic's."""
+
+    quadratic: QuadraticEmulator
+    W: np.ndarray
+    alpha: np.ndarray  # (P (1 + k), m): the process's weights for every residual
+    length: float
+
+    @property
+    def rms(self) -> float:
+        return self.quadratic.rms
+
+    @classmethod
+    def fit(cls, W, R, JW, weights=None) -> CorrectedQuadratic:
+        W, R, JW = np.asarray(W, float), np.asarray(R, float), np.asarray(JW, float)
+        quadratic = QuadraticEmulator.fit(W, R, JW, weights)
+        P, k = W.shape
+        Y = np.concatenate([R[:, None, :], np.transpose(JW, (0, 2, 1))], axis=1).reshape(P * (1 + k), -1)
+        E = Y - _feature_rows(W) @ quadratic.coef
+        D = np.sqrt(np.sum((W[:, None, :] - W[None, :, :]) ** 2, axis=-1))
+        np.fill_diagonal(D, np.inf)
+        length = max(float(np.median(D.min(axis=1))), 0.5)
+        K = _gradient_kernel(W, W, length)
+        K[np.diag_indices_from(K)] += NUGGET * np.diag(K)
+        alpha = np.linalg.solve(K, E)
+        return cls(quadratic, W, alpha, length)
+
+    def __call__(self, w):
+        W = jnp.asarray(self.W, w.dtype)
+        d = w[None, :] - W
+        K0 = jnp.exp(-0.5 * jnp.sum(d**2, axis=-1) / self.length**2)
+        k_star = jnp.concatenate([K0[:, None], K0[:, None] * d / self.length**2], axis=1).reshape(-1)
+        return self.quadratic(w) + k_star @ jnp.asarray(self.alpha, w.dtype)
+
+
+#: The Gaussian process's nugget, relative to the kernel's variance (values and derivatives).
+NUGGET = 1e-6
+
+#: The emulators ``emulated_posterior`` can use, by name.
+EMULATORS = {"quadratic": QuadraticEmulator, "corrected": CorrectedQuadratic}
+
+
 class EmulatedObjective:
     """``objective`` with its residuals replaced by ``emulator``'s (in the whitening ``z_hat``,
     ``L`` of the chains): what ``nuts_posterior`` samples cheaply. Everything else (keys, bounds,
     blocks, weights, members) is the objective's. Its runs never fail (status 0)."""
 
-    def __init__(self, objective: ObjectiveLike, emulator: QuadraticEmulator, z_hat, L):
+    def __init__(self, objective: ObjectiveLike, emulator, z_hat, L):
         self._objective, self.emulator = objective, emulator
         self._z_hat, self._L = np.asarray(z_hat, float), np.asarray(L, float)
         self._Linv = np.linalg.inv(self._L)
@@ -240,6 +306,7 @@ class EmulatedPosterior:
     jacobians: int
     runs: int
     wall_s: float
+    emulator: str = "quadratic"
 
     @property
     def settled(self) -> bool:
@@ -256,8 +323,11 @@ class EmulatedPosterior:
 
     def to_json(self) -> dict[str, Any]:
         emulated = {k: v for k, v in self.emulated.to_json().items() if k not in ("draws", "log_density")}
-        return {"keys": list(self.keys), "method": "NUTS on a quadratic emulator of the residuals, corrected by "
-                "Pareto-smoothed importance sampling with the model's runs", "mean": self.mean, "sd": self.sd,
+        kind = {"quadratic": "a quadratic emulator of the residuals",
+                "corrected": "a quadratic emulator of the residuals corrected by a Gaussian process through the "
+                             "design points"}[self.emulator]
+        return {"keys": list(self.keys), "method": f"NUTS on {kind}, corrected by Pareto-smoothed importance sampling "
+                "with the model's runs", "emulator": self.emulator, "mean": self.mean, "sd": self.sd,
                 "ci95": {k: list(v) for k, v in self.ci95.items()}, "converged": self.converged,
                 "settled": self.settled, "pareto_k": self.pareto_k if math.isfinite(self.pareto_k) else None,
                 "pareto_k_max": PARETO_K_MAX, "ess_importance": self.ess_importance,
@@ -281,8 +351,8 @@ def _laplace_cov_z(objective, weights, z, Jz) -> np.ndarray:
 def emulated_posterior(objective: ObjectiveLike, centre, *, noise: Mapping[str, float] | float | None = None,
                        rounds: int = 6, settle: float = 1.0, axial: float = 2.0, reach: float = 3.0,
                        checks: int = 200, chains: int = 4,
-                       warmup: int = 200, draws: int = 1000, seed: int = 0, workers=None,
-                       progress: bool = False) -> EmulatedPosterior:
+                       warmup: int = 200, draws: int = 1000, seed: int = 0, emulator: str = "quadratic",
+                       workers=None, progress: bool = False) -> EmulatedPosterior:
     """The posterior of ``objective``'s keys from NUTS on a quadratic emulator whose design follows
     the posterior (at most ``rounds`` re-centrings, until the emulated posterior's mean lies within
     ``settle`` of its standard deviations of the centre it was designed around), corrected with
@@ -297,7 +367,9 @@ def emulated_posterior(objective: ObjectiveLike, centre, *, noise: Mapping[str, 
     ``axial``: the star's reach and ``reach`` the kernel's, in whitened units; ``chains``,
     ``warmup``, ``draws``: the emulator's NUTS (cheap: long chains cost seconds); ``workers``:
     processes for the model's runs (``calibration.workers``). The model is run 3k + 1 + (2k + 1) per
-    re-centring with its Jacobian and ``checks`` times without."""
+    re-centring with its Jacobian and ``checks`` times without. ``emulator``: "quadratic" (a
+    quadratic per residual, ``QuadraticEmulator``) or "corrected" (that quadratic and a Gaussian
+    process through the design points' values and slopes, ``CorrectedQuadratic``)."""
     from .mcmc import _row_weights, gauss_newton_point, nuts_posterior
 
     keys = tuple(objective.keys)
@@ -309,6 +381,8 @@ def emulated_posterior(objective: ObjectiveLike, centre, *, noise: Mapping[str, 
     for name, value in (("axial", axial), ("reach", reach), ("settle", settle)):
         if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
             raise ValueError(f"{name} must be a positive number (whitened units), got {value!r}")
+    if emulator not in EMULATORS:
+        raise ValueError(f"emulator must be one of {sorted(EMULATORS)}, got {emulator!r}")
     if checks > chains * draws:
         raise ValueError(f"checks: {checks} draws to check, the chains keep only {chains * draws}")
     lower, upper = np.asarray(objective.bounds.lower, float), np.asarray(objective.bounds.upper, float)
@@ -370,15 +444,15 @@ def emulated_posterior(objective: ObjectiveLike, centre, *, noise: Mapping[str, 
         Linv = np.linalg.inv(L)
         Wd = (Z - m) @ Linv.T
         kernel = np.exp(-0.5 * np.sum(Wd**2, axis=1) / reach**2)
-        emulator = QuadraticEmulator.fit(Wd, R, Jz @ L, weights=kernel)
-        target = EmulatedObjective(objective, emulator, m, L)
+        model = EMULATORS[emulator].fit(Wd, R, Jz @ L, weights=kernel)
+        target = EmulatedObjective(objective, model, m, L)
         theta_m = np.asarray(physical(jnp.asarray(m), jl, ju), float)
         dtheta_dz = np.asarray(dphysical_dz(jnp.asarray(m), jl, ju), float)
         cov = L @ L.T * np.outer(dtheta_dz, dtheta_dz)
         whitening = types.SimpleNamespace(keys=keys, theta=dict(zip(keys, theta_m.tolist())),
                                           uncertainty=types.SimpleNamespace(cov=cov, stderr=np.sqrt(np.diag(cov)),
                                                                             withheld=False, noise=sigma))
-        record[-1].update(emulator_rms=emulator.rms, kernel_points=float(kernel.sum()))
+        record[-1].update(emulator_rms=model.rms, kernel_points=float(kernel.sum()))
         say(f"NUTS on the emulator of {len(Z)} points")
         posterior = nuts_posterior(target, whitening, chains=chains, warmup=warmup, draws=draws, seed=seed + c,
                                    noise=sigma)
@@ -389,6 +463,8 @@ def emulated_posterior(objective: ObjectiveLike, centre, *, noise: Mapping[str, 
         moved = float(np.sqrt(np.sum((np.linalg.solve(np.linalg.cholesky(cov_z), m_new - m)) ** 2)))
         record[-1]["posterior_mean_from_centre_sd"] = moved
         record[-1]["settled"] = moved < settle
+        say(f"the emulated posterior's mean lies {moved:.1f} of its sds from the design's centre"
+            + (" (settled)" if moved < settle else ""))
         if c == rounds or moved < settle:
             break
         # Re-centre and re-whiten on the draws (in z), and a new star there.
@@ -402,6 +478,7 @@ def emulated_posterior(objective: ObjectiveLike, centre, *, noise: Mapping[str, 
         dchi2 = np.sum(weights * r_new**2, axis=-1) - np.sum(weights * before[ok] ** 2, axis=-1)
         record.append({"design_points": int(len(Z)), "failed_runs": int(np.sum(~ok)),
                        "new_points_dchi2": dchi2.tolist()})
+        say(f"the model's chi2 minus the emulator's at the star: {np.array2string(dchi2, precision=1)}")
     pick = rng.choice(flat.shape[0], size=checks, replace=False)
     thetas = flat[pick]
     say(f"the model's runs at {checks} draws")
@@ -419,4 +496,4 @@ def emulated_posterior(objective: ObjectiveLike, centre, *, noise: Mapping[str, 
           for j, key in enumerate(keys)}
     return EmulatedPosterior(keys, mean, sd, ci, posterior, k_hat, float(1.0 / np.sum(w**2)), (thetas, log_w),
                              int(np.sum(~np.isfinite(chi2_model))), tuple(record), jacobians, checks,
-                             time.perf_counter() - clock)
+                             time.perf_counter() - clock, emulator)

@@ -9,8 +9,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from calibration import emulator as emulator_module
 from calibration.bounds import Bounds, dphysical_dz, physical
-from calibration.emulator import EmulatedObjective, QuadraticEmulator, emulated_posterior, psis
+from calibration.emulator import CorrectedQuadratic, EmulatedObjective, QuadraticEmulator, emulated_posterior, psis
 from calibration.likelihood import weighted_quantile
 
 SIGMA = 0.1
@@ -124,6 +125,57 @@ def test_quadratic_emulator_is_exact_on_quadratic_residuals():
         QuadraticEmulator.fit(W[:2], np.zeros((2, m)), np.zeros((2, m, k)))
 
 
+def test_gradient_kernel_is_the_kernel_and_its_derivatives():
+    """The Gaussian process's covariances of values and gradients against finite differences of
+    the squared-exponential kernel itself (in x and in y)."""
+    rng = np.random.default_rng(1)
+    k, length, h = 3, 1.3, 1e-6
+    X, Y = rng.normal(size=(2, k)), rng.normal(size=(2, k))
+    K = emulator_module._gradient_kernel(X, Y, length)
+    assert K.shape == (2 * (1 + k), 2 * (1 + k))
+
+    def value(x, y):
+        return np.exp(-0.5 * np.sum((x - y) ** 2) / length**2)
+
+    x, y = X[1], Y[0]
+    for b in range(k):
+        e = np.eye(k)[b] * h
+        assert K[4, 1 + b] == pytest.approx((value(x, y + e) - value(x, y - e)) / (2 * h), rel=1e-6)  # cov(f, ∂_b f)
+        assert K[4 + 1 + b, 0] == pytest.approx((value(x + e, y) - value(x - e, y)) / (2 * h), rel=1e-6)
+        for a in range(k):
+            f, g = np.eye(k)[a] * 1e-4, np.eye(k)[b] * 1e-4  # a second difference: a wider step
+            mixed = (value(x + f, y + g) - value(x + f, y - g) - value(x - f, y + g) + value(x - f, y - g)) / 4e-8
+            assert K[4 + 1 + a, 1 + b] == pytest.approx(mixed, rel=1e-5, abs=1e-9)
+
+
+def test_corrected_quadratic_follows_the_design_and_beats_the_quadratic_off_it():
+    """On residuals that are not quadratic, the corrected emulator passes through every design
+    point's values and slopes (the quadratic cannot) and is nearer the function between them."""
+    import jax
+
+    rng = np.random.default_rng(0)
+    k, P = 3, 25
+
+    def f(w):
+        return jnp.stack([jnp.sin(w[0]) * jnp.cos(w[1]) + w[2] ** 3 / 10, jnp.exp(0.3 * jnp.sum(w))])
+
+    W = 1.5 * rng.normal(size=(P, k))
+    R = np.stack([np.asarray(f(jnp.asarray(w))) for w in W])
+    JW = np.stack([np.asarray(jax.jacfwd(f)(jnp.asarray(w))) for w in W])
+    em = CorrectedQuadratic.fit(W, R, JW)
+    at = np.stack([np.asarray(em(jnp.asarray(w))) for w in W])
+    slopes = np.stack([np.asarray(jax.jacfwd(em)(jnp.asarray(w))) for w in W])
+    assert np.max(np.abs(at - R)) < 1e-3 * np.max(np.abs(R)) and np.max(np.abs(slopes - JW)) < 1e-3 * np.max(np.abs(JW))
+    quad_at = np.stack([np.asarray(em.quadratic(jnp.asarray(w))) for w in W])
+    assert np.max(np.abs(quad_at - R)) > 0.1  # the quadratic alone misses them
+    T = rng.normal(size=(200, k))
+    truth = np.stack([np.asarray(f(jnp.asarray(w))) for w in T])
+    err = [np.sqrt(np.mean((np.stack([np.asarray(g(jnp.asarray(w))) for w in T]) - truth) ** 2))
+           for g in (em, em.quadratic)]
+    assert err[0] < 0.8 * err[1], err
+    assert em.rms == em.quadratic.rms and em.length >= 0.5
+
+
 @pytest.fixture(scope="module")
 def banana():
     truth = np.array([0.5, 0.55])
@@ -142,8 +194,9 @@ def banana():
     return objective, _fit_result(objective, [g0[best[0]], g1[best[1]]]), mean, sd
 
 
-@pytest.mark.parametrize("whitening", ["fit", "laplace"])
-def test_emulated_posterior_matches_the_quadrature_of_a_curved_target(banana, whitening):
+@pytest.mark.parametrize("whitening, emulator", [("fit", "quadratic"), ("laplace", "quadratic"), ("fit", "corrected"),
+                                                 ("laplace", "corrected")])
+def test_emulated_posterior_matches_the_quadrature_of_a_curved_target(banana, whitening, emulator):
     """Whitened by a fit's Gauss–Newton covariance or by the Laplace covariance at a point given by
     value (the model's Jacobian there, the prior's curvature): the corrected moments are the
     quadrature's. (The crescent is not quadratic in the whitened coordinates: the emulator alone is
@@ -152,7 +205,8 @@ def test_emulated_posterior_matches_the_quadrature_of_a_curved_target(banana, wh
     objective, result, mean, sd = banana
     centre = result if whitening == "fit" else dict(result.theta)
     post = emulated_posterior(objective, centre, noise=None if whitening == "fit" else SIGMA, rounds=1, checks=400,
-                              seed=0)
+                              seed=0, emulator=emulator)
+    assert post.emulator == emulator
     assert post.failed_checks == 0 and np.isfinite(post.pareto_k) and post.ess_importance > 300
     assert post.jacobians == 3 * 2 + 1 + (2 * 2 + 1) * (len(post.rounds) - 1) and post.runs == 400
     for j, key in enumerate(objective.keys):
@@ -196,7 +250,8 @@ def test_emulated_posterior_refuses_bad_input_before_any_run(banana):
                           ({"settle": 0.0}, "settle must be a positive number"),
                           ({"rounds": -1}, "rounds must be an integer >= 0"),
                           ({"axial": 0.0}, "axial must be a positive number"),
-                          ({"checks": 100, "chains": 2, "draws": 10}, "the chains keep only 20")):
+                          ({"checks": 100, "chains": 2, "draws": 10}, "the chains keep only 20"),
+                          ({"emulator": "cubic"}, "emulator must be one of")):
         with pytest.raises(ValueError, match=match):
             emulated_posterior(objective_spy, result, **kwargs)
     withheld = _fit_result(objective, [0.5, 0.5])

@@ -4,6 +4,7 @@ grid quadrature are stored, and the five keys of the three filmed collapses (doc
 
     python docs/scripts/emulated_posterior.py s4 [--workers 2]       (needs [bayes])
     python docs/scripts/emulated_posterior.py five [--workers 2] [--coarsen R] [--model-error]
+    python docs/scripts/emulated_posterior.py error [--workers 2]      (the five keys' model error)
 
 Writes docs/results/emulated_{s4,five}.json and docs/figures/emulated_{s4,five}.png (``--coarsen R``:
 ``five_coarse{R}``; ``--model-error``: ``five_model_error``, the likelihood's σ by block the data's 2 %
@@ -67,7 +68,8 @@ def five(workers, args):
         error = model_error(objective, centre, workers=workers)
         noise = error.noise(0.02)
         print("model error by block", error.total(), flush=True)
-    post = emulated_posterior(objective, centre, noise=noise, checks=args.checks, workers=workers, progress=True)
+    post = emulated_posterior(objective, centre, noise=noise, checks=args.checks, emulator=args.emulator,
+                              workers=workers, progress=True)
     out = {"case": f"five keys, three filmed collapses at dx = L/{0.089 / objective.dx:.0f} (data L/18, 2 % noise)",
            "dx": objective.dx, "coarsen": args.coarsen, "truth": FIVE_TRUTH, "centre": centre, "noise": noise,
            "data_noise": 0.02, "model_error": None if error is None else error.to_dict(), "emulated": post.to_json(),
@@ -76,19 +78,47 @@ def five(workers, args):
     return out, post
 
 
+def error(workers, args):
+    """The model error of the five-key objective (``calibration.likelihood.model_error``) at the
+    posterior's centre, against what it is meant to hold: the residuals at the truth, where the
+    twin's data (L/18, another draw, 2 % noise) and the L/12 model differ by noise, draw and grid."""
+    import numpy as np
+
+    from calibration import CompositeObjective, Objective
+    from jaxmpm import Experiment
+
+    objective = CompositeObjective([Objective.from_experiment(Experiment.from_toml(f), FIVE) for f in FIVE_FILES])
+    centre = {**json.loads((RESULTS / "five_keys_fit_L12.json").read_text())["params"], "I0": 0.4}
+    found = model_error(objective, centre, workers=workers)
+    r, _ = objective.residuals(np.array([FIVE_TRUTH[k] for k in objective.keys]))
+    e = np.asarray(r, float) / np.asarray(objective.row_scale, float)
+    at_truth = {b: float(np.sqrt(np.mean(e[sl] ** 2))) for b, sl in objective.blocks.items()}
+    for b in objective.blocks:
+        print(f"{b:14s} draw {found.draw[b]:.4f} grid {found.grid[b]:.4f} rms at truth {at_truth[b]:.4f}")
+    return {"case": "the five-key objective's model error at the posterior's centre (dx = L/12)",
+            "centre": centre, "truth": FIVE_TRUTH, "data_noise": 0.02, "model_error": found.to_dict(),
+            "residual_rms_at_truth": at_truth}, None
+
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("which", choices=("s4", "five"))
+    parser.add_argument("which", choices=("s4", "five", "error"))
     parser.add_argument("--workers", type=int, default=1)
     parser.add_argument("--checks", type=int, default=200)
     parser.add_argument("--coarsen", type=float, default=1.0, help="five: a grid this many times coarser")
+    parser.add_argument("--emulator", default="quadratic", choices=("quadratic", "corrected"),
+                        help="five: the emulator (calibration.emulator.EMULATORS)")
     parser.add_argument("--model-error", action="store_true",
                         help="five: the model's own error (particle draws, grid) beside the data's noise")
     args = parser.parse_args()
     with Workers(args.workers) as workers:
-        out, post = {"s4": s4, "five": five}[args.which](workers if args.workers > 1 else None, args)
+        out, post = {"s4": s4, "five": five, "error": error}[args.which](workers if args.workers > 1 else None, args)
+    if post is None:
+        (RESULTS / "model_error_five.json").write_text(json.dumps(out, indent=1))
+        return
     name = args.which if args.coarsen == 1.0 else f"{args.which}_coarse{args.coarsen:g}"
     name += "_model_error" if args.model_error else ""
+    name += "" if args.emulator == "quadratic" else f"_{args.emulator}"
     (RESULTS / f"emulated_{name}.json").write_text(json.dumps(out, indent=1))
     from calibration.plots import plot_emulated
 
