@@ -59,7 +59,7 @@ def _fit(args) -> int:
                                         meta=cli.fit_meta(args, experiments), workers=workers)
         error = cli.posterior_model_error(args, objective, result, workers)
         checks = posterior_checks(objective, result, profiles=args.profiles, posterior=args.posterior, nuts=args.nuts,
-                                  chains=args.chains, emulated=args.emulated, noise=args.noise,
+                                  chains=args.chains, emulated=args.emulated, emulator=args.emulator, noise=args.noise,
                                   model_error=error if not isinstance(error, str) else None, workers=workers,
                                   progress=not args.json)
         if isinstance(error, str):
@@ -312,6 +312,10 @@ def build_parser() -> argparse.ArgumentParser:
                           "corrected by the model's runs at N >= 30 draws (calibration.emulator, needs [bayes]; 3k+1 "
                           "Jacobians and 2k+1 more per re-centring, at most 6, and N runs; also where the verdict "
                           "refuses an interval, with --noise or the estimated noise; default 0: off)")
+    fit.add_argument("--emulator", choices=("corrected", "quadratic"), default="corrected",
+                     help="--emulated's emulator: a quadratic per residual corrected by a Gaussian process through the "
+                          "design points' values and slopes (default), or the quadratic alone "
+                          "(calibration.emulator.EMULATORS)")
     fit.add_argument("--model-error", type=int, default=4, metavar="K",
                      help="the model's own error in the likelihood of --profiles, --posterior, --nuts and --emulated: "
                           "K other particle draws and the grid term's coarse runs at the fit's point, added to the "

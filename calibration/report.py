@@ -51,7 +51,7 @@ class PosteriorChecks:
 
 
 def posterior_checks(objective, result, *, profiles: int = 0, posterior: int = 0, nuts: int = 0, chains: int = 4,
-                     emulated: int = 0, noise=None, model_error=None, workers=None,
+                     emulated: int = 0, emulator: str = "corrected", noise=None, model_error=None, workers=None,
                      progress: bool = False) -> PosteriorChecks:
     """The profile likelihood of every fitted key at ``profiles`` points, the grid posterior of
     one or two keys at ``posterior`` points per key and a NUTS posterior of ``nuts`` draws per
@@ -59,7 +59,7 @@ def posterior_checks(objective, result, *, profiles: int = 0, posterior: int = 0
     (``noise``: the data's known noise, None: estimated). Skipped, with the reason in the
     report, where the point has no interval to scan around; the grid posterior also for more
     than two keys. ``emulated``: the posterior of every key from NUTS on an emulator, corrected
-    with the model's runs at ``emulated`` draws (``calibration.emulator``; on ``workers``): it
+    with the model's runs at ``emulated`` draws (``calibration.emulator``, its ``emulator``; on ``workers``): it
     needs no interval, so it runs where the verdict refuses one too, centred on the point with
     the noise given or estimated. ``model_error``: the model's own error at the point
     (``calibration.likelihood.ModelError``), added to the noise of every check's likelihood in
@@ -88,7 +88,8 @@ def posterior_checks(objective, result, *, profiles: int = 0, posterior: int = 0
         else:  # a fit whitens by its interval; a point without one, by the Laplace covariance there
             interval = unc is not None and not unc.withheld
             found = emulated_posterior(objective, result if interval else dict(result.theta), noise=sigma,
-                                       checks=emulated, chains=chains, workers=workers, progress=progress)
+                                       checks=emulated, chains=chains, emulator=emulator, workers=workers,
+                                       progress=progress)
             report["emulated_posterior"] = found.to_json()
     if not (profiles or posterior or nuts):
         return PosteriorChecks(report)

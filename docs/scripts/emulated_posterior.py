@@ -35,7 +35,8 @@ def s4(workers, args):
     result = fit(objective, dict(zip(S4_KEYS, 0.9 * S4_TRUTH)), steps=25, noise=0.02)
     fit_s = time.perf_counter() - t0
     print(f"fit {result.theta} in {fit_s:.0f} s", flush=True)
-    post = emulated_posterior(objective, result, checks=args.checks, workers=workers, progress=True)
+    post = emulated_posterior(objective, result, checks=args.checks, emulator=args.emulator, workers=workers,
+                              progress=True)
     stored = json.loads((RESULTS / "nuts_s4.json").read_text())
     out = {"case": "S4 twin (beta, mu1) at dx = L/6: final profile, 2 % noise",
            "truth": dict(zip(S4_KEYS, S4_TRUTH.tolist())), "fit": result.theta, "fit_wall_s": round(fit_s, 1),
@@ -107,7 +108,7 @@ def main():
     parser.add_argument("--checks", type=int, default=200)
     parser.add_argument("--coarsen", type=float, default=1.0, help="five: a grid this many times coarser")
     parser.add_argument("--emulator", default="quadratic", choices=("quadratic", "corrected"),
-                        help="five: the emulator (calibration.emulator.EMULATORS)")
+                        help="the emulator (calibration.emulator.EMULATORS)")
     parser.add_argument("--model-error", action="store_true",
                         help="five: the model's own error (particle draws, grid) beside the data's noise")
     args = parser.parse_args()
