@@ -69,7 +69,8 @@ def posterior_checks(objective, result, *, profiles: int = 0, posterior: int = 0
         return PosteriorChecks()
     report: dict[str, Any] = {}
     unc = result.uncertainty
-    sigma = noise if noise is not None else (None if unc is None or not unc.noise else dict(unc.noise))
+    fitted = getattr(unc, "noise", None)  # the fit's noise by block (estimated or given)
+    sigma = noise if noise is not None else (dict(fitted) if fitted else None)
     if model_error is not None:
         if sigma is None:
             report["model_error_skipped"] = "no noise level of the data to add it to: give --noise"

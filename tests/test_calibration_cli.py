@@ -62,11 +62,12 @@ def test_fit_reads_a_webplotdigitizer_export_with_units(capsys):
 
 def test_fit_measures_the_model_error_for_the_posterior_checks(capsys):
     """Asked for a check beyond Gauss–Newton, fit measures the model's own error at its point
-    (--model-error draws, the grid term's coarse runs) and adds it to the data's noise; the check
-    itself is skipped here (one iteration is no fit), the likelihood it would use is reported."""
+    (--model-error draws, coarse runs on a grid 1.5 times coarser, also with the fit's own grid
+    check off) and adds it to the data's noise; the check itself is skipped here (one iteration
+    is no fit), the likelihood it would use is reported."""
     code, out = run(capsys, "fit", "--scene", "cohesive-collapse", "--data", S4, "--t-end", "0.5", "--fit", "mu1",
                     "--init", "mu1=0.4", "--steps", "1", "--roundoff-samples", "0", "--noise", "0.02",
-                    "--profiles", "3", "--model-error", "2", *TINY)
+                    "--grid-check", "0", "--profiles", "3", "--model-error", "2", *TINY)
     assert code == 0 and "profile_likelihood_skipped" in out
     error = out["model_error"]
     assert error["draws"] == 3 and error["coarse_draws"] == 2 and error["ratio"] == 1.5
