@@ -308,7 +308,7 @@ def build_parser() -> argparse.ArgumentParser:
                      help="the posterior of every fitted key by NUTS (calibration.mcmc, needs the [bayes] extra): N "
                           "draws per chain after N/2 (at least 20) warm-up steps, with R-hat and ESS (default 0: off)")
     fit.add_argument("--emulated", type=int, default=0, metavar="N",
-                     help="the posterior of every fitted key from NUTS on a quadratic emulator of the residuals, "
+                     help="the posterior of every fitted key from NUTS on an emulator of the residuals (--emulator), "
                           "corrected by the model's runs at N >= 30 draws (calibration.emulator, needs [bayes]; 3k+1 "
                           "Jacobians and 2k+1 more per re-centring, at most 6, and N runs; also where the verdict "
                           "refuses an interval, with --noise or the estimated noise; default 0: off)")

@@ -139,9 +139,7 @@ def model_error(objective: ObjectiveLike, theta, *, draws: int = uncertainty.SAM
                          f"{theta.tolist()}")
     objective.check_thetas(theta[None, :], "theta")
     clock = time.perf_counter()
-    own = objective.residuals(theta)
-    fine = [np.asarray(own[0], float)] if int(np.asarray(own[1]["status"])) == 0 else []
-    fine += redrawn_residuals(objective, theta, draws, workers)
+    fine = uncertainty.clean_runs([objective.residuals(theta)]) + redrawn_residuals(objective, theta, draws, workers)
     if len(fine) < 2:
         raise ValueError(f"theta: {len(fine)} of {draws + 1} particle draws ran without status bits; the draw "
                          "term needs two")

@@ -243,7 +243,7 @@ def _runs(objective: ObjectiveLike, thetas, workers, seeds=None) -> list:
     return [objective.residuals_resampled(t, int(sd)) for t, sd in zip(thetas, seeds)]
 
 
-def _ran(runs) -> list[np.ndarray]:
+def clean_runs(runs) -> list[np.ndarray]:
     """The residuals of the runs (``_runs``' (r, prediction) pairs) that ran without status bits
     and are finite."""
     kept = []
@@ -256,21 +256,21 @@ def _ran(runs) -> list[np.ndarray]:
 
 def redrawn_residuals(objective: ObjectiveLike, theta, seeds: int, workers=None) -> list[np.ndarray]:
     """The residuals at θ with the scene's body drawn with ``seeds`` seeds other than its own
-    (``Objective.residuals_resampled``), those that ran cleanly (``_ran``)."""
+    (``Objective.residuals_resampled``), those that ran cleanly (``clean_runs``)."""
     own = objective.sampling_seed
     draws = [s for s in range(seeds + 1) if s != own][:seeds]
-    return _ran(_runs(objective, [theta] * len(draws), workers, draws))
+    return clean_runs(_runs(objective, [theta] * len(draws), workers, draws))
 
 
 def coarse_residuals(objective: ObjectiveLike, theta, ratio: float, draws: int,
                      workers=None) -> tuple[Any, list[np.ndarray]]:
     """The objective rebuilt at ``ratio`` × its dx (``Objective.at_dx``) and its residuals at θ
     over ``draws`` particle draws (the scene's own only, for a sampling with no seed), those that
-    ran cleanly (``_ran``)."""
+    ran cleanly (``clean_runs``)."""
     coarse = objective.coarsened(ratio)
     seeded = coarse.seeded
     seeds = list(range(draws)) if seeded else None
-    return coarse, _ran(_runs(coarse, [np.asarray(theta, float)] * (draws if seeded else 1), workers, seeds))
+    return coarse, clean_runs(_runs(coarse, [np.asarray(theta, float)] * (draws if seeded else 1), workers, seeds))
 
 
 def model_scatter(objective: ObjectiveLike, theta, r, J, *, samples: int = ROUNDOFF_SAMPLES,
