@@ -294,7 +294,9 @@ class EmulatedPosterior:
     its design (``posterior_mean_from_centre_sd``, in the posterior's sd: the rounds stop below
     ``settle``) and, from the second on, the previous emulator's χ² error at the new star
     (``new_points_dchi2``); ``settled``: whether the last did; ``jacobians`` and ``runs``: the
-    model's Jacobians (design) and forward runs (checks) spent."""
+    model's Jacobians (design) and forward runs (checks) spent; ``check_chi2``: the model's χ² at
+    the checked draws (∞ where the run failed) with ``noise``, the likelihood's σ by block
+    (``credible_level`` places a point inside or outside the joint credible regions)."""
 
     keys: tuple[str, ...]
     mean: dict[str, float]
@@ -310,6 +312,8 @@ class EmulatedPosterior:
     runs: int
     wall_s: float
     emulator: str = "corrected"
+    check_chi2: np.ndarray | None = None
+    noise: dict[str, float] | None = None
 
     @property
     def settled(self) -> bool:
@@ -323,6 +327,41 @@ class EmulatedPosterior:
         correction is reliable: Pareto k̂ < 0.7 and an importance ESS of at least 100 (the
         chains' own threshold)."""
         return bool(self.emulated.converged and self.pareto_k < PARETO_K_MAX and self.ess_importance >= ESS_MIN)
+
+    def credible_level(self, chi2: float) -> float:
+        """The mass of the posterior where the model's χ² is below ``chi2`` (the importance-weighted
+        checks): the smallest joint credible region, ordered by the likelihood, that holds a point
+        of χ² ``chi2``. Under the flat prior in θ the posterior's density is exp(−χ²/2), so this is
+        its highest-density region, and it does not change with the keys' parametrisation: a
+        point is inside the joint 95 % region when the level is at most 0.95. Unlike the marginal
+        intervals, it is not moved by how much room a ridge the data leave open has in the box."""
+        if self.check_chi2 is None:
+            raise ValueError("this posterior carries no χ² at its checks (made before they were kept)")
+        if not (isinstance(chi2, (int, float, np.floating)) and not math.isnan(chi2)):
+            raise ValueError(f"chi2 must be a number, got {chi2!r}")
+        w = np.exp(psis(self.checks[1])[0])
+        return float(np.sum(w[self.check_chi2 < chi2]))
+
+    def chi2_at(self, objective: ObjectiveLike, theta) -> float:
+        """The model's χ² at ``theta`` (a mapping by key, or values in key order) with this
+        posterior's noise: one forward run. ∞ where the run fails."""
+        from .mcmc import _row_weights
+
+        if self.noise is None:
+            raise ValueError("this posterior carries no noise level (made before it was kept)")
+        if isinstance(theta, Mapping):
+            missing = [k for k in self.keys if k not in theta]
+            if missing:
+                raise ValueError(f"theta: no value for the key(s) {missing}")
+            theta = [theta[k] for k in self.keys]
+        theta = np.asarray(theta, float)
+        if theta.shape != (len(self.keys),) or not np.all(np.isfinite(theta)):
+            raise ValueError(f"theta must be {len(self.keys)} finite values for the keys {self.keys}")
+        objective.check_thetas(theta[None, :], "theta")
+        r, pred = objective.residuals(theta)
+        if int(np.max(np.asarray(pred["status"]))) != 0:
+            return math.inf
+        return float(np.sum(_row_weights(objective, self.noise) * np.asarray(r, float) ** 2))
 
     def to_json(self) -> dict[str, Any]:
         emulated = {k: v for k, v in self.emulated.to_json().items() if k not in ("draws", "log_density")}
@@ -339,7 +378,10 @@ class EmulatedPosterior:
                 "rounds": list(self.rounds), "model_jacobians": self.jacobians, "model_runs": self.runs,
                 "wall_s": round(self.wall_s, 1), "emulated": emulated,
                 "check_draws": {k: self.checks[0][:, j].tolist() for j, k in enumerate(self.keys)},
-                "check_log_weights": [v if math.isfinite(v) else None for v in self.checks[1].tolist()]}
+                "check_log_weights": [v if math.isfinite(v) else None for v in self.checks[1].tolist()],
+                "check_chi2": None if self.check_chi2 is None else [v if math.isfinite(v) else None
+                                                                    for v in self.check_chi2.tolist()],
+                "noise": self.noise}
 
 
 def _laplace_cov_z(objective, weights, z, Jz) -> np.ndarray:
@@ -355,7 +397,7 @@ def emulated_posterior(objective: ObjectiveLike, centre, *, noise: Mapping[str, 
                        rounds: int = 6, settle: float = 1.0, axial: float = 2.0, reach: float = 3.0,
                        checks: int = 200, chains: int = 4,
                        warmup: int = 200, draws: int = 1000, seed: int = 0, emulator: str = "corrected",
-                       workers=None, progress: bool = False) -> EmulatedPosterior:
+                       target_accept: float = 0.8, workers=None, progress: bool = False) -> EmulatedPosterior:
     """The posterior of ``objective``'s keys from NUTS on a quadratic emulator whose design follows
     the posterior (at most ``rounds`` re-centrings, until the emulated posterior's mean lies within
     ``settle`` of its standard deviations of the centre it was designed around), corrected with
@@ -368,7 +410,8 @@ def emulated_posterior(objective: ObjectiveLike, centre, *, noise: Mapping[str, 
     point need not be a fit: where the fit's verdict refuses one (a valley, a key at its bound),
     the posterior is still defined, and this samples it. ``noise``: σ by block (default: the fit's).
     ``axial``: the star's reach and ``reach`` the kernel's, in whitened units; ``chains``,
-    ``warmup``, ``draws``: the emulator's NUTS (cheap: long chains cost seconds); ``workers``:
+    ``warmup``, ``draws``, ``target_accept``: the emulator's NUTS (cheap: long chains cost seconds;
+    a higher acceptance target takes smaller steps where its chains diverge); ``workers``:
     processes for the model's runs (``calibration.workers``). The model is run 3k + 1 + (2k + 1) per
     re-centring with its Jacobian and ``checks`` times without. ``emulator``: "corrected" (a
     quadratic per residual and a Gaussian process through the design points' values and slopes,
@@ -386,6 +429,8 @@ def emulated_posterior(objective: ObjectiveLike, centre, *, noise: Mapping[str, 
             raise ValueError(f"{name} must be a positive number (whitened units), got {value!r}")
     if emulator not in EMULATORS:
         raise ValueError(f"emulator must be one of {sorted(EMULATORS)}, got {emulator!r}")
+    if not (isinstance(target_accept, float) and 0.0 < target_accept < 1.0):
+        raise ValueError(f"target_accept must be a float strictly between 0 and 1, got {target_accept!r}")
     if checks > chains * draws:
         raise ValueError(f"checks: {checks} draws to check, the chains keep only {chains * draws}")
     lower, upper = np.asarray(objective.bounds.lower, float), np.asarray(objective.bounds.upper, float)
@@ -458,7 +503,7 @@ def emulated_posterior(objective: ObjectiveLike, centre, *, noise: Mapping[str, 
         record[-1].update(emulator_rms=model.rms, kernel_points=float(kernel.sum()))
         say(f"NUTS on the emulator of {len(Z)} points")
         posterior = nuts_posterior(target, whitening, chains=chains, warmup=warmup, draws=draws, seed=seed + c,
-                                   noise=sigma)
+                                   noise=sigma, target_accept=target_accept)
         flat = posterior.flat()
         z_draws = np.asarray(unconstrained(flat, lower, upper), float)
         z_draws = z_draws[np.all(np.isfinite(z_draws), axis=1)]  # a float32 draw rounded onto a bound
@@ -499,4 +544,5 @@ def emulated_posterior(objective: ObjectiveLike, centre, *, noise: Mapping[str, 
           for j, key in enumerate(keys)}
     return EmulatedPosterior(keys, mean, sd, ci, posterior, k_hat, float(1.0 / np.sum(w**2)), (thetas, log_w),
                              int(np.sum(~np.isfinite(chi2_model))), tuple(record), jacobians, checks,
-                             time.perf_counter() - clock, emulator)
+                             time.perf_counter() - clock, emulator, chi2_model,
+                             {k: float(v) for k, v in sigma.items()})

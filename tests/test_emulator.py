@@ -71,6 +71,13 @@ class Banana:
     def describe(self):
         return {"toy": "banana"}
 
+    def residuals(self, theta):
+        return _toy_run(self.data, np.asarray(theta, float))
+
+    def check_thetas(self, thetas, name="thetas"):
+        if not np.all((thetas >= self.bounds.lower) & (thetas <= self.bounds.upper)):
+            raise ValueError(f"{name}: outside the bounds")
+
 
 def _fit_result(objective, theta):
     """The Gauss–Newton covariance at ``theta`` (what a fit would carry)."""
@@ -191,7 +198,12 @@ def banana():
     mean = np.array([np.sum(p * T0), np.sum(p * T1)])
     sd = np.sqrt([np.sum(p * (T0 - mean[0]) ** 2), np.sum(p * (T1 - mean[1]) ** 2)])
     best = np.unravel_index(np.argmax(logp), logp.shape)
-    return objective, _fit_result(objective, [g0[best[0]], g1[best[1]]]), mean, sd
+    chi2 = -2.0 * logp
+
+    def level(c):  # the quadrature's mass where χ² < c
+        return float(np.sum(p[chi2 < c]))
+
+    return objective, _fit_result(objective, [g0[best[0]], g1[best[1]]]), mean, sd, level
 
 
 @pytest.mark.parametrize("whitening, emulator", [("fit", "quadratic"), ("laplace", "quadratic"), ("fit", "corrected"),
@@ -202,7 +214,7 @@ def test_emulated_posterior_matches_the_quadrature_of_a_curved_target(banana, wh
     quadrature's. (The crescent is not quadratic in the whitened coordinates: the emulator alone is
     off, the importance weights correct it; Pareto k̂ is reported, and on nearly equal weights
     like these it is noisy, 0.5-1.3 over seeds, so it is not asserted here.)"""
-    objective, result, mean, sd = banana
+    objective, result, mean, sd, level = banana
     centre = result if whitening == "fit" else dict(result.theta)
     post = emulated_posterior(objective, centre, noise=None if whitening == "fit" else SIGMA, rounds=1, checks=400,
                               seed=0, emulator=emulator)
@@ -214,10 +226,24 @@ def test_emulated_posterior_matches_the_quadrature_of_a_curved_target(banana, wh
         assert abs(post.mean[key] - mean[j]) < 4 * se, (key, post.mean[key], mean[j])
         assert 0.85 < post.sd[key] / sd[j] < 1.15, (key, post.sd[key], sd[j])
     assert all(len(r["new_points_dchi2"]) == 5 for r in post.rounds[1:])
+    # The joint credible level of points from the middle out to the tail (0.32-0.96), against the quadrature's.
+    for offset in ([0.0, 0.0], [1.0, 0.0], [2.0, -1.0], [0.0, 1.0]):
+        point = mean + sd * np.array(offset)
+        chi2 = post.chi2_at(objective, dict(zip(objective.keys, point)))
+        assert chi2 == pytest.approx(float(np.sum(_toy_run(objective.data, np.array(point))[0] ** 2)) / SIGMA**2)
+        exact = level(chi2)
+        se = np.sqrt(exact * (1 - exact) / post.ess_importance) + 1e-3
+        assert abs(post.credible_level(chi2) - exact) < 4 * se, (point, post.credible_level(chi2), exact)
+    assert post.credible_level(0.0) == 0.0 and post.credible_level(np.inf) == pytest.approx(1.0)
+    with pytest.raises(ValueError, match="theta: no value for the key"):
+        post.chi2_at(objective, {"k0": 0.1})
+    with pytest.raises(ValueError, match="chi2 must be a number"):
+        post.credible_level(float("nan"))
     out = post.to_json()
     json.dumps(out, allow_nan=False)
     assert out["converged"] == (post.emulated.converged and post.pareto_k < 0.7 and post.ess_importance >= 100)
     assert out["model_runs"] == 400
+    assert len(out["check_chi2"]) == 400 and out["noise"] == {"profile": SIGMA}
 
 
 def test_a_misplaced_emulator_is_refused(banana):
@@ -251,7 +277,8 @@ def test_emulated_posterior_refuses_bad_input_before_any_run(banana):
                           ({"rounds": -1}, "rounds must be an integer >= 0"),
                           ({"axial": 0.0}, "axial must be a positive number"),
                           ({"checks": 100, "chains": 2, "draws": 10}, "the chains keep only 20"),
-                          ({"emulator": "cubic"}, "emulator must be one of")):
+                          ({"emulator": "cubic"}, "emulator must be one of"),
+                          ({"target_accept": 1.0}, "target_accept must be a float strictly between 0 and 1")):
         with pytest.raises(ValueError, match=match):
             emulated_posterior(objective_spy, result, **kwargs)
     withheld = _fit_result(objective, [0.5, 0.5])

@@ -3,7 +3,8 @@
 grid quadrature are stored, and the five keys of the three filmed collapses (docs/five_keys/).
 
     python docs/scripts/emulated_posterior.py s4 [--workers 2]       (needs [bayes])
-    python docs/scripts/emulated_posterior.py five [--workers 2] [--coarsen R] [--model-error]
+    python docs/scripts/emulated_posterior.py five [--workers 2] [--coarsen R] [--model-error] [--checks N]
+        [--draws N] [--target-accept A] [--emulator corrected] [--tag T]
     python docs/scripts/emulated_posterior.py error [--workers 2]      (the five keys' model error)
 
 Writes docs/results/emulated_{s4,five}.json and docs/figures/emulated_{s4,five}.png (``--coarsen R``:
@@ -56,7 +57,11 @@ def five(workers, args):
     """The five keys from the three filmed collapses (docs/five_keys/, files at L/12, data made at
     L/18 with 2 % noise), centred where the four-key fit stopped (docs/results/five_keys_fit_L12.json)
     with I0 at the files' start; ``--coarsen R``: the same on a grid R times coarser (the grid term)."""
+    import numpy as np
+
     from calibration import CompositeObjective, Objective
+    from calibration.emulator import psis
+    from calibration.likelihood import weighted_quantile
     from jaxmpm import Experiment
 
     objective = CompositeObjective([Objective.from_experiment(Experiment.from_toml(f), FIVE) for f in FIVE_FILES])
@@ -70,11 +75,26 @@ def five(workers, args):
         noise = error.noise(0.02)
         print("model error by block", error.total(), flush=True)
     post = emulated_posterior(objective, centre, noise=noise, checks=args.checks, emulator=args.emulator,
-                              workers=workers, progress=True)
+                              draws=args.draws, target_accept=args.target_accept, workers=workers, progress=True)
+    truth_chi2 = post.chi2_at(objective, FIVE_TRUTH)
+    joint = {"truth_chi2": truth_chi2, "truth_level": post.credible_level(truth_chi2),
+             "check_chi2_quantiles": dict(zip(("5%", "50%", "95%"), map(float, weighted_quantile(
+                 post.check_chi2, np.exp(psis(post.checks[1])[0]), [0.05, 0.5, 0.95]))))}
+    print("the truth in the joint credible regions:", joint, flush=True)
+    # I0 spans three decades of its box: the same checks under a log-uniform prior on it (weights × 1/I0).
+    thetas, log_w = post.checks
+    j = FIVE.index("I0")
+    log_w_log = log_w - np.log(thetas[:, j])
+    w_log, k_log = psis(log_w_log)
+    w_log = np.exp(w_log)
+    log_prior = {"I0_ci95": [float(v) for v in weighted_quantile(thetas[:, j], w_log, [0.025, 0.975])],
+                 "pareto_k": k_log, "ess_importance": float(1.0 / np.sum(w_log**2)),
+                 "truth_level": float(np.sum(w_log[post.check_chi2 < truth_chi2]))}
     out = {"case": f"five keys, three filmed collapses at dx = L/{0.089 / objective.dx:.0f} (data L/18, 2 % noise)",
            "dx": objective.dx, "coarsen": args.coarsen, "truth": FIVE_TRUTH, "centre": centre, "noise": noise,
            "data_noise": 0.02, "model_error": None if error is None else error.to_dict(), "emulated": post.to_json(),
            "truth_inside_ci95": {k: bool(post.ci95[k][0] <= FIVE_TRUTH[k] <= post.ci95[k][1]) for k in FIVE},
+           "truth_joint": joint, "log_uniform_I0": log_prior,
            "box": dict(zip(FIVE, zip(map(float, objective.bounds.lower), map(float, objective.bounds.upper))))}
     return out, post
 
@@ -106,6 +126,9 @@ def main():
     parser.add_argument("which", choices=("s4", "five", "error"))
     parser.add_argument("--workers", type=int, default=1)
     parser.add_argument("--checks", type=int, default=200)
+    parser.add_argument("--draws", type=int, default=1000, help="the emulator's NUTS draws per chain (4 chains)")
+    parser.add_argument("--target-accept", type=float, default=0.8, help="the emulator's NUTS acceptance target")
+    parser.add_argument("--tag", default="", help="appended to the result's and figure's names")
     parser.add_argument("--coarsen", type=float, default=1.0, help="five: a grid this many times coarser")
     parser.add_argument("--emulator", default="quadratic", choices=("quadratic", "corrected"),
                         help="the emulator (calibration.emulator.EMULATORS)")
@@ -120,6 +143,7 @@ def main():
     name = args.which if args.coarsen == 1.0 else f"{args.which}_coarse{args.coarsen:g}"
     name += "_model_error" if args.model_error else ""
     name += "" if args.emulator == "quadratic" else f"_{args.emulator}"
+    name += f"_{args.tag}" if args.tag else ""
     (RESULTS / f"emulated_{name}.json").write_text(json.dumps(out, indent=1))
     from calibration.plots import plot_emulated
 
