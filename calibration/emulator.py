@@ -59,7 +59,7 @@ from .objective import jacobians_z, residuals_at
 from .protocol import ObjectiveLike
 
 __all__ = ["EMULATORS", "CorrectedQuadratic", "EmulatedObjective", "EmulatedPosterior", "QuadraticEmulator",
-           "emulated_posterior", "psis"]
+           "emulated_posterior", "log_uniform", "psis"]
 
 #: The least effective sample size of a reported posterior (``calibration.mcmc``'s, Vehtari et al. 2021).
 ESS_MIN = 100.0
@@ -328,19 +328,48 @@ class EmulatedPosterior:
         chains' own threshold)."""
         return bool(self.emulated.converged and self.pareto_k < PARETO_K_MAX and self.ess_importance >= ESS_MIN)
 
-    def credible_level(self, chi2: float) -> float:
-        """The mass of the posterior where the model's χ² is below ``chi2`` (the importance-weighted
+    def _weights(self, log_prior=None) -> tuple[np.ndarray, float]:
+        """The checks' Pareto-smoothed weights (and k̂), under the flat prior or ``log_prior``."""
+        log_w = self.checks[1]
+        if log_prior is not None:
+            extra = np.asarray(log_prior(self.checks[0]), float)
+            if extra.shape != log_w.shape or np.any(np.isnan(extra)):
+                raise ValueError(f"log_prior must give one log density per check ({log_w.shape}), got {extra.shape}")
+            log_w = log_w + extra
+        smoothed, k_hat = psis(log_w)
+        return np.exp(smoothed), k_hat
+
+    def credible_level(self, chi2: float, log_prior=None) -> float:
+        """The posterior's mass where the model's χ² is below ``chi2`` (the importance-weighted
         checks): the smallest joint credible region, ordered by the likelihood, that holds a point
-        of χ² ``chi2``. Under the flat prior in θ the posterior's density is exp(−χ²/2), so this is
-        its highest-density region, and it does not change with the keys' parametrisation: a
-        point is inside the joint 95 % region when the level is at most 0.95. Unlike the marginal
-        intervals, it is not moved by how much room a ridge the data leave open has in the box."""
+        of χ² ``chi2``; a point is inside the joint 95 % region when the level is at most 0.95.
+        Under the flat prior in θ the posterior's density is exp(−χ²/2), so this is its
+        highest-density region, and it does not change with the keys' parametrisation. Unlike
+        the marginal intervals, it is not moved by how much room a ridge the data leave open has
+        in the box. ``log_prior``: the same region's mass under another prior (``reweighted``)."""
         if self.check_chi2 is None:
             raise ValueError("this posterior carries no χ² at its checks (made before they were kept)")
         if not (isinstance(chi2, (int, float, np.floating)) and not math.isnan(chi2)):
             raise ValueError(f"chi2 must be a number, got {chi2!r}")
-        w = np.exp(psis(self.checks[1])[0])
+        w, _ = self._weights(log_prior)
         return float(np.sum(w[self.check_chi2 < chi2]))
+
+    def reweighted(self, log_prior) -> dict[str, Any]:
+        """The posterior under another prior, from the same checks: ``log_prior`` maps θ (n, k),
+        keys in order, to the new prior's log density (n,) up to a constant (``log_uniform`` for
+        scale keys); the checks' weights are multiplied by it and Pareto-smoothed again. The
+        mean, sd and 95 % interval by key, with ``pareto_k`` and ``ess_importance`` (a prior
+        that puts its mass where the checks are few leaves few effective draws: then sample it
+        instead). Beside the flat prior's, this says how much of an interval is the prior's: a
+        key the data fix does not move."""
+        w, k_hat = self._weights(log_prior)
+        thetas = self.checks[0]
+        mean = {k: float(np.sum(w * thetas[:, j])) for j, k in enumerate(self.keys)}
+        return {"mean": mean,
+                "sd": {k: float(np.sqrt(np.sum(w * (thetas[:, j] - mean[k]) ** 2))) for j, k in enumerate(self.keys)},
+                "ci95": {k: [float(v) for v in weighted_quantile(thetas[:, j], w, [0.025, 0.975])]
+                         for j, k in enumerate(self.keys)},
+                "pareto_k": k_hat if math.isfinite(k_hat) else None, "ess_importance": float(1.0 / np.sum(w**2))}
 
     def chi2_at(self, objective: ObjectiveLike, theta) -> float:
         """The model's χ² at ``theta`` (a mapping by key, or values in key order) with this
@@ -382,6 +411,25 @@ class EmulatedPosterior:
                 "check_chi2": None if self.check_chi2 is None else [v if math.isfinite(v) else None
                                                                     for v in self.check_chi2.tolist()],
                 "noise": self.noise}
+
+
+def log_uniform(keys, *names: str):
+    """The log density, up to a constant, of a prior uniform in log θ for the keys ``names``
+    (flat in the others) relative to the flat one: −Σ log θ_j, for ``EmulatedPosterior.reweighted``.
+    The scale-free prior of a positive key whose box spans decades (I0)."""
+    keys = tuple(keys)
+    unknown = [n for n in names if n not in keys]
+    if unknown or not names:
+        raise ValueError(f"names must be keys of {keys}, got {list(names)}")
+    columns = [keys.index(n) for n in names]
+
+    def log_prior(thetas):
+        thetas = np.asarray(thetas, float)[:, columns]
+        if np.any(thetas <= 0):
+            raise ValueError(f"a log-uniform prior needs {list(names)} > 0")
+        return -np.sum(np.log(thetas), axis=1)
+
+    return log_prior
 
 
 def _laplace_cov_z(objective, weights, z, Jz) -> np.ndarray:

@@ -11,7 +11,14 @@ import pytest
 
 from calibration import emulator as emulator_module
 from calibration.bounds import Bounds, dphysical_dz, physical
-from calibration.emulator import CorrectedQuadratic, EmulatedObjective, QuadraticEmulator, emulated_posterior, psis
+from calibration.emulator import (
+    CorrectedQuadratic,
+    EmulatedObjective,
+    QuadraticEmulator,
+    emulated_posterior,
+    log_uniform,
+    psis,
+)
 from calibration.likelihood import weighted_quantile
 
 SIGMA = 0.1
@@ -203,6 +210,13 @@ def banana():
     def level(c):  # the quadrature's mass where χ² < c
         return float(np.sum(p[chi2 < c]))
 
+    def under(log_prior):  # the quadrature's mean and sd under a prior log_prior(T0, T1)
+        q = p * np.exp(log_prior(T0, T1))
+        q /= q.sum()
+        m = np.array([np.sum(q * T0), np.sum(q * T1)])
+        return m, np.sqrt([np.sum(q * (T0 - m[0]) ** 2), np.sum(q * (T1 - m[1]) ** 2)])
+
+    level.under = under
     return objective, _fit_result(objective, [g0[best[0]], g1[best[1]]]), mean, sd, level
 
 
@@ -239,6 +253,18 @@ def test_emulated_posterior_matches_the_quadrature_of_a_curved_target(banana, wh
         post.chi2_at(objective, {"k0": 0.1})
     with pytest.raises(ValueError, match="chi2 must be a number"):
         post.credible_level(float("nan"))
+    # Another prior from the same checks: a Gaussian on k0 (sd 0.2 about 0: the posterior's is 0.27).
+    same = post.reweighted(lambda t: np.zeros(len(t)))
+    assert same["mean"] == pytest.approx(post.mean) and same["sd"] == pytest.approx(post.sd)
+    new = post.reweighted(lambda t: -0.5 * (t[:, 0] / 0.2) ** 2)
+    exact_mean, exact_sd = level.under(lambda t0, t1: -0.5 * (t0 / 0.2) ** 2)
+    assert new["ess_importance"] > 100 and new["pareto_k"] < 0.7
+    for j, key in enumerate(objective.keys):
+        assert abs(new["mean"][key] - exact_mean[j]) < 4 * exact_sd[j] / np.sqrt(new["ess_importance"]), key
+        assert 0.8 < new["sd"][key] / exact_sd[j] < 1.2, (key, new["sd"][key], exact_sd[j])
+    assert new["sd"]["k0"] < 0.85 * post.sd["k0"]
+    with pytest.raises(ValueError, match="one log density per check"):
+        post.reweighted(lambda t: np.zeros(3))
     out = post.to_json()
     json.dumps(out, allow_nan=False)
     assert out["converged"] == (post.emulated.converged and post.pareto_k < 0.7 and post.ess_importance >= 100)
@@ -292,3 +318,13 @@ def test_emulated_posterior_refuses_bad_input_before_any_run(banana):
     with pytest.raises(ValueError, match="not strictly inside the bounds"):
         emulated_posterior(objective_spy, {"k0": 2.0, "k1": 0.2}, noise=0.1)
     assert not calls
+
+
+def test_log_uniform_prior():
+    log_prior = log_uniform(("beta", "I0", "xi"), "I0", "xi")
+    thetas = np.array([[0.1, 0.5, 10.0], [0.2, 2.0, 40.0]])
+    assert log_prior(thetas) == pytest.approx([-np.log(5.0), -np.log(80.0)])
+    with pytest.raises(ValueError, match="a log-uniform prior needs"):
+        log_prior(np.array([[0.1, 0.0, 1.0]]))
+    with pytest.raises(ValueError, match="names must be keys"):
+        log_uniform(("beta", "I0"), "mu2")
