@@ -59,7 +59,7 @@ from .objective import jacobians_z, residuals_at
 from .protocol import ObjectiveLike
 
 __all__ = ["EMULATORS", "CorrectedQuadratic", "EmulatedObjective", "EmulatedPosterior", "QuadraticEmulator",
-           "emulated_posterior", "log_uniform", "psis"]
+           "emulated_posterior", "log_uniform", "prior_sensitivity", "psis", "scale_keys"]
 
 #: The least effective sample size of a reported posterior (``calibration.mcmc``'s, Vehtari et al. 2021).
 ESS_MIN = 100.0
@@ -430,6 +430,23 @@ def log_uniform(keys, *names: str):
         return -np.sum(np.log(thetas), axis=1)
 
     return log_prior
+
+
+def scale_keys(bounds, decades: float = 2.0) -> tuple[str, ...]:
+    """The keys of ``bounds`` whose box is positive and spans at least ``decades`` decades (I0's
+    0.001-3): for them a prior flat in θ and one flat in log θ are both defensible and differ."""
+    return tuple(k for k, lo, hi in zip(bounds.keys, np.asarray(bounds.lower, float), np.asarray(bounds.upper, float))
+                 if lo > 0 and math.log10(hi / lo) >= decades)
+
+
+def prior_sensitivity(posterior: EmulatedPosterior, keys: tuple[str, ...]) -> dict[str, Any]:
+    """``posterior`` again under a prior uniform in log θ for ``keys`` (``reweighted``), with
+    each key's mean shift in the flat prior's sd: a key the data fix does not move; one whose
+    interval is the prior's (a ridge the data leave open) does."""
+    other = posterior.reweighted(log_uniform(posterior.keys, *keys))
+    shift = {k: (other["mean"][k] - posterior.mean[k]) / posterior.sd[k] if posterior.sd[k] > 0 else 0.0
+             for k in posterior.keys}
+    return {"log_uniform_keys": list(keys), **other, "mean_shift_sd": shift}
 
 
 def _laplace_cov_z(objective, weights, z, Jz) -> np.ndarray:

@@ -63,7 +63,9 @@ def posterior_checks(objective, result, *, profiles: int = 0, posterior: int = 0
     needs no interval, so it runs where the verdict refuses one too, centred on the point with
     the noise given or estimated. ``model_error``: the model's own error at the point
     (``calibration.likelihood.ModelError``), added to the noise of every check's likelihood in
-    quadrature (reported as "model_error" and "posterior_noise"). What ``python -m calibration
+    quadrature (reported as "model_error" and "posterior_noise"). The emulated posterior carries
+    its ``prior_sensitivity`` where a key's box spans decades (``calibration.emulator.scale_keys``:
+    the same checks under a prior uniform in that key's log). What ``python -m calibration
     fit --profiles N --posterior N --nuts N --emulated N`` adds."""
     if not (profiles or posterior or nuts or emulated):
         return PosteriorChecks()
@@ -78,7 +80,7 @@ def posterior_checks(objective, result, *, profiles: int = 0, posterior: int = 0
             sigma = noise = model_error.noise(sigma)
             report.update(model_error=model_error.to_dict(), posterior_noise=noise)
     if emulated:
-        from .emulator import emulated_posterior
+        from .emulator import emulated_posterior, prior_sensitivity, scale_keys
 
         lower, upper = objective.bounds.lower, objective.bounds.upper
         at_bound = [k for k, lo, hi in zip(objective.keys, lower, upper) if not lo < result.theta[k] < hi]
@@ -92,6 +94,9 @@ def posterior_checks(objective, result, *, profiles: int = 0, posterior: int = 0
                                        checks=emulated, chains=chains, emulator=emulator, workers=workers,
                                        progress=progress)
             report["emulated_posterior"] = found.to_json()
+            scale = scale_keys(objective.bounds)
+            if scale:  # a key whose box spans decades: how much of its interval is the prior's
+                report["emulated_posterior"]["prior_sensitivity"] = prior_sensitivity(found, scale)
     if not (profiles or posterior or nuts):
         return PosteriorChecks(report)
     if result.uncertainty is None or result.uncertainty.withheld:

@@ -328,3 +328,26 @@ def test_log_uniform_prior():
         log_prior(np.array([[0.1, 0.0, 1.0]]))
     with pytest.raises(ValueError, match="names must be keys"):
         log_uniform(("beta", "I0"), "mu2")
+
+
+def test_prior_sensitivity_moves_a_key_the_data_leave_to_the_prior():
+    """Checks spread flat over a key's box (the data say nothing about it) and one the data fix:
+    under a log-uniform prior the first's posterior is the prior's (its mean, (b − a) / ln(b / a),
+    moves by over half an sd), the second's does not move."""
+    from calibration.emulator import EmulatedPosterior, prior_sensitivity, scale_keys
+
+    bounds = Bounds(("beta", "I0", "xi"), (0.0, 0.01, 10.0), (1.0, 1.0, 500.0))
+    assert scale_keys(bounds) == ("I0",) and scale_keys(bounds, decades=2.5) == ()
+    rng = np.random.default_rng(0)
+    n = 20_000
+    thetas = np.stack([rng.normal(0.3, 0.01, n), rng.uniform(0.01, 1.0, n), rng.normal(50.0, 2.0, n)], axis=1)
+    keys = bounds.keys
+    mean = {k: float(thetas[:, j].mean()) for j, k in enumerate(keys)}
+    sd = {k: float(thetas[:, j].std()) for j, k in enumerate(keys)}
+    post = EmulatedPosterior(keys, mean, sd, {}, None, 0.0, float(n), (thetas, np.zeros(n)), 0, ({},), 0, n, 0.0)
+    found = prior_sensitivity(post, ("I0",))
+    exact = (1.0 - 0.01) / np.log(100.0)
+    assert found["mean"]["I0"] == pytest.approx(exact, rel=0.03)
+    assert found["mean_shift_sd"]["I0"] < -0.5
+    assert abs(found["mean_shift_sd"]["beta"]) < 0.1 and abs(found["mean_shift_sd"]["xi"]) < 0.1
+    assert found["log_uniform_keys"] == ["I0"] and found["ess_importance"] < n
