@@ -46,6 +46,14 @@ def _fit(args) -> int:
 
     experiments = cli.experiment_files(args)
     request = cli.fit_request(args, experiments)
+    prior = cli.parse_priors(args.prior)
+    if prior:
+        from .mcmc import gaussian_prior
+
+        try:
+            gaussian_prior(request.keys, prior)
+        except ValueError as err:
+            raise ValueError(f"--{err}") from None
     starts = cli.start_count(args, request.init)
     scene, objective = cli.scene_and_objective(args, request.keys, experiments)
     init = objective.expand(request.init)  # a plain key's start for each experiment's own value
@@ -60,8 +68,8 @@ def _fit(args) -> int:
         error = cli.posterior_model_error(args, objective, result, workers)
         checks = posterior_checks(objective, result, profiles=args.profiles, posterior=args.posterior, nuts=args.nuts,
                                   chains=args.chains, emulated=args.emulated, emulator=args.emulator, noise=args.noise,
-                                  model_error=error if not isinstance(error, str) else None, workers=workers,
-                                  progress=not args.json)
+                                  model_error=error if not isinstance(error, str) else None, prior=prior or None,
+                                  workers=workers, progress=not args.json)
         if isinstance(error, str):
             checks.report["model_error_skipped"] = error
     out = {**fit_report(objective, result, found), **cli.fit_fields(args, scene, experiments, init, found)}
@@ -321,6 +329,10 @@ def build_parser() -> argparse.ArgumentParser:
                           "K other particle draws and the grid term's coarse runs at the fit's point, added to the "
                           "data's noise by block (calibration.likelihood.model_error; K + 3 forward runs; default 4; "
                           "0: the data's noise alone)")
+    fit.add_argument("--prior", action="append", default=[], metavar="KEY=MEAN:SD",
+                     help="a key measured by another experiment (an incline's I0): a normal prior in the posteriors "
+                          "of --nuts and --emulated, beside the flat one in the bounds; not used by the fit itself "
+                          "(repeat for several keys)")
     fit.add_argument("--chains", type=int, default=4, metavar="C",
                      help="NUTS chains, run one after the other (default 4)")
     fit.add_argument("--refine", type=int, default=2, metavar="N",

@@ -52,6 +52,25 @@ def parse_pairs(items, option: str) -> dict[str, float]:
     return out
 
 
+def parse_priors(items) -> dict[str, tuple[float, float]]:
+    """``--prior KEY=MEAN:SD`` items as {key: (mean, sd)}: a key measured by another experiment,
+    a normal prior in the posteriors. A malformed item, sd <= 0 or a repeated key is an error."""
+    out = {}
+    for item in items:
+        key, sep, value = item.partition("=")
+        mean, colon, sd = value.partition(":")
+        try:
+            pair = (float(mean), float(sd))
+        except ValueError:
+            pair = None
+        if not (sep and colon and key.strip() and pair and all(math.isfinite(v) for v in pair) and pair[1] > 0):
+            raise ValueError(f"--prior expects KEY=MEAN:SD with a finite mean and SD > 0, got {item!r}")
+        if key.strip() in out:
+            raise ValueError(f"--prior {key.strip()} is given twice; give each key once")
+        out[key.strip()] = pair
+    return out
+
+
 def parse_floats(text: str, option: str) -> list[float]:
     """Comma-separated numbers."""
     try:
@@ -349,6 +368,10 @@ def check_args(args) -> None:
         raise ValueError(f"--chains must be >= 2 with --emulated (R-hat compares chains), got {args.chains}")
     if getattr(args, "chains", 1) < 1:
         raise ValueError(f"--chains must be >= 1, got {args.chains}")
+    if getattr(args, "prior", None):
+        parse_priors(args.prior)
+        if not (args.nuts or args.emulated):
+            raise ValueError("--prior enters the posteriors of --nuts and --emulated (not the fit): give one of them")
     draws = getattr(args, "model_error", 0)
     if draws < 0 or draws == 1:
         raise ValueError(f"--model-error must be 0 (off) or >= 2 particle draws, got {args.model_error}")

@@ -296,7 +296,8 @@ class EmulatedPosterior:
     (``new_points_dchi2``); ``settled``: whether the last did; ``jacobians`` and ``runs``: the
     model's Jacobians (design) and forward runs (checks) spent; ``check_chi2``: the model's χ² at
     the checked draws (∞ where the run failed) with ``noise``, the likelihood's σ by block
-    (``credible_level`` places a point inside or outside the joint credible regions)."""
+    (``credible_level`` places a point inside or outside the joint credible regions); ``prior``: the
+    normal priors of keys measured elsewhere it was sampled with (None: flat in the bounds)."""
 
     keys: tuple[str, ...]
     mean: dict[str, float]
@@ -314,6 +315,7 @@ class EmulatedPosterior:
     emulator: str = "corrected"
     check_chi2: np.ndarray | None = None
     noise: dict[str, float] | None = None
+    prior: dict[str, tuple[float, float]] | None = None
 
     @property
     def settled(self) -> bool:
@@ -410,7 +412,8 @@ class EmulatedPosterior:
                 "check_log_weights": [v if math.isfinite(v) else None for v in self.checks[1].tolist()],
                 "check_chi2": None if self.check_chi2 is None else [v if math.isfinite(v) else None
                                                                     for v in self.check_chi2.tolist()],
-                "noise": self.noise}
+                "noise": self.noise,
+                "prior": None if self.prior is None else {k: list(v) for k, v in self.prior.items()}}
 
 
 def log_uniform(keys, *names: str):
@@ -449,12 +452,20 @@ def prior_sensitivity(posterior: EmulatedPosterior, keys: tuple[str, ...]) -> di
     return {"log_uniform_keys": list(keys), **other, "mean_shift_sd": shift}
 
 
-def _laplace_cov_z(objective, weights, z, Jz) -> np.ndarray:
+def _laplace_cov_z(objective, weights, z, Jz, prior=None) -> np.ndarray:
     """The Laplace covariance in z at ``z``: the inverse of Gauss–Newton's JᵀWJ plus the
-    curvature of the flat prior's log-Jacobian, 2 s(1 − s) per key (s = sigmoid z). The prior's
-    term keeps a key the data do not fix at the scale of its box (a logistic's), not at infinity."""
-    s = 1.0 / (1.0 + np.exp(-np.asarray(z, float)))
-    precision = Jz.T @ (weights[:, None] * Jz) + np.diag(2.0 * s * (1.0 - s))
+    curvature of the flat prior's log-Jacobian, 2 s(1 − s) per key (s = sigmoid z), and of a
+    ``prior`` (``gaussian_prior``'s terms), (dθ/dz / sd)². The flat prior's term keeps a key the
+    data do not fix at the scale of its box (a logistic's), not at infinity."""
+    z = np.asarray(z, float)
+    s = 1.0 / (1.0 + np.exp(-z))
+    curvature = 2.0 * s * (1.0 - s)
+    if prior is not None:
+        idx, _, sd = prior
+        span = np.asarray(objective.bounds.upper, float) - np.asarray(objective.bounds.lower, float)
+        dtheta_dz = span * s * (1.0 - s)
+        curvature[idx] += (dtheta_dz[idx] / sd) ** 2
+    precision = Jz.T @ (weights[:, None] * Jz) + np.diag(curvature)
     return np.linalg.inv(precision)
 
 
@@ -462,7 +473,8 @@ def emulated_posterior(objective: ObjectiveLike, centre, *, noise: Mapping[str, 
                        rounds: int = 6, settle: float = 1.0, axial: float = 2.0, reach: float = 3.0,
                        checks: int = 200, chains: int = 4,
                        warmup: int = 200, draws: int = 1000, seed: int = 0, emulator: str = "corrected",
-                       target_accept: float = 0.8, workers=None, progress: bool = False) -> EmulatedPosterior:
+                       target_accept: float = 0.8, prior: Mapping[str, tuple[float, float]] | None = None,
+                       workers=None, progress: bool = False) -> EmulatedPosterior:
     """The posterior of ``objective``'s keys from NUTS on a quadratic emulator whose design follows
     the posterior (at most ``rounds`` re-centrings, until the emulated posterior's mean lies within
     ``settle`` of its standard deviations of the centre it was designed around), corrected with
@@ -480,8 +492,11 @@ def emulated_posterior(objective: ObjectiveLike, centre, *, noise: Mapping[str, 
     processes for the model's runs (``calibration.workers``). The model is run 3k + 1 + (2k + 1) per
     re-centring with its Jacobian and ``checks`` times without. ``emulator``: "corrected" (a
     quadratic per residual and a Gaussian process through the design points' values and slopes,
-    ``CorrectedQuadratic``; the default) or "quadratic" (the quadratic alone, ``QuadraticEmulator``)."""
-    from .mcmc import _row_weights, gauss_newton_point, nuts_posterior
+    ``CorrectedQuadratic``; the default) or "quadratic" (the quadratic alone, ``QuadraticEmulator``).
+    ``prior``: {key: (mean, sd)}, a normal in θ for keys measured by another experiment
+    (``calibration.mcmc.gaussian_prior``), beside the flat prior in the bounds; the emulator's
+    chains and the model's posterior both carry it, so the importance weights do not."""
+    from .mcmc import _row_weights, gauss_newton_point, gaussian_prior, nuts_posterior
 
     keys = tuple(objective.keys)
     k = len(keys)
@@ -498,6 +513,7 @@ def emulated_posterior(objective: ObjectiveLike, centre, *, noise: Mapping[str, 
         raise ValueError(f"target_accept must be a float strictly between 0 and 1, got {target_accept!r}")
     if checks > chains * draws:
         raise ValueError(f"checks: {checks} draws to check, the chains keep only {chains * draws}")
+    prior_terms = gaussian_prior(keys, prior)
     lower, upper = np.asarray(objective.bounds.lower, float), np.asarray(objective.bounds.upper, float)
     if isinstance(centre, Mapping):
         if set(centre) != set(keys):
@@ -542,7 +558,7 @@ def emulated_posterior(objective: ObjectiveLike, centre, *, noise: Mapping[str, 
         _, ok = run(m[None, :])
         if not ok.all():
             raise RuntimeError(f"centre: the model's run fails at {dict(zip(keys, theta_hat.tolist()))}")
-        L = np.linalg.cholesky(_laplace_cov_z(objective, weights, m, Jz[0]))
+        L = np.linalg.cholesky(_laplace_cov_z(objective, weights, m, Jz[0], prior_terms))
         W = np.concatenate([star, rng.normal(0.0, axial / 2, size=(k, k))])
     else:
         dtheta_dz = np.asarray(dphysical_dz(jnp.asarray(m), jl, ju), float)
@@ -568,7 +584,7 @@ def emulated_posterior(objective: ObjectiveLike, centre, *, noise: Mapping[str, 
         record[-1].update(emulator_rms=model.rms, kernel_points=float(kernel.sum()))
         say(f"NUTS on the emulator of {len(Z)} points")
         posterior = nuts_posterior(target, whitening, chains=chains, warmup=warmup, draws=draws, seed=seed + c,
-                                   noise=sigma, target_accept=target_accept)
+                                   noise=sigma, target_accept=target_accept, prior=prior)
         flat = posterior.flat()
         z_draws = np.asarray(unconstrained(flat, lower, upper), float)
         z_draws = z_draws[np.all(np.isfinite(z_draws), axis=1)]  # a float32 draw rounded onto a bound
@@ -610,4 +626,5 @@ def emulated_posterior(objective: ObjectiveLike, centre, *, noise: Mapping[str, 
     return EmulatedPosterior(keys, mean, sd, ci, posterior, k_hat, float(1.0 / np.sum(w**2)), (thetas, log_w),
                              int(np.sum(~np.isfinite(chi2_model))), tuple(record), jacobians, checks,
                              time.perf_counter() - clock, emulator, chi2_model,
-                             {k: float(v) for k, v in sigma.items()})
+                             {k: float(v) for k, v in sigma.items()},
+                             None if prior_terms is None else {k: tuple(map(float, v)) for k, v in prior.items()})

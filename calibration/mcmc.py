@@ -58,9 +58,9 @@ from .observe import jacobian_by_columns
 from .protocol import ObjectiveLike
 from .uncertainty import NOISE_FLOOR
 
-__all__ = ["ChainDraws", "McmcPosterior", "Sampler", "diagnose", "gauss_newton_point", "log_density_fn",
-           "nuts_posterior", "nuts_sampler", "posterior_predictive", "sample_chain", "start_chain", "warm_up",
-           "whitened"]
+__all__ = ["ChainDraws", "McmcPosterior", "Sampler", "diagnose", "gauss_newton_point", "gaussian_prior",
+           "log_density_fn", "nuts_posterior", "nuts_sampler", "posterior_predictive", "sample_chain", "start_chain",
+           "warm_up", "whitened"]
 
 #: The fields ``_summary`` computes, in its order.
 _SUMMARY = ("mean", "sd", "ci95", "rhat", "ess_bulk", "ess_tail")
@@ -254,11 +254,39 @@ def gauss_newton_point(objective: ObjectiveLike, fit_result, noise, *, name: str
     return theta_hat, noise_levels(objective, fit_result, noise), np.asarray(unc.cov, float)
 
 
-def log_density_fn(objective: ObjectiveLike, weights, z_hat, L, lower, upper):
+def gaussian_prior(keys, prior) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """``prior``, {key: (mean, sd)}: a measurement of some keys from another experiment (an
+    incline's I0), an independent normal in θ for each, beside the flat prior inside the bounds.
+    Returns (key indices, means, sds), None for no prior; raises ``ValueError`` naming a key that
+    is not fitted or a (mean, sd) that is not two finite numbers with sd > 0."""
+    if prior is None or (isinstance(prior, Mapping) and not prior):
+        return None
+    if not isinstance(prior, Mapping):
+        raise ValueError(f"prior must be a mapping {{key: (mean, sd)}}, got {type(prior).__name__}")
+    keys = tuple(keys)
+    unknown = sorted(k for k in prior if k not in keys)
+    if unknown:
+        raise ValueError(f"prior: {unknown} not among the fitted keys {keys}")
+    idx, mean, sd = [], [], []
+    for k, value in prior.items():
+        try:
+            m, s = (float(v) for v in value)
+        except (TypeError, ValueError):
+            raise ValueError(f"prior: {k} must be (mean, sd), got {value!r}") from None
+        if not (math.isfinite(m) and math.isfinite(s) and s > 0):
+            raise ValueError(f"prior: {k} must be a finite mean and sd > 0, got {value!r}")
+        idx.append(keys.index(k))
+        mean.append(m)
+        sd.append(s)
+    return np.asarray(idx), np.asarray(mean), np.asarray(sd)
+
+
+def log_density_fn(objective: ObjectiveLike, weights, z_hat, L, lower, upper, prior=None):
     """``(log_density, theta_of)`` of the chains' coordinates w, θ = physical(ẑ + L w, lower,
     upper): log p(w) = −χ²(θ)/2 + log |dθ/dz| up to a constant, χ² = Σ ``weights`` r², with a
     forward-mode gradient (a ``jax.custom_vjp``); −∞ where the run fails or θ leaves the
-    support. See the module docstring."""
+    support; ``prior``, ``gaussian_prior``'s (indices, means, sds), adds −½ Σ ((θ_j − m_j)/s_j)².
+    See the module docstring."""
     dtype = z_hat.dtype
 
     def theta_of(w):
@@ -285,9 +313,15 @@ def log_density_fn(objective: ObjectiveLike, weights, z_hat, L, lower, upper):
 
     chi2.defvjp(chi2_fwd, lambda grad, g: (g * grad,))
 
+    def log_prior(w):
+        if prior is None:
+            return jnp.zeros((), dtype)
+        idx, mean, sd = prior
+        return -0.5 * jnp.sum(((theta_of(w)[idx] - jnp.asarray(mean, dtype)) / jnp.asarray(sd, dtype)) ** 2)
+
     def log_density(w):
         log_jac = log_jacobian(z_hat + L @ w, lower, upper)  # flat prior in θ, sampled in z
-        return (-0.5 * chi2(w) + log_jac).astype(dtype)
+        return (-0.5 * chi2(w) + log_jac + log_prior(w)).astype(dtype)
 
     return log_density, theta_of
 
@@ -438,13 +472,15 @@ def diagnose(keys: tuple[str, ...], chains: list[ChainDraws], theta_of: Callable
 def nuts_posterior(objective: ObjectiveLike, fit_result, *, chains: int | None = None, warmup: int | None = None,
                    draws: int = 200, seed: int = 0, noise: Mapping[str, float] | float | None = None,
                    target_accept: float = 0.8, max_doublings: int = 6, spread: float = 1.0,
-                   resume: McmcPosterior | None = None, progress: bool = False) -> McmcPosterior:
+                   resume: McmcPosterior | None = None, prior: Mapping[str, tuple[float, float]] | None = None,
+                   progress: bool = False) -> McmcPosterior:
     """NUTS draws of ``objective``'s keys around ``fit_result`` (which must carry a Gauss–Newton
     covariance: the sampler's preconditioner, see the module docstring). ``chains`` (default 4)
     run one after the other (on the CPU a vmapped batch of runs costs more than the runs in
     turn), each with ``warmup`` (default 100) step-size adaptation steps, then ``draws`` kept;
     ``noise``: σ by block (default: the fit's); ``max_doublings``: the tree depth limit (2^depth
-    leapfrog steps at most per draw).
+    leapfrog steps at most per draw); ``prior``: {key: (mean, sd)}, a normal in θ for keys
+    measured elsewhere (``gaussian_prior``), beside the flat prior in the bounds.
 
     ``resume``: a posterior of the same objective, fit and noise (its own ``to_json`` record
     through ``McmcPosterior.from_json`` will do) whose chains go on for ``draws`` more each, from
@@ -455,6 +491,9 @@ def nuts_posterior(objective: ObjectiveLike, fit_result, *, chains: int | None =
     The parts: ``log_density_fn`` (the target), ``nuts_sampler`` (the kernels), per chain
     ``start_chain``, ``warm_up`` and ``sample_chain``, and ``diagnose`` (the summary)."""
     _blackjax()
+    prior_terms = gaussian_prior(objective.keys, prior)
+    if resume is not None and prior_terms is not None:
+        raise ValueError("prior: a resumed posterior carries no record of its prior; sample afresh with one")
     if resume is not None:
         if not isinstance(resume, McmcPosterior):
             raise ValueError(f"resume must be a McmcPosterior (McmcPosterior.from_json of a record), got "
@@ -491,7 +530,7 @@ def nuts_posterior(objective: ObjectiveLike, fit_result, *, chains: int | None =
     L = np.linalg.cholesky(gn_cov / np.outer(dtheta_dz, dtheta_dz))
     as_dtype = lambda a: jnp.asarray(a, dtype)  # noqa: E731
     log_density, theta_of = log_density_fn(objective, as_dtype(_row_weights(objective, sigma)), as_dtype(z_hat),
-                                           as_dtype(L), as_dtype(lower_np), as_dtype(upper_np))
+                                           as_dtype(L), as_dtype(lower_np), as_dtype(upper_np), prior_terms)
     k = len(keys)
     sampler = nuts_sampler(log_density, k, dtype, target_accept=target_accept, max_doublings=max_doublings)
     rng = np.random.default_rng(seed)

@@ -51,8 +51,8 @@ class PosteriorChecks:
 
 
 def posterior_checks(objective, result, *, profiles: int = 0, posterior: int = 0, nuts: int = 0, chains: int = 4,
-                     emulated: int = 0, emulator: str = "corrected", noise=None, model_error=None, workers=None,
-                     progress: bool = False) -> PosteriorChecks:
+                     emulated: int = 0, emulator: str = "corrected", noise=None, model_error=None, prior=None,
+                     workers=None, progress: bool = False) -> PosteriorChecks:
     """The profile likelihood of every fitted key at ``profiles`` points, the grid posterior of
     one or two keys at ``posterior`` points per key and a NUTS posterior of ``nuts`` draws per
     chain on ``chains`` chains (each 0: off) around ``result``, a fit of ``objective``
@@ -65,11 +65,15 @@ def posterior_checks(objective, result, *, profiles: int = 0, posterior: int = 0
     (``calibration.likelihood.ModelError``), added to the noise of every check's likelihood in
     quadrature (reported as "model_error" and "posterior_noise"). The emulated posterior carries
     its ``prior_sensitivity`` where a key's box spans decades (``calibration.emulator.scale_keys``:
-    the same checks under a prior uniform in that key's log). What ``python -m calibration
+    the same checks under a prior uniform in that key's log). ``prior``: {key: (mean, sd)}, keys
+    measured elsewhere, a normal prior in the NUTS and emulated posteriors (reported as "prior").
+    What ``python -m calibration
     fit --profiles N --posterior N --nuts N --emulated N`` adds."""
     if not (profiles or posterior or nuts or emulated):
         return PosteriorChecks()
     report: dict[str, Any] = {}
+    if prior:
+        report["prior"] = {k: list(map(float, v)) for k, v in prior.items()}
     unc = result.uncertainty
     fitted = getattr(unc, "noise", None)  # the fit's noise by block (estimated or given)
     sigma = noise if noise is not None else (dict(fitted) if fitted else None)
@@ -91,8 +95,8 @@ def posterior_checks(objective, result, *, profiles: int = 0, posterior: int = 0
         else:  # a fit whitens by its interval; a point without one, by the Laplace covariance there
             interval = unc is not None and not unc.withheld
             found = emulated_posterior(objective, result if interval else dict(result.theta), noise=sigma,
-                                       checks=emulated, chains=chains, emulator=emulator, workers=workers,
-                                       progress=progress)
+                                       checks=emulated, chains=chains, emulator=emulator, prior=prior,
+                                       workers=workers, progress=progress)
             report["emulated_posterior"] = found.to_json()
             scale = scale_keys(objective.bounds)
             if scale:  # a key whose box spans decades: how much of its interval is the prior's
@@ -106,7 +110,7 @@ def posterior_checks(objective, result, *, profiles: int = 0, posterior: int = 0
         from .mcmc import nuts_posterior
 
         found = nuts_posterior(objective, result, chains=chains, warmup=max(20, nuts // 2), draws=nuts, noise=noise,
-                               progress=progress)
+                               prior=prior, progress=progress)
         report["nuts"] = {k: v for k, v in found.to_json().items() if k != "draws"}
     from .likelihood import grid_posterior, profile_likelihood
 

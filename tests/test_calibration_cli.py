@@ -87,6 +87,12 @@ def test_fit_measures_the_model_error_for_the_posterior_checks(capsys):
     (["--fit", "beta", "--emulated", "40", "--chains", "1"], "--chains must be >= 2 with --emulated"),
     (["--fit", "beta", "--profiles", "5", "--model-error", "1"], "--model-error must be 0 (off) or >= 2"),
     (["--fit", "beta", "--profiles", "5", "--model-error", "-3"], "--model-error must be 0 (off) or >= 2"),
+    (["--fit", "beta", "--emulated", "40", "--prior", "beta=0.2"], "--prior expects KEY=MEAN:SD"),
+    (["--fit", "beta", "--emulated", "40", "--prior", "beta=0.2:0"], "--prior expects KEY=MEAN:SD"),
+    (["--fit", "beta", "--emulated", "40", "--prior", "beta=0.2:0.1", "--prior", "beta=0.3:0.1"],
+     "--prior beta is given twice"),
+    (["--fit", "beta", "--profiles", "5", "--prior", "beta=0.2:0.1"], "--prior enters the posteriors of --nuts"),
+    (["--fit", "beta", "--emulated", "40", "--prior", "I0=0.3:0.1"], "--prior: ['I0'] not among the fitted keys"),
 ])
 def test_fit_input_errors_name_the_argument(capsys, argv, message):
     with pytest.raises(SystemExit) as exc:

@@ -351,3 +351,42 @@ def test_prior_sensitivity_moves_a_key_the_data_leave_to_the_prior():
     assert found["mean_shift_sd"]["I0"] < -0.5
     assert abs(found["mean_shift_sd"]["beta"]) < 0.1 and abs(found["mean_shift_sd"]["xi"]) < 0.1
     assert found["log_uniform_keys"] == ["I0"] and found["ess_importance"] < n
+
+
+def test_a_measured_key_enters_as_a_normal_prior(banana):
+    """k0 measured elsewhere as 0 ± 0.2 (the data's posterior sd is 0.27): the emulated posterior
+    sampled with that prior matches the quadrature of likelihood × prior, and records it."""
+    objective, result, mean, sd, level = banana
+    post = emulated_posterior(objective, result, rounds=1, checks=400, seed=0, prior={"k0": (0.0, 0.2)})
+    exact_mean, exact_sd = level.under(lambda t0, t1: -0.5 * (t0 / 0.2) ** 2)
+    assert post.ess_importance > 300 and post.prior == {"k0": (0.0, 0.2)}
+    for j, key in enumerate(objective.keys):
+        assert abs(post.mean[key] - exact_mean[j]) < 4 * exact_sd[j] / np.sqrt(post.ess_importance), key
+        assert 0.85 < post.sd[key] / exact_sd[j] < 1.15, (key, post.sd[key], exact_sd[j])
+    assert post.sd["k0"] < 0.85 * sd[0]
+    assert post.to_json()["prior"] == {"k0": [0.0, 0.2]}
+
+
+@pytest.mark.parametrize("prior, match", [({"k2": (0.0, 1.0)}, r"\['k2'\] not among the fitted keys"),
+                                          ({"k0": (0.0, 0.0)}, "k0 must be a finite mean and sd > 0"),
+                                          ({"k0": 0.3}, r"k0 must be \(mean, sd\)"),
+                                          ({"k0": (float("nan"), 1.0)}, "k0 must be a finite mean"),
+                                          ([("k0", 1.0)], "prior must be a mapping")])
+def test_a_bad_prior_is_refused_before_any_run(banana, prior, match):
+    from calibration.mcmc import nuts_posterior
+
+    objective, result, *_ = banana
+    spy = Banana(objective.data)
+    spy.column_tasks_z = lambda z: pytest.fail("ran the model")
+    with pytest.raises(ValueError, match=match):
+        emulated_posterior(spy, result, prior=prior)
+    with pytest.raises(ValueError, match=match):
+        nuts_posterior(spy, result, prior=prior)
+
+
+def test_a_prior_cannot_be_added_to_a_resumed_chain(banana):
+    from calibration.mcmc import nuts_posterior
+
+    objective, result, *_ = banana
+    with pytest.raises(ValueError, match="a resumed posterior carries no record of its prior"):
+        nuts_posterior(objective, result, resume=object(), prior={"k0": (0.0, 1.0)})
