@@ -4,7 +4,7 @@ grid quadrature are stored, and the five keys of the three filmed collapses (doc
 
     python docs/scripts/emulated_posterior.py s4 [--workers 2]       (needs [bayes])
     python docs/scripts/emulated_posterior.py five [--workers 2] [--coarsen R] [--model-error] [--checks N]
-        [--draws N] [--target-accept A] [--emulator corrected] [--tag T]
+        [--draws N] [--target-accept A] [--emulator corrected] [--i0-measured REL] [--tag T]
     python docs/scripts/emulated_posterior.py error [--workers 2]      (the five keys' model error)
 
 Writes docs/results/emulated_{s4,five}.json and docs/figures/emulated_{s4,five}.png (``--coarsen R``:
@@ -74,8 +74,14 @@ def five(workers, args):
         error = model_error(objective, centre, workers=workers)
         noise = error.noise(0.02)
         print("model error by block", error.total(), flush=True)
+    prior = None
+    if args.i0_measured:  # an incline's I0 to a relative sd, the measurement drawn about the truth (seeded)
+        measured = FIVE_TRUTH["I0"] * (1.0 + args.i0_measured * np.random.default_rng(args.i0_seed).standard_normal())
+        prior = {"I0": (measured, args.i0_measured * measured)}
+        print("I0 measured elsewhere:", prior, flush=True)
     post = emulated_posterior(objective, centre, noise=noise, checks=args.checks, emulator=args.emulator,
-                              draws=args.draws, target_accept=args.target_accept, workers=workers, progress=True)
+                              draws=args.draws, target_accept=args.target_accept, prior=prior, workers=workers,
+                              progress=True)
     truth_chi2 = post.chi2_at(objective, FIVE_TRUTH)
     joint = {"truth_chi2": truth_chi2, "truth_level": post.credible_level(truth_chi2),
              "check_chi2_quantiles": dict(zip(("5%", "50%", "95%"), map(float, weighted_quantile(
@@ -91,7 +97,7 @@ def five(workers, args):
            "dx": objective.dx, "coarsen": args.coarsen, "truth": FIVE_TRUTH, "centre": centre, "noise": noise,
            "data_noise": 0.02, "model_error": None if error is None else error.to_dict(), "emulated": post.to_json(),
            "truth_inside_ci95": {k: bool(post.ci95[k][0] <= FIVE_TRUTH[k] <= post.ci95[k][1]) for k in FIVE},
-           "truth_joint": joint, "log_uniform_I0": under_log,
+           "truth_joint": joint, "log_uniform_I0": under_log, "prior": prior,
            "box": dict(zip(FIVE, zip(map(float, objective.bounds.lower), map(float, objective.bounds.upper))))}
     return out, post
 
@@ -125,6 +131,10 @@ def main():
     parser.add_argument("--checks", type=int, default=200)
     parser.add_argument("--draws", type=int, default=1000, help="the emulator's NUTS draws per chain (4 chains)")
     parser.add_argument("--target-accept", type=float, default=0.8, help="the emulator's NUTS acceptance target")
+    parser.add_argument("--i0-measured", type=float, default=0.0, metavar="REL",
+                        help="five: I0 measured by another experiment to this relative sd, a normal prior centred on a "
+                             "seeded draw about the truth (default 0: none)")
+    parser.add_argument("--i0-seed", type=int, default=0, help="the draw of that measurement")
     parser.add_argument("--tag", default="", help="appended to the result's and figure's names")
     parser.add_argument("--coarsen", type=float, default=1.0, help="five: a grid this many times coarser")
     parser.add_argument("--emulator", default="quadratic", choices=("quadratic", "corrected"),
