@@ -6,6 +6,7 @@ grid quadrature are stored, and the five keys of the three filmed collapses (doc
     python docs/scripts/emulated_posterior.py five [--workers 2] [--coarsen R] [--model-error] [--checks N]
         [--draws N] [--target-accept A] [--emulator corrected] [--i0-measured REL] [--tag T]
     python docs/scripts/emulated_posterior.py error [--workers 2]      (the five keys' model error)
+    python docs/scripts/emulated_posterior.py shape [--workers 2]      (its grid term: rows or one shape)
 
 Writes docs/results/emulated_{s4,five}.json and docs/figures/emulated_{s4,five}.png (``--coarsen R``:
 ``five_coarse{R}``; ``--model-error``: ``five_model_error``, the likelihood's σ by block the data's 2 %
@@ -124,9 +125,53 @@ def error(workers, args):
             "residual_rms_at_truth": at_truth}, None
 
 
+def shape(workers, args):
+    """The grid term as independent rows or as one shape per block (covariance σ² I + g gᵀ), at
+    the five-key twin's truth: the linearised fit from the truth's residuals in each form's sd."""
+    import numpy as np
+
+    from calibration import CompositeObjective, Objective, uncertainty
+    from jaxmpm import Experiment
+
+    objective = CompositeObjective([Objective.from_experiment(Experiment.from_toml(f), FIVE) for f in FIVE_FILES])
+    keys = list(objective.keys)
+    theta = np.array([FIVE_TRUTH[k] for k in keys])
+    r, J, pred = objective.residuals_and_jacobian(theta)
+    fine = uncertainty.clean_runs([(r, pred)]) + uncertainty.redrawn_residuals(objective, theta, 4, workers)
+    _, coarse = uncertainty.coarse_residuals(objective, theta, 1.5, 2, workers)
+    s = np.asarray(objective.row_scale, float)
+    e, Je = np.asarray(r, float) / s, np.asarray(J, float) / s[:, None]
+    F, C = np.stack(fine) / s, np.stack(coarse) / s
+    var, diff = np.var(F, axis=0, ddof=1), F.mean(axis=0) - C.mean(axis=0)
+    factor = 1.5 - 1.0  # ratio^p - 1, p = 1
+    forms, correlation = {}, {}
+    for form in ("data", "rows", "shape", "rows+shape"):
+        cov = np.zeros((e.size, e.size))
+        for b, sl in objective.blocks.items():
+            v = float(np.mean(var[sl]))
+            grid = np.sqrt(max(float(np.mean(diff[sl] ** 2)) - v * (1 / len(F) + 1 / len(C)), 0.0)) / factor
+            g = diff[sl] / factor
+            g = g * grid / np.sqrt(np.mean(g**2)) if np.any(g) else g
+            correlation[b] = float(np.corrcoef(g, e[sl])[0, 1])
+            n = sl.stop - sl.start
+            base = 0.02**2 + (v if form != "data" else 0.0)
+            cov[sl, sl] = np.eye(n) * (base + (grid**2 if "rows" in form else 0.0))
+            if "shape" in form:
+                cov[sl, sl] += np.outer(g, g)
+        inv = np.linalg.inv(cov)
+        c = np.linalg.inv(Je.T @ inv @ Je)
+        sd = np.sqrt(np.diag(c))
+        lands = -c @ Je.T @ inv @ e
+        forms[form] = {"chi2_at_truth": float(e @ inv @ e), "rows": int(e.size), "sd": dict(zip(keys, sd.tolist())),
+                       "lands_sd": dict(zip(keys, (lands / sd).tolist()))}
+        print(form, forms[form], flush=True)
+    return {"case": "the grid term's form at the five-key twin's truth (L/12, data L/18, 2 % noise)",
+            "truth": FIVE_TRUTH, "forms": forms, "shape_vs_truth_error_correlation": correlation}, None
+
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("which", choices=("s4", "five", "error"))
+    parser.add_argument("which", choices=("s4", "five", "error", "shape"))
     parser.add_argument("--workers", type=int, default=1)
     parser.add_argument("--checks", type=int, default=200)
     parser.add_argument("--draws", type=int, default=1000, help="the emulator's NUTS draws per chain (4 chains)")
@@ -143,9 +188,11 @@ def main():
                         help="five: the model's own error (particle draws, grid) beside the data's noise")
     args = parser.parse_args()
     with Workers(args.workers) as workers:
-        out, post = {"s4": s4, "five": five, "error": error}[args.which](workers if args.workers > 1 else None, args)
+        out, post = {"s4": s4, "five": five, "error": error, "shape": shape}[args.which](
+            workers if args.workers > 1 else None, args)
     if post is None:
-        (RESULTS / "model_error_five.json").write_text(json.dumps(out, indent=1))
+        name = "model_error_five" if args.which == "error" else "model_error_shape_five"
+        (RESULTS / f"{name}.json").write_text(json.dumps(out, indent=1))
         return
     name = args.which if args.coarsen == 1.0 else f"{args.which}_coarse{args.coarsen:g}"
     name += "_model_error" if args.model_error else ""
