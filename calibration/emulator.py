@@ -54,7 +54,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .bounds import dphysical_dz, physical, unconstrained
-from .likelihood import noise_levels, weighted_quantile
+from .likelihood import checked_point, noise_levels, weighted_quantile
 from .objective import jacobians_z, residuals_at
 from .protocol import ObjectiveLike
 
@@ -380,16 +380,9 @@ class EmulatedPosterior:
 
         if self.noise is None:
             raise ValueError("this posterior carries no noise level (made before it was kept)")
-        if isinstance(theta, Mapping):
-            missing = [k for k in self.keys if k not in theta]
-            if missing:
-                raise ValueError(f"theta: no value for the key(s) {missing}")
-            theta = [theta[k] for k in self.keys]
-        theta = np.asarray(theta, float)
-        if theta.shape != (len(self.keys),) or not np.all(np.isfinite(theta)):
-            raise ValueError(f"theta must be {len(self.keys)} finite values for the keys {self.keys}")
-        objective.check_thetas(theta[None, :], "theta")
-        r, pred = objective.residuals(theta)
+        if tuple(objective.keys) != self.keys:
+            raise ValueError(f"objective: its keys {tuple(objective.keys)} are not this posterior's {self.keys}")
+        r, pred = objective.residuals(checked_point(objective, theta))
         if int(np.max(np.asarray(pred["status"]))) != 0:
             return math.inf
         return float(np.sum(_row_weights(objective, self.noise) * np.asarray(r, float) ** 2))

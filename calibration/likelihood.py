@@ -128,16 +128,7 @@ def model_error(objective: ObjectiveLike, theta, *, draws: int = uncertainty.SAM
     if not objective.seeded:
         raise ValueError("objective: its particles cannot be drawn again (a lattice sampling), so the draw term "
                          "cannot be measured; sample the body at random (a seed)")
-    if isinstance(theta, Mapping):
-        missing = [k for k in objective.keys if k not in theta]
-        if missing:
-            raise ValueError(f"theta: no value for the key(s) {missing}")
-        theta = [theta[k] for k in objective.keys]
-    theta = np.asarray(theta, float)
-    if theta.shape != (len(objective.keys),) or not np.all(np.isfinite(theta)):
-        raise ValueError(f"theta must be {len(objective.keys)} finite values for the keys {objective.keys}, got "
-                         f"{theta.tolist()}")
-    objective.check_thetas(theta[None, :], "theta")
+    theta = checked_point(objective, theta)
     clock = time.perf_counter()
     fine = uncertainty.clean_runs([objective.residuals(theta)]) + redrawn_residuals(objective, theta, draws, workers)
     if len(fine) < 2:
@@ -159,6 +150,22 @@ def model_error(objective: ObjectiveLike, theta, *, draws: int = uncertainty.SAM
         grid[name] = math.sqrt(max(float(np.mean(diff2[sl])) - v * (1 / len(fine) + 1 / len(coarse)), 0.0)) / factor
     return ModelError(draw, grid, len(fine), len(coarse), float(ratio), float(order), objective.dx,
                       time.perf_counter() - clock)
+
+
+def checked_point(objective: ObjectiveLike, theta) -> np.ndarray:
+    """``theta`` (a mapping of the keys' values, or values in key order) as an array in key order,
+    checked finite and inside ``objective``'s bounds; ``ValueError`` naming "theta" otherwise."""
+    if isinstance(theta, Mapping):
+        missing = [k for k in objective.keys if k not in theta]
+        if missing:
+            raise ValueError(f"theta: no value for the key(s) {missing}")
+        theta = [theta[k] for k in objective.keys]
+    theta = np.asarray(theta, float)
+    if theta.shape != (len(objective.keys),) or not np.all(np.isfinite(theta)):
+        raise ValueError(f"theta must be {len(objective.keys)} finite values for the keys {objective.keys}, got "
+                         f"{theta.tolist()}")
+    objective.check_thetas(theta[None, :], "theta")
+    return theta
 
 
 def _number(value) -> bool:
