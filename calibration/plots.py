@@ -13,7 +13,7 @@ import numpy as np
 from .protocol import ObjectiveLike
 
 __all__ = ["fit_figures", "law_figures", "likelihood_figures", "plot_coverage", "plot_emulated", "plot_fit",
-           "plot_heldout", "plot_history", "plot_landscape", "plot_loss_curve", "plot_nuts",
+           "plot_grid_term", "plot_heldout", "plot_history", "plot_landscape", "plot_loss_curve", "plot_nuts",
            "plot_posterior_predictive", "plot_profile_likelihoods", "plot_runout_law", "sweep_figures",
            "twin_landscape_figure"]
 
@@ -426,6 +426,40 @@ def plot_emulated(posterior, path, *, truth=None, reference=None, title: str | N
         axes[0][0].set_xlabel(text, fontsize=7)
     if title:
         fig.suptitle(title, fontsize=10)
+    return _save(plt, fig, path, dpi=110)
+
+
+def plot_grid_term(posterior, path, *, truth=None, title: str | None = None):
+    """An ``EmulatedPosterior``'s grid term, one panel per key: the 95 % interval of the data
+    (thick) and with the grid term (thin) about the mean, the same posterior's means on the
+    coarser grids (``grid_posteriors``, with their own intervals) at their dx, and ``truth``: how
+    far the answer still moves with the grid, against what the data fix."""
+    plt = _plt()
+    if posterior.grid is None:
+        raise ValueError("posterior: carries no grid term (emulated_posterior(grid_ratio=...))")
+    keys = posterior.keys
+    fig, axes = plt.subplots(1, len(keys), figsize=(2.4 * len(keys) + 0.6, 3.2), squeeze=False)
+    levels = [(posterior.grid.dx, posterior.mean, posterior.ci95)] + [
+        (g["dx"], g["mean"], g["ci95"]) for g in posterior.grid_posteriors]
+    fine_dx = posterior.grid.dx
+    for ax, k in zip(axes[0], keys):
+        for n, (dx, mean, ci) in enumerate(levels):
+            y = dx / fine_dx
+            ax.plot(ci[k], [y, y], color="C0" if n == 0 else "0.5", lw=4, solid_capstyle="butt",
+                    label="data's 95 %" if n == 0 else ("coarser grids' 95 %" if n == 1 else None))
+            ax.plot([mean[k]], [y], "o", color="C0" if n == 0 else "0.3", ms=4)
+        lo, hi = posterior.ci95_with_grid[k]
+        ax.plot([lo, hi], [0.8, 0.8], color="C3", lw=1.5, marker="|", ms=8, label="with the grid term")
+        ax.plot([levels[i][1][k] for i in range(len(levels))], [lv[0] / fine_dx for lv in levels], ":", color="0.4")
+        if truth is not None and k in truth:
+            ax.axvline(truth[k], color="k", lw=1, label="truth")
+        ax.set_title(k + ("" if posterior.grid_converged[k] else " (grid > data)"), fontsize=9)
+        ax.set_ylim(0.6, max(lv[0] for lv in levels) / fine_dx + 0.3)
+        ax.tick_params(labelsize=7)
+    axes[0][0].set_ylabel("dx / the fit's dx")
+    axes[0][0].legend(fontsize=6, loc="upper left")
+    if title:
+        fig.suptitle(title, fontsize=9)
     return _save(plt, fig, path, dpi=110)
 
 

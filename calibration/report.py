@@ -52,7 +52,8 @@ class PosteriorChecks:
 
 def posterior_checks(objective, result, *, profiles: int = 0, posterior: int = 0, nuts: int = 0, chains: int = 4,
                      emulated: int = 0, emulator: str = "corrected", noise=None, model_error=None, prior=None,
-                     workers=None, progress: bool = False) -> PosteriorChecks:
+                     grid_ratio: float | None = None, grid_levels: int = 1, workers=None,
+                     progress: bool = False) -> PosteriorChecks:
     """The profile likelihood of every fitted key at ``profiles`` points, the grid posterior of
     one or two keys at ``posterior`` points per key and a NUTS posterior of ``nuts`` draws per
     chain on ``chains`` chains (each 0: off) around ``result``, a fit of ``objective``
@@ -67,6 +68,8 @@ def posterior_checks(objective, result, *, profiles: int = 0, posterior: int = 0
     its ``prior_sensitivity`` where a key's box spans decades (``calibration.emulator.scale_keys``:
     the same checks under a prior uniform in that key's log). ``prior``: {key: (mean, sd)}, keys
     measured elsewhere, a normal prior in the NUTS and emulated posteriors (reported as "prior").
+    ``grid_ratio``, ``grid_levels``: the emulated posterior's grid term (the same posterior at
+    ``grid_ratio`` × dx, and its square with two levels; ``emulated_posterior``; None: not measured).
     What ``python -m calibration
     fit --profiles N --posterior N --nuts N --emulated N`` adds."""
     if not (profiles or posterior or nuts or emulated):
@@ -96,6 +99,7 @@ def posterior_checks(objective, result, *, profiles: int = 0, posterior: int = 0
             interval = unc is not None and not unc.withheld
             found = emulated_posterior(objective, result if interval else dict(result.theta), noise=sigma,
                                        checks=emulated, chains=chains, emulator=emulator, prior=prior,
+                                       grid_ratio=grid_ratio, grid_levels=grid_levels,
                                        workers=workers, progress=progress)
             report["emulated_posterior"] = found.to_json()
             scale = scale_keys(objective.bounds)

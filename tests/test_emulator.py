@@ -2,6 +2,7 @@
 known, the quadratic emulator on residuals that are quadratic, and the corrected posterior of a
 curved two-key target against its quadrature on a fine grid."""
 
+import importlib.util
 import json
 import types
 
@@ -390,3 +391,116 @@ def test_a_prior_cannot_be_added_to_a_resumed_chain(banana):
     objective, result, *_ = banana
     with pytest.raises(ValueError, match="a resumed posterior carries no record of its prior"):
         nuts_posterior(objective, result, resume=object(), prior={"k0": (0.0, 1.0)})
+
+
+GRID_ERROR = np.array([0.8, -0.5, 0.3])  # the model's error per unit dx^2 (order 2), in residual units
+
+
+class GriddedBanana(Banana):
+    """The crescent with a grid: its model is off by GRID_ERROR dx² (dx = 0.25 here), and it can be
+    rebuilt on a coarser grid, as an ``Objective`` can (``coarsened``)."""
+
+    def __init__(self, data, dx=0.25):
+        super().__init__(np.asarray(data, float) - GRID_ERROR * dx**2)
+        self.true_data, self.dx = np.asarray(data, float), dx
+
+    def coarsened(self, ratio):
+        return GriddedBanana(self.true_data, ratio * self.dx)
+
+
+def _quadrature_mean(data):
+    g0, g1 = np.linspace(-2, 2, 801), np.linspace(-1, 3, 801)
+    T0, T1 = np.meshgrid(g0, g1, indexing="ij")
+    r = np.stack([T1 - T0**2 - 0.3, 0.4 * T0 + 0.1 * T1 - 0.2, np.sin(2 * T1) - 0.5], -1) - data
+    logp = -0.5 * np.sum(r**2, -1) / SIGMA**2
+    p = np.exp(logp - logp.max())
+    p /= p.sum()
+    return np.array([np.sum(p * T0), np.sum(p * T1)])
+
+
+@pytest.mark.parametrize("levels", [1, 2])
+def test_the_grid_term_of_a_posterior_is_the_shift_of_its_mean_on_coarser_grids(banana, levels, tmp_path):
+    """The same posterior on grids 1.5 and 2.25 times coarser: its grid term is the shift of the
+    mean, which the quadratures of the three grids' posteriors give exactly; from two grids the
+    index is Roache's with order 1 and safety factor 3, from three the order the grids show (the
+    model's error is of order 2 in dx, and the posterior mean's shift follows it), and the
+    interval with the grid term holds the data's interval and the index in quadrature."""
+    from calibration.uncertainty import three_grid_index
+
+    objective = GriddedBanana(banana[0].data)
+    post = emulated_posterior(objective, banana[1], rounds=1, checks=400, seed=0, grid_ratio=1.5, grid_levels=levels)
+    exact = [_quadrature_mean(GriddedBanana(objective.true_data, objective.dx * 1.5**lv).data) for lv in range(3)]
+    runs = [post.ess_importance] + [g["ess_importance"] for g in post.grid_posteriors]
+    assert len(post.grid_posteriors) == levels and min(runs) > 300
+    sd = np.array([post.sd[k] for k in objective.keys])
+    for shift, lv in [(post.grid.shift, 1)] + ([(post.grid.shift2, 2)] if levels == 2 else []):
+        se = sd * np.sqrt(1.0 / runs[0] + 1.0 / runs[lv])  # the two importance samples' Monte Carlo error
+        assert np.all(np.abs(shift - (exact[lv] - exact[0])) < 4 * se), (lv, shift, exact[lv] - exact[0])
+        assert np.max(np.abs(exact[lv] - exact[0]) / se) > 5  # the grid moves the posterior: a real test
+    assert post.grid.dx == 0.25 and post.grid.dx_coarse == pytest.approx(0.375)
+    if levels == 1:
+        assert post.grid.halfwidth == pytest.approx(3.0 * np.abs(post.grid.shift) / 0.5)
+    else:
+        assert three_grid_index(exact[1] - exact[0], exact[2] - exact[0], 1.5)[1] == 2.0  # the quadratures' order
+        halfwidth, order, _ = three_grid_index(post.grid.shift, post.grid.shift2, 1.5)
+        assert post.grid.halfwidth == pytest.approx(halfwidth) and post.grid.order == order
+        assert order is not None and "three posteriors' means converging with observed order" in post.grid.method
+    for j, k in enumerate(objective.keys):
+        lo, hi = post.ci95[k]
+        wlo, whi = post.ci95_with_grid[k]
+        m, h = post.mean[k], post.grid.halfwidth[j]
+        assert wlo == pytest.approx(max(m - np.hypot(m - lo, h), objective.bounds.lower[j]))
+        assert whi == pytest.approx(min(m + np.hypot(hi - m, h), objective.bounds.upper[j]))
+        assert post.grid_converged[k] == (h <= (hi - lo) / 2)
+        p = post.grid.order or 1.0  # where the index, scaled as dx^p, meets the data's half-width
+        assert post.adequate_dx[k] == pytest.approx(0.25 * min(((hi - lo) / 2 / h) ** (1 / p), 1.0))
+    out = post.to_json()
+    json.dumps(out, allow_nan=False)
+    assert out["grid"]["shift"] == pytest.approx(dict(zip(objective.keys, post.grid.shift)))
+    assert len(out["grid"]["posteriors"]) == levels and set(out["ci95_with_grid"]) == set(objective.keys)
+    assert out["grid_statement"].startswith(("Not converged in the grid", "Converged in the grid"))
+    if not all(post.grid_converged.values()):
+        assert "finer for" in out["grid_statement"] and out["adequate_dx"] == post.adequate_dx
+    if levels == 2 and importlib.util.find_spec("matplotlib"):
+        from calibration.plots import plot_grid_term
+
+        assert plot_grid_term(post, tmp_path / "grid.png", truth={"k0": 0.5, "k1": 0.55}).stat().st_size > 0
+
+
+def test_a_grid_term_that_cannot_be_made_is_refused_or_said(banana):
+    """A bad ratio or level count is refused before any run; an objective with no coarser grid
+    gets its posterior and the reason the grid term is missing."""
+    objective, result, *_ = banana
+    spy = GriddedBanana(objective.data)
+    spy.column_tasks_z = lambda z: pytest.fail("ran the model")
+    for kwargs, match in (({"grid_ratio": 1.0}, "grid_ratio must be off"), ({"grid_ratio": 1.5, "grid_levels": 3},
+                                                                            "grid_levels must be 1 or 2")):
+        with pytest.raises(ValueError, match=match):
+            emulated_posterior(spy, result, **kwargs)
+    post = emulated_posterior(objective, result, rounds=0, checks=30, draws=100, warmup=50, grid_ratio=1.5)
+    assert post.grid is None and post.grid_converged is None and "no coarsened method" in post.grid_note
+    assert post.to_json()["grid"] == {"measured": False, "why": post.grid_note}
+    assert post.grid_statement.startswith("The grid's share was not measured")
+    if importlib.util.find_spec("matplotlib"):
+        from calibration.plots import plot_grid_term
+
+        with pytest.raises(ValueError, match="carries no grid term"):
+            plot_grid_term(post, "unused.png")
+
+
+def test_fit_checks_pass_the_grid_term_to_the_emulated_posterior(banana, monkeypatch):
+    """``posterior_checks`` (what ``fit --emulated`` runs, with ``--grid-check`` and
+    ``--grid-levels``) asks the emulated posterior for its grid term and reports it."""
+    from calibration.report import posterior_checks
+
+    objective, result, *_ = banana
+    seen = {}
+
+    def spy(objective, centre, **kwargs):
+        seen.update(kwargs)
+        return types.SimpleNamespace(to_json=lambda: {"grid": {"ratio": kwargs["grid_ratio"]}})
+
+    monkeypatch.setattr(emulator_module, "emulated_posterior", spy)
+    checks = posterior_checks(objective, result, emulated=30, grid_ratio=1.5, grid_levels=2)
+    assert seen["grid_ratio"] == 1.5 and seen["grid_levels"] == 2 and seen["checks"] == 30
+    assert checks.report["emulated_posterior"]["grid"] == {"ratio": 1.5}

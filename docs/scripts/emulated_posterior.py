@@ -4,9 +4,10 @@ grid quadrature are stored, and the five keys of the three filmed collapses (doc
 
     python docs/scripts/emulated_posterior.py s4 [--workers 2]       (needs [bayes])
     python docs/scripts/emulated_posterior.py five [--workers 2] [--coarsen R] [--model-error] [--checks N]
-        [--draws N] [--target-accept A] [--emulator corrected] [--i0-measured REL] [--tag T]
+        [--draws N] [--target-accept A] [--emulator corrected] [--i0-measured REL] [--grid-levels L] [--tag T]
     python docs/scripts/emulated_posterior.py error [--workers 2]      (the five keys' model error)
     python docs/scripts/emulated_posterior.py shape [--workers 2]      (its grid term: rows or one shape)
+    python docs/scripts/emulated_posterior.py linear [--workers 2]     (the posterior's grid term linearised)
 
 Writes docs/results/emulated_{s4,five}.json and docs/figures/emulated_{s4,five}.png (``--coarsen R``:
 ``five_coarse{R}``; ``--model-error``: ``five_model_error``, the likelihood's σ by block the data's 2 %
@@ -81,8 +82,9 @@ def five(workers, args):
         prior = {"I0": (measured, args.i0_measured * measured)}
         print("I0 measured elsewhere:", prior, flush=True)
     post = emulated_posterior(objective, centre, noise=noise, checks=args.checks, emulator=args.emulator,
-                              draws=args.draws, target_accept=args.target_accept, prior=prior, workers=workers,
-                              progress=True)
+                              draws=args.draws, target_accept=args.target_accept, prior=prior,
+                              grid_ratio=1.5 if args.grid_levels else None, grid_levels=max(args.grid_levels, 1),
+                              workers=workers, progress=True)
     truth_chi2 = post.chi2_at(objective, FIVE_TRUTH)
     joint = {"truth_chi2": truth_chi2, "truth_level": post.credible_level(truth_chi2),
              "check_chi2_quantiles": dict(zip(("5%", "50%", "95%"), map(float, weighted_quantile(
@@ -99,6 +101,8 @@ def five(workers, args):
            "data_noise": 0.02, "model_error": None if error is None else error.to_dict(), "emulated": post.to_json(),
            "truth_inside_ci95": {k: bool(post.ci95[k][0] <= FIVE_TRUTH[k] <= post.ci95[k][1]) for k in FIVE},
            "truth_joint": joint, "log_uniform_I0": under_log, "prior": prior,
+           "truth_inside_ci95_with_grid": None if post.grid is None else {
+               k: bool(post.ci95_with_grid[k][0] <= FIVE_TRUTH[k] <= post.ci95_with_grid[k][1]) for k in FIVE},
            "box": dict(zip(FIVE, zip(map(float, objective.bounds.lower), map(float, objective.bounds.upper))))}
     return out, post
 
@@ -169,9 +173,45 @@ def shape(workers, args):
             "truth": FIVE_TRUTH, "forms": forms, "shape_vs_truth_error_correlation": correlation}, None
 
 
+def linear(workers, args):
+    """The grid term of the five-key posterior (I0 measured) linearised, as a fit's: the
+    Gauss–Newton shift −(Jᵀ W J + P)⁻¹ Jᵀ W (r(1.5 dx) − r(dx)) at the L/12 posterior's mean (and
+    at the truth), with the posterior's noise W and the I0 prior's precision P, against the shift
+    of the posterior's mean that the same posterior at L/8 shows (both stored results)."""
+    import numpy as np
+
+    from calibration import CompositeObjective, Objective
+    from calibration.mcmc import _row_weights
+    from calibration.uncertainty import coarse_residuals
+    from jaxmpm import Experiment
+
+    fine = json.loads((RESULTS / "emulated_five_model_error_corrected_i0_measured.json").read_text())
+    coarse = json.loads((RESULTS / "emulated_five_coarse1.5_model_error_corrected_i0_measured.json").read_text())
+    objective = CompositeObjective([Objective.from_experiment(Experiment.from_toml(f), FIVE) for f in FIVE_FILES])
+    weights = _row_weights(objective, fine["noise"])
+    precision = np.zeros((len(FIVE), len(FIVE)))
+    precision[FIVE.index("I0"), FIVE.index("I0")] = fine["prior"]["I0"][1] ** -2
+    out = {"case": "the five-key posterior's grid term (L/12, I0 measured): linearised against the posterior at L/8",
+           "posterior_mean_shift": {k: coarse["emulated"]["mean"][k] - fine["emulated"]["mean"][k] for k in FIVE},
+           "truth_minus_posterior_mean": {k: FIVE_TRUTH[k] - fine["emulated"]["mean"][k] for k in FIVE},
+           "posterior_sd": fine["emulated"]["sd"]}
+    for label, point in (("at_posterior_mean", fine["emulated"]["mean"]), ("at_truth", FIVE_TRUTH)):
+        theta = np.array([point[k] for k in FIVE])
+        t0 = time.perf_counter()
+        r, J, _ = objective.residuals_and_jacobian(theta)
+        r, J = np.asarray(r, float), np.asarray(J, float)
+        _, kept = coarse_residuals(objective, theta, 1.5, 2, workers)
+        change = np.mean(kept, axis=0) - r
+        shift = -np.linalg.solve(J.T @ (weights[:, None] * J) + precision, J.T @ (weights * change))
+        out[f"linearised_{label}"] = {"shift": dict(zip(FIVE, shift.tolist())), "wall_s": time.perf_counter() - t0}
+        print(label, out[f"linearised_{label}"], flush=True)
+    print("posterior mean shift", out["posterior_mean_shift"])
+    return out, None
+
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("which", choices=("s4", "five", "error", "shape"))
+    parser.add_argument("which", choices=("s4", "five", "error", "shape", "linear"))
     parser.add_argument("--workers", type=int, default=1)
     parser.add_argument("--checks", type=int, default=200)
     parser.add_argument("--draws", type=int, default=1000, help="the emulator's NUTS draws per chain (4 chains)")
@@ -182,16 +222,20 @@ def main():
     parser.add_argument("--i0-seed", type=int, default=0, help="the draw of that measurement")
     parser.add_argument("--tag", default="", help="appended to the result's and figure's names")
     parser.add_argument("--coarsen", type=float, default=1.0, help="five: a grid this many times coarser")
+    parser.add_argument("--grid-levels", type=int, default=0, choices=(0, 1, 2),
+                        help="five: the posterior's grid term, the same posterior at 1.5 x dx (1) and 2.25 x dx (2) "
+                             "(calibration.emulator.emulated_posterior's grid_ratio; default 0: not measured)")
     parser.add_argument("--emulator", default="quadratic", choices=("quadratic", "corrected"),
                         help="the emulator (calibration.emulator.EMULATORS)")
     parser.add_argument("--model-error", action="store_true",
                         help="five: the model's own error (particle draws, grid) beside the data's noise")
     args = parser.parse_args()
     with Workers(args.workers) as workers:
-        out, post = {"s4": s4, "five": five, "error": error, "shape": shape}[args.which](
+        out, post = {"s4": s4, "five": five, "error": error, "shape": shape, "linear": linear}[args.which](
             workers if args.workers > 1 else None, args)
     if post is None:
-        name = "model_error_five" if args.which == "error" else "model_error_shape_five"
+        name = {"error": "model_error_five", "shape": "model_error_shape_five",
+                "linear": "grid_term_linearised_five"}[args.which]
         (RESULTS / f"{name}.json").write_text(json.dumps(out, indent=1))
         return
     name = args.which if args.coarsen == 1.0 else f"{args.which}_coarse{args.coarsen:g}"
@@ -210,6 +254,12 @@ def main():
     for k in post.keys:
         print(f"{k}: emulated+IS {post.mean[k]:.5g} ± {post.sd[k]:.3g} {post.ci95[k]}; chains R-hat "
               f"{post.emulated.rhat[k]:.4f} ESS {post.emulated.ess_bulk[k]:.0f}")
+    if post.grid is not None:
+        from calibration.plots import plot_grid_term
+
+        plot_grid_term(post, FIGURES / f"emulated_{name}_grid_term.png", truth=out["truth"], title=out["case"])
+        print(post.grid_statement)
+        print("with the grid term:", post.ci95_with_grid, "inside:", out.get("truth_inside_ci95_with_grid"))
     print(f"pareto k {post.pareto_k:.3f}, IS ESS {post.ess_importance:.0f}, failed {post.failed_checks}, "
           f"jacobians {post.jacobians}, runs {post.runs}, {post.wall_s:.0f} s; rounds {post.rounds}")
 
