@@ -88,7 +88,8 @@ class McmcPosterior:
     ``gradient_evaluations`` counts the runs' Jacobians, warm-up included. ``gn_cov``: the
     Gauss–Newton covariance that whitened the chains (None where an old record lacks it);
     ``segments``: (seed, draws per chain) of the first run and of every ``resume`` after it;
-    ``chain_ids``: each chain's number in its run (``take`` and ``join`` keep them)."""
+    ``chain_ids``: each chain's number in its run (``take`` and ``join`` keep them); ``prior``:
+    {key: (mean, sd)}, the normal priors the chains were drawn with (None: flat in the bounds)."""
 
     keys: tuple[str, ...]
     draws: np.ndarray
@@ -113,6 +114,7 @@ class McmcPosterior:
     gn_cov: np.ndarray | None = None
     segments: tuple[tuple[int, int], ...] = ()
     chain_ids: tuple[int, ...] = ()
+    prior: dict[str, tuple[float, float]] | None = None
 
     @property
     def ids(self) -> tuple[int, ...]:
@@ -142,7 +144,7 @@ class McmcPosterior:
         first = parts[0]
         for part in parts[1:]:
             same = (part.keys == first.keys and part.segments == first.segments and part.warmup == first.warmup
-                    and part.noise == first.noise and part.theta_hat == first.theta_hat
+                    and part.noise == first.noise and part.theta_hat == first.theta_hat and part.prior == first.prior
                     and part.draws.shape[1:] == first.draws.shape[1:])
             if not same:
                 raise ValueError("parts: every part must sample the same keys, fit and noise with the same segments")
@@ -175,7 +177,10 @@ class McmcPosterior:
     def to_json(self) -> dict[str, Any]:
         return {"keys": list(self.keys),
                 "method": "NUTS (blackjax), whitened logit coordinates, forward-mode gradients",
-                "prior": "flat inside the bounds", "chains": self.chains, "warmup": self.warmup,
+                "prior": "flat inside the bounds" + ("" if not self.prior else ", times a normal in θ for "
+                                                     + ", ".join(self.prior)),
+                "normal_prior": None if not self.prior else {k: list(v) for k, v in self.prior.items()},
+                "chains": self.chains, "warmup": self.warmup,
                 "draws_per_chain": int(self.draws.shape[1]), "seed": self.seed,
                 "mean": self.mean, "sd": self.sd, "ci95": {k: list(v) for k, v in self.ci95.items()},
                 # R-hat needs two chains, the ESS four draws a chain: null (not NaN) without
@@ -194,7 +199,8 @@ class McmcPosterior:
     def from_json(cls, record: Mapping[str, Any]) -> McmcPosterior:
         """The posterior back from ``to_json`` (so that ``nuts_posterior(..., resume=)`` can extend
         a stored run). A record written before the fields existed has no log densities (NaN here),
-        no covariance (None: a resume then checks the standard errors only) and one segment."""
+        no covariance (None: a resume then checks the standard errors only), one segment and the
+        flat prior it states."""
         keys = tuple(record["keys"])
         draws = np.stack([np.asarray(record["draws"][k], float) for k in keys], axis=-1)
         if draws.ndim != 3:
@@ -213,7 +219,13 @@ class McmcPosterior:
                    tuple(record["acceptance"]), tuple(record["leapfrog_steps_per_draw"]),
                    int(record["gradient_evaluations"]), int(record["warmup"]), dict(record["noise"]),
                    int(record["seed"]), float(record["wall_s"]), None if cov is None else np.asarray(cov, float),
-                   segments, tuple(int(c) for c in record.get("chain_ids") or range(draws.shape[0])))
+                   segments, tuple(int(c) for c in record.get("chain_ids") or range(draws.shape[0])),
+                   _prior_of(record.get("normal_prior")))
+
+
+def _prior_of(prior) -> dict[str, tuple[float, float]] | None:
+    """{key: (mean, sd)} as floats (None or empty: the flat prior)."""
+    return {k: (float(v[0]), float(v[1])) for k, v in prior.items()} if prior else None
 
 
 def _nulls(values: Mapping[str, float]) -> dict[str, float | None]:
@@ -434,7 +446,7 @@ def sample_chain(sampler: Sampler, state, step_size, keys, progress: Callable | 
 
 def diagnose(keys: tuple[str, ...], chains: list[ChainDraws], theta_of: Callable, *, fit_result,
              sigma: Mapping[str, float], warmup: int, seed: int, evaluations: int, wall_s: float,
-             chain_ids: tuple[int, ...], resume: McmcPosterior | None = None) -> McmcPosterior:
+             chain_ids: tuple[int, ...], resume: McmcPosterior | None = None, prior=None) -> McmcPosterior:
     """The ``McmcPosterior`` of the kept draws of ``chains`` (mapped to θ by ``theta_of``): the
     draws in θ and their summary and diagnostics (``_summary``), per chain the step size,
     divergences, mean acceptance and mean leapfrog steps. With ``resume``, the new draws extend
@@ -466,7 +478,7 @@ def diagnose(keys: tuple[str, ...], chains: list[ChainDraws], theta_of: Callable
                          dict(zip(keys, np.asarray(unc.stderr, float).tolist())),
                          tuple(sizes), tuple(divs), tuple(accs), tuple(steps_mean), evaluations, warmup,
                          {key: float(v) for key, v in sigma.items()}, int(segments[0][0]), wall_s,
-                         np.asarray(unc.cov, float), segments, chain_ids)
+                         np.asarray(unc.cov, float), segments, chain_ids, _prior_of(prior))
 
 
 def nuts_posterior(objective: ObjectiveLike, fit_result, *, chains: int | None = None, warmup: int | None = None,
@@ -492,8 +504,9 @@ def nuts_posterior(objective: ObjectiveLike, fit_result, *, chains: int | None =
     ``start_chain``, ``warm_up`` and ``sample_chain``, and ``diagnose`` (the summary)."""
     _blackjax()
     prior_terms = gaussian_prior(objective.keys, prior)
-    if resume is not None and prior_terms is not None:
-        raise ValueError("prior: a resumed posterior carries no record of its prior; sample afresh with one")
+    if resume is not None and isinstance(resume, McmcPosterior) and resume.prior != _prior_of(prior):
+        raise ValueError(f"prior: the resumed chains were drawn with {resume.prior or 'the flat prior'}, got "
+                         f"{_prior_of(prior) or 'the flat prior'}: a chain goes on only on its own target")
     if resume is not None:
         if not isinstance(resume, McmcPosterior):
             raise ValueError(f"resume must be a McmcPosterior (McmcPosterior.from_json of a record), got "
@@ -572,7 +585,8 @@ def nuts_posterior(objective: ObjectiveLike, fit_result, *, chains: int | None =
         evaluations += int(np.sum(drawn.steps))
         out.append(drawn)
     return diagnose(keys, out, theta_of, fit_result=fit_result, sigma=sigma, warmup=warmup, seed=seed,
-                    evaluations=evaluations, wall_s=time.perf_counter() - clock, chain_ids=chain_ids, resume=resume)
+                    evaluations=evaluations, wall_s=time.perf_counter() - clock, chain_ids=chain_ids, resume=resume,
+                    prior=prior)
 
 
 def _summary(keys, samples):

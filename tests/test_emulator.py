@@ -385,14 +385,6 @@ def test_a_bad_prior_is_refused_before_any_run(banana, prior, match):
         nuts_posterior(spy, result, prior=prior)
 
 
-def test_a_prior_cannot_be_added_to_a_resumed_chain(banana):
-    from calibration.mcmc import nuts_posterior
-
-    objective, result, *_ = banana
-    with pytest.raises(ValueError, match="a resumed posterior carries no record of its prior"):
-        nuts_posterior(objective, result, resume=object(), prior={"k0": (0.0, 1.0)})
-
-
 GRID_ERROR = np.array([0.8, -0.5, 0.3])  # the model's error per unit dx^2 (order 2), in residual units
 
 

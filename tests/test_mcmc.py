@@ -227,6 +227,21 @@ def test_resume_refuses_another_fit_before_sampling():
     two = _fit_result(other.keys, [0.5, 0.5], np.eye(2) * sigma ** 2, sigma)
     with pytest.raises(ValueError, match="resume samples"):
         nuts_posterior(other, two, resume=stored)
+    # the prior is part of the target: a chain goes on only with the one it was drawn with
+    with pytest.raises(ValueError, match=r"drawn with the flat prior, got \{'k0': \(0.5, 0.2\)\}"):
+        nuts_posterior(objective, result, resume=stored, prior={"k0": (0.5, 0.2)})
+    with_prior = McmcPosterior.from_json({**_record(objective, result, np.full((2, 3, 1), 0.5)),
+                                          "normal_prior": {"k0": [0.5, 0.2]}})
+    assert with_prior.prior == {"k0": (0.5, 0.2)}
+    record = with_prior.to_json()
+    assert record["normal_prior"] == {"k0": [0.5, 0.2]} and record["prior"].endswith("a normal in θ for k0")
+    assert McmcPosterior.from_json(json.loads(json.dumps(record))).prior == with_prior.prior
+    assert stored.to_json()["normal_prior"] is None and stored.to_json()["prior"] == "flat inside the bounds"
+    for prior in (None, {"k0": (0.5, 0.3)}):
+        with pytest.raises(ValueError, match=r"drawn with \{'k0': \(0.5, 0.2\)\}"):
+            nuts_posterior(objective, result, resume=with_prior, prior=prior)
+    with pytest.raises(ValueError, match="every part must sample the same"):
+        McmcPosterior.join([with_prior.take([0]), stored.take([1])])
 
 
 def test_whitening_round_trips():
