@@ -302,9 +302,9 @@ def build_parser() -> argparse.ArgumentParser:
     fit.add_argument("--grid-check", type=float, default=1.5, metavar="RHO",
                      help="the grid's share of the interval: the fit's objective rebuilt at RHO times the grid "
                           "spacing, two particle draws there at the end point (stderr_grid, grid; about two thirds "
-                          "of one forward run in 2D; default 1.5; 0: not measured). With --emulated also the "
-                          "posterior's: the same posterior at RHO x dx (about RHO^-3 of its cost per level in 2D), the "
-                          "shift of its mean in ci95_with_grid")
+                          "of one forward run in 2D; default 1.5; 0: not measured). With --nuts and --emulated also "
+                          "the posteriors': the same posterior at RHO x dx (about RHO^-3 of its cost per level in 2D), "
+                          "the shift of its mean in ci95_with_grid")
     fit.add_argument("--grid-levels", type=int, default=1, metavar="N",
                      help="coarser grids for the grid term: 1 (RHO x dx; default) or 2 (also RHO^2 x dx, about a "
                           "third of a forward run more in 2D): the order the three grids show, or a wider term "

@@ -54,10 +54,11 @@ import jax.numpy as jnp
 import numpy as np
 
 from .bounds import dphysical_dz, physical, unconstrained
+from .gridterm import GridTerm, coarse_objectives, with_grid_term
 from .likelihood import checked_point, noise_levels, weighted_quantile
 from .objective import jacobians_z, residuals_at
 from .protocol import ObjectiveLike
-from .uncertainty import GCI_SAFETY, GRID_ORDER, GridCheck, check_grid_options, three_grid_index
+from .uncertainty import GridCheck
 
 __all__ = ["EMULATORS", "CorrectedQuadratic", "EmulatedObjective", "EmulatedPosterior", "QuadraticEmulator",
            "emulated_posterior", "log_uniform", "prior_sensitivity", "psis", "scale_keys"]
@@ -284,7 +285,7 @@ def _gpd_fit(x) -> tuple[float, float]:
 
 
 @dataclasses.dataclass(frozen=True)
-class EmulatedPosterior:
+class EmulatedPosterior(GridTerm):
     """The model's posterior from NUTS on an emulator and the importance correction (module
     docstring). ``mean``, ``sd``, ``ci95`` by key: the corrected ones; ``emulated``: the
     emulator's NUTS posterior (its chains, R̂ and ESS); ``pareto_k`` and ``ess_importance``: the
@@ -334,46 +335,6 @@ class EmulatedPosterior:
         correction is reliable: Pareto k̂ < 0.7 and an importance ESS of at least 100 (the
         chains' own threshold)."""
         return bool(self.emulated.converged and self.pareto_k < PARETO_K_MAX and self.ess_importance >= ESS_MIN)
-
-    @property
-    def grid_converged(self) -> dict[str, bool] | None:
-        """By key, whether the grid term's 95 % half-width stays within the half-width of the
-        data's 95 % interval (None: the grid term was not measured)."""
-        if self.grid is None:
-            return None
-        return {k: bool(h <= 0.5 * (self.ci95[k][1] - self.ci95[k][0])) for k, h in zip(self.keys, self.grid.halfwidth)}
-
-    @property
-    def adequate_dx(self) -> dict[str, float] | None:
-        """By key, the grid spacing at which the grid term would shrink to the data's 95 %
-        half-width, the index scaled as dx^p (p the order the grids showed, else 1): where the
-        answer would become that key's property of the material (None: not measured)."""
-        if self.grid is None:
-            return None
-        p = self.grid.order or GRID_ORDER
-        half = {k: 0.5 * (self.ci95[k][1] - self.ci95[k][0]) for k in self.keys}
-        return {k: float(self.grid.dx * min((half[k] / h) ** (1.0 / p), 1.0)) if h > 0 else float(self.grid.dx)
-                for k, h in zip(self.keys, self.grid.halfwidth)}
-
-    @property
-    def grid_statement(self) -> str:
-        """The grid term in words: which keys the grid moves by more than the data's interval."""
-        if self.grid is None:
-            return f"The grid's share was not measured: {self.grid_note}." if self.grid_note else ""
-        g = self.grid
-        moved = [f"{k} (±{h:.2g} against ±{0.5 * (self.ci95[k][1] - self.ci95[k][0]):.2g})"
-                 for k, h in zip(self.keys, g.halfwidth) if not self.grid_converged[k]]
-        levels = f"{g.ratio:.3g} × dx" + ("" if g.shift2 is None else f" and {g.ratio ** 2:.3g} × dx")
-        if not moved:
-            return (f"Converged in the grid as far as the posterior at {levels} can show: its share stays within "
-                    "the data's interval for every key.")
-        return (f"Not converged in the grid: the posterior at {g.ratio:.3g} × dx moves its mean by " + ", ".join(
-            f"{k} {d:+.2g}" for k, d in zip(self.keys, g.shift)) + "; the grid's share of the interval of "
-            + ", ".join(moved) + " exceeds the data's. At this dx that part of the answer is a property of the "
-            f"grid, not of the material ({g.method}); ci95_with_grid carries it. The grid term would fall within "
-            "the data's interval on a grid about " + ", ".join(
-                f"{self.grid.dx / self.adequate_dx[k]:.3g}× finer for {k}" for k in self.keys if not
-                self.grid_converged[k]) + ".")
 
     def _weights(self, log_prior=None) -> tuple[np.ndarray, float]:
         """The checks' Pareto-smoothed weights (and k̂), under the flat prior or ``log_prior``."""
@@ -452,15 +413,7 @@ class EmulatedPosterior:
                                                                     for v in self.check_chi2.tolist()],
                 "noise": self.noise,
                 "prior": None if self.prior is None else {k: list(v) for k, v in self.prior.items()},
-                **self._grid_json()}
-
-    def _grid_json(self) -> dict[str, Any]:
-        if self.grid is None:
-            return {"grid": {"measured": False, "why": self.grid_note}} if self.grid_note else {}
-        return {"grid": {**self.grid.to_dict(self.keys), "posteriors": list(self.grid_posteriors)},
-                "ci95_with_grid": {k: list(v) for k, v in self.ci95_with_grid.items()},
-                "grid_converged": self.grid_converged, "adequate_dx": self.adequate_dx,
-                "grid_statement": self.grid_statement}
+                **self.grid_json()}
 
 
 def log_uniform(keys, *names: str):
@@ -572,7 +525,7 @@ def emulated_posterior(objective: ObjectiveLike, centre, *, noise: Mapping[str, 
     if checks > chains * draws:
         raise ValueError(f"checks: {checks} draws to check, the chains keep only {chains * draws}")
     prior_terms = gaussian_prior(keys, prior)
-    coarse, grid_note = _coarse_objectives(objective, grid_ratio, grid_levels)
+    coarse, grid_note = coarse_objectives(objective, grid_ratio, grid_levels)
     lower, upper = np.asarray(objective.bounds.lower, float), np.asarray(objective.bounds.upper, float)
     if isinstance(centre, Mapping):
         if set(centre) != set(keys):
@@ -693,56 +646,11 @@ def emulated_posterior(objective: ObjectiveLike, centre, *, noise: Mapping[str, 
     settings = dict(rounds=rounds, settle=settle, axial=axial, reach=reach, checks=checks, chains=chains,
                     warmup=warmup, draws=draws, seed=seed, emulator=emulator, target_accept=target_accept,
                     prior=prior, workers=workers, progress=progress)
-    return _with_grid_term(found, objective, coarse, grid_ratio, settings, say)
+    return with_grid_term(found, objective, coarse, grid_ratio,
+                          lambda obj: emulated_posterior(obj, dict(found.mean), noise=found.noise, **settings),
+                          lambda other: {"settled": other.settled,
+                                         "pareto_k": other.pareto_k if math.isfinite(other.pareto_k) else None,
+                                         "ess_importance": other.ess_importance, "model_jacobians": other.jacobians,
+                                         "model_runs": other.runs}, say)
 
 
-def _coarse_objectives(objective: ObjectiveLike, ratio, levels) -> tuple[list, str]:
-    """The objective rebuilt at ``ratio``^l × dx, l = 1 .. ``levels`` (before any run: a bad
-    option or a scene that cannot be rebuilt is refused there), or ([], why not) where the
-    objective has no coarser grid (an emulator's, a closed-form one)."""
-    check_grid_options(ratio, 1, levels)
-    if ratio is None:
-        return [], ""
-    if not hasattr(objective, "coarsened"):
-        return [], f"{type(objective).__name__} has no coarser grid (no coarsened method)"
-    return [objective.coarsened(ratio**level) for level in range(1, levels + 1)], ""
-
-
-def _with_grid_term(found: EmulatedPosterior, objective, coarse, ratio: float, settings, say) -> EmulatedPosterior:
-    """``found`` with its grid term: the same posterior on each of the ``coarse`` objectives
-    (``ratio``^l × dx), centred on ``found``'s mean with its noise (``emulated_posterior``)."""
-    clock = time.perf_counter()
-    keys = found.keys
-    fine = np.array([found.mean[k] for k in keys])
-    shifts, summaries = [], []
-    for level, obj in enumerate(coarse, start=1):
-        say(f"the grid term: the same posterior at {ratio ** level:.3g} × dx")
-        try:
-            other = emulated_posterior(obj, dict(found.mean), noise=found.noise, **settings)
-        except RuntimeError as err:  # the coarse model's run fails at the centre
-            return dataclasses.replace(found, grid_note=f"the posterior at {ratio ** level:.3g} × dx failed: {err}")
-        shifts.append(np.array([other.mean[k] for k in keys]) - fine)
-        summaries.append({"dx": float(obj.dx), "mean": other.mean, "sd": other.sd,
-                          "ci95": {k: list(v) for k, v in other.ci95.items()}, "converged": other.converged,
-                          "settled": other.settled,
-                          "pareto_k": other.pareto_k if math.isfinite(other.pareto_k) else None,
-                          "ess_importance": other.ess_importance, "model_jacobians": other.jacobians,
-                          "model_runs": other.runs, "wall_s": round(other.wall_s, 1)})
-    if len(shifts) == 1:
-        halfwidth = GCI_SAFETY * np.abs(shifts[0]) / (ratio**GRID_ORDER - 1.0)
-        grid = GridCheck(float(objective.dx), float(coarse[0].dx), 1, shifts[0], halfwidth,
-                         time.perf_counter() - clock, method="two posteriors' means: Roache's GCI with the order "
-                                                                 "assumed 1 and safety factor 3")
-    else:
-        halfwidth, order, method = three_grid_index(shifts[0], shifts[1], ratio)
-        grid = GridCheck(float(objective.dx), float(coarse[0].dx), 1, shifts[0], halfwidth,
-                         time.perf_counter() - clock, shift2=shifts[1], order=order,
-                         method=method.replace("three grids", "three posteriors' means"))
-    lower, upper = np.asarray(objective.bounds.lower, float), np.asarray(objective.bounds.upper, float)
-    wide = {}
-    for j, k in enumerate(keys):
-        lo, hi = found.ci95[k]
-        m = found.mean[k]
-        wide[k] = (float(max(m - math.hypot(m - lo, halfwidth[j]), lower[j])),
-                   float(min(m + math.hypot(hi - m, halfwidth[j]), upper[j])))
-    return dataclasses.replace(found, grid=grid, ci95_with_grid=wide, grid_posteriors=tuple(summaries))

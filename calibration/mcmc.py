@@ -53,10 +53,11 @@ import jax.numpy as jnp
 import numpy as np
 
 from .bounds import dphysical_dz, log_jacobian, physical, unconstrained
+from .gridterm import GridTerm, coarse_objectives, with_grid_term
 from .likelihood import noise_levels
 from .observe import jacobian_by_columns
 from .protocol import ObjectiveLike
-from .uncertainty import NOISE_FLOOR
+from .uncertainty import NOISE_FLOOR, GridCheck
 
 __all__ = ["ChainDraws", "McmcPosterior", "Sampler", "diagnose", "gauss_newton_point", "gaussian_prior",
            "log_density_fn", "nuts_posterior", "nuts_sampler", "posterior_predictive", "sample_chain", "start_chain",
@@ -78,7 +79,7 @@ def _blackjax():
 
 
 @dataclasses.dataclass(frozen=True)
-class McmcPosterior:
+class McmcPosterior(GridTerm):
     """NUTS draws of the fitted keys and their diagnostics. ``draws`` (chains, n, k): physical θ
     after warm-up; ``log_density`` (chains, n); by key the posterior ``mean``, ``sd``, equal-tailed
     95 % credible interval ``ci95``, ``rhat``, ``ess_bulk`` and ``ess_tail``, beside the fit's
@@ -89,7 +90,9 @@ class McmcPosterior:
     Gauss–Newton covariance that whitened the chains (None where an old record lacks it);
     ``segments``: (seed, draws per chain) of the first run and of every ``resume`` after it;
     ``chain_ids``: each chain's number in its run (``take`` and ``join`` keep them); ``prior``:
-    {key: (mean, sd)}, the normal priors the chains were drawn with (None: flat in the bounds)."""
+    {key: (mean, sd)}, the normal priors the chains were drawn with (None: flat in the bounds);
+    ``grid``, ``ci95_with_grid``, ``grid_posteriors``, ``grid_note``: the grid term
+    (``calibration.gridterm``; not kept by ``take``, ``join`` and ``from_json``)."""
 
     keys: tuple[str, ...]
     draws: np.ndarray
@@ -115,6 +118,10 @@ class McmcPosterior:
     segments: tuple[tuple[int, int], ...] = ()
     chain_ids: tuple[int, ...] = ()
     prior: dict[str, tuple[float, float]] | None = None
+    grid: GridCheck | None = None
+    ci95_with_grid: dict[str, tuple[float, float]] | None = None
+    grid_posteriors: tuple[dict[str, Any], ...] = ()
+    grid_note: str = ""
 
     @property
     def ids(self) -> tuple[int, ...]:
@@ -133,7 +140,7 @@ class McmcPosterior:
             self, draws=draws, log_density=self.log_density[idx], **dict(zip(_SUMMARY, _summary(self.keys, draws))),
             step_size=pick(self.step_size), divergences=pick(self.divergences), acceptance=pick(self.acceptance),
             steps=pick(self.steps), chain_ids=pick(self.ids),
-            gradient_evaluations=round(self.gradient_evaluations * len(idx) / self.chains))
+            gradient_evaluations=round(self.gradient_evaluations * len(idx) / self.chains), **_NO_GRID)
 
     @classmethod
     def join(cls, parts) -> McmcPosterior:
@@ -158,7 +165,7 @@ class McmcPosterior:
             **dict(zip(_SUMMARY, _summary(first.keys, draws))), step_size=cat("step_size"),
             divergences=cat("divergences"), acceptance=cat("acceptance"), steps=cat("steps"), chain_ids=ids,
             gradient_evaluations=sum(part.gradient_evaluations for part in parts),
-            wall_s=max(part.wall_s for part in parts))
+            wall_s=max(part.wall_s for part in parts), **_NO_GRID)
 
     @property
     def chains(self) -> int:
@@ -193,7 +200,8 @@ class McmcPosterior:
                 "gauss_newton_cov": None if self.gn_cov is None else np.asarray(self.gn_cov).tolist(),
                 "segments": [list(seg) for seg in self.segments], "chain_ids": list(self.ids),
                 "draws": {k: self.draws[..., j].tolist() for j, k in enumerate(self.keys)},
-                "log_density": None if not np.all(np.isfinite(self.log_density)) else self.log_density.tolist()}
+                "log_density": None if not np.all(np.isfinite(self.log_density)) else self.log_density.tolist(),
+                **self.grid_json()}
 
     @classmethod
     def from_json(cls, record: Mapping[str, Any]) -> McmcPosterior:
@@ -221,6 +229,10 @@ class McmcPosterior:
                    int(record["seed"]), float(record["wall_s"]), None if cov is None else np.asarray(cov, float),
                    segments, tuple(int(c) for c in record.get("chain_ids") or range(draws.shape[0])),
                    _prior_of(record.get("normal_prior")))
+
+
+#: A posterior of some of a run's chains (``take``, ``join``) has not the run's grid term.
+_NO_GRID = {"grid": None, "ci95_with_grid": None, "grid_posteriors": (), "grid_note": ""}
 
 
 def _prior_of(prior) -> dict[str, tuple[float, float]] | None:
@@ -485,7 +497,7 @@ def nuts_posterior(objective: ObjectiveLike, fit_result, *, chains: int | None =
                    draws: int = 200, seed: int = 0, noise: Mapping[str, float] | float | None = None,
                    target_accept: float = 0.8, max_doublings: int = 6, spread: float = 1.0,
                    resume: McmcPosterior | None = None, prior: Mapping[str, tuple[float, float]] | None = None,
-                   progress: bool = False) -> McmcPosterior:
+                   grid_ratio: float | None = None, grid_levels: int = 1, progress: bool = False) -> McmcPosterior:
     """NUTS draws of ``objective``'s keys around ``fit_result`` (which must carry a Gauss–Newton
     covariance: the sampler's preconditioner, see the module docstring). ``chains`` (default 4)
     run one after the other (on the CPU a vmapped batch of runs costs more than the runs in
@@ -493,6 +505,10 @@ def nuts_posterior(objective: ObjectiveLike, fit_result, *, chains: int | None =
     ``noise``: σ by block (default: the fit's); ``max_doublings``: the tree depth limit (2^depth
     leapfrog steps at most per draw); ``prior``: {key: (mean, sd)}, a normal in θ for keys
     measured elsewhere (``gaussian_prior``), beside the flat prior in the bounds.
+    ``grid_ratio``: the grid term (``calibration.gridterm``; None: not measured): the same chains
+    (noise, prior, settings, the fit's whitening) on the objective rebuilt at ``grid_ratio`` × dx
+    (and its square with ``grid_levels=2``), about ``grid_ratio``⁻³ of the cost per level in 2D;
+    not with ``resume``.
 
     ``resume``: a posterior of the same objective, fit and noise (its own ``to_json`` record
     through ``McmcPosterior.from_json`` will do) whose chains go on for ``draws`` more each, from
@@ -507,6 +523,10 @@ def nuts_posterior(objective: ObjectiveLike, fit_result, *, chains: int | None =
     if resume is not None and isinstance(resume, McmcPosterior) and resume.prior != _prior_of(prior):
         raise ValueError(f"prior: the resumed chains were drawn with {resume.prior or 'the flat prior'}, got "
                          f"{_prior_of(prior) or 'the flat prior'}: a chain goes on only on its own target")
+    coarse, grid_note = coarse_objectives(objective, grid_ratio, grid_levels)
+    if resume is not None and grid_ratio is not None:
+        raise ValueError("grid_ratio: the grid term samples fresh chains on coarser grids, which a resumed run "
+                         "would not match; measure it on a fresh run")
     if resume is not None:
         if not isinstance(resume, McmcPosterior):
             raise ValueError(f"resume must be a McmcPosterior (McmcPosterior.from_json of a record), got "
@@ -584,9 +604,20 @@ def nuts_posterior(objective: ObjectiveLike, fit_result, *, chains: int | None =
                                 lambda i, size: report(i, size, n_warm))
         evaluations += int(np.sum(drawn.steps))
         out.append(drawn)
-    return diagnose(keys, out, theta_of, fit_result=fit_result, sigma=sigma, warmup=warmup, seed=seed,
-                    evaluations=evaluations, wall_s=time.perf_counter() - clock, chain_ids=chain_ids, resume=resume,
-                    prior=prior)
+    found = diagnose(keys, out, theta_of, fit_result=fit_result, sigma=sigma, warmup=warmup, seed=seed,
+                     evaluations=evaluations, wall_s=time.perf_counter() - clock, chain_ids=chain_ids, resume=resume,
+                     prior=prior)
+    if not coarse:
+        return dataclasses.replace(found, grid_note=grid_note)
+
+    def sample(obj):
+        return nuts_posterior(obj, fit_result, chains=chains, warmup=warmup, draws=draws, seed=seed, noise=sigma,
+                              target_accept=target_accept, max_doublings=max_doublings, spread=spread, prior=prior,
+                              progress=progress)
+
+    return with_grid_term(found, objective, coarse, grid_ratio, sample, lambda other: {
+        "rhat_max": max((v for v in other.rhat.values() if math.isfinite(v)), default=None),
+        "divergences": int(sum(other.divergences)), "gradient_evaluations": other.gradient_evaluations})
 
 
 def _summary(keys, samples):

@@ -68,8 +68,9 @@ def posterior_checks(objective, result, *, profiles: int = 0, posterior: int = 0
     its ``prior_sensitivity`` where a key's box spans decades (``calibration.emulator.scale_keys``:
     the same checks under a prior uniform in that key's log). ``prior``: {key: (mean, sd)}, keys
     measured elsewhere, a normal prior in the NUTS and emulated posteriors (reported as "prior").
-    ``grid_ratio``, ``grid_levels``: the emulated posterior's grid term (the same posterior at
-    ``grid_ratio`` × dx, and its square with two levels; ``emulated_posterior``; None: not measured).
+    ``grid_ratio``, ``grid_levels``: the NUTS and emulated posteriors' grid term (the same
+    posterior at ``grid_ratio`` × dx, and its square with two levels; ``calibration.gridterm``;
+    None: not measured).
     What ``python -m calibration
     fit --profiles N --posterior N --nuts N --emulated N`` adds."""
     if not (profiles or posterior or nuts or emulated):
@@ -114,7 +115,7 @@ def posterior_checks(objective, result, *, profiles: int = 0, posterior: int = 0
         from .mcmc import nuts_posterior
 
         found = nuts_posterior(objective, result, chains=chains, warmup=max(20, nuts // 2), draws=nuts, noise=noise,
-                               prior=prior, progress=progress)
+                               prior=prior, grid_ratio=grid_ratio, grid_levels=grid_levels, progress=progress)
         report["nuts"] = {k: v for k, v in found.to_json().items() if k != "draws"}
     from .likelihood import grid_posterior, profile_likelihood
 

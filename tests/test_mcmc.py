@@ -256,3 +256,45 @@ def test_whitening_round_trips():
     theta = np.asarray(jax.vmap(lambda v: to_physical(jnp.asarray(z_hat) + jnp.asarray(L) @ v, jnp.asarray(lower),
                                                       jnp.asarray(upper)))(jnp.asarray(w)))
     np.testing.assert_allclose(whitened(theta, z_hat, L, lower, upper), w, rtol=1e-7, atol=1e-7)
+
+
+class GriddedLinear(LinearObjective):
+    """θ measured directly (one row) by a model off by 0.2 dx: the posterior N(y − 0.2 dx, σ²)
+    moves by −0.1 dx on a grid 1.5 times coarser; ``coarsened`` rebuilds it, as for an ``Objective``."""
+
+    def __init__(self, y, dx):
+        super().__init__(np.ones((1, 1)), np.array([y - 0.2 * dx]), lower=(-5.0,), upper=(5.0,))
+        self.true_y, self.dx = y, dx
+
+    def coarsened(self, ratio):
+        return GriddedLinear(self.true_y, ratio * self.dx)
+
+
+def test_the_nuts_posterior_carries_its_grid_term():
+    """The same chains on a grid 1.5 times coarser: the mean moves by the exact −0.1 dx (here 2 σ)
+    within the two chains' Monte Carlo error, the index is 3 |shift| / 0.5, and the interval with
+    the grid term holds both; refused with ``resume``, said where the objective has no coarser grid."""
+    sigma, dx = 0.05, 1.0
+    objective = GriddedLinear(0.5, dx)
+    result = _fit_result(objective.keys, [0.3], [[sigma ** 2]], sigma)
+    post = nuts_posterior(objective, result, chains=2, warmup=60, draws=150, seed=2, grid_ratio=1.5)
+    (coarse,) = post.grid_posteriors
+    se = sigma * np.sqrt(1 / post.ess_bulk["k0"] + 1 / 100)  # the coarse run's ESS is of the same size
+    assert abs(post.grid.shift[0] - (-0.1 * dx)) < 4 * se, (post.grid.shift, se)
+    assert post.grid.halfwidth[0] == pytest.approx(6 * abs(post.grid.shift[0]))
+    assert coarse["dx"] == 1.5 and coarse["divergences"] == 0 and coarse["gradient_evaluations"] > 0
+    lo, hi = post.ci95["k0"]
+    m, h = post.mean["k0"], post.grid.halfwidth[0]
+    assert post.ci95_with_grid["k0"] == pytest.approx((m - np.hypot(m - lo, h), m + np.hypot(hi - m, h)))
+    assert post.grid_converged == {"k0": False} and "Not converged in the grid" in post.grid_statement
+    record = post.to_json()
+    json.dumps(record, allow_nan=False)
+    assert record["grid"]["posteriors"][0]["dx"] == 1.5 and record["grid_converged"] == {"k0": False}
+    assert post.take([0]).grid is None and "grid" not in post.take([0]).to_json()
+    with pytest.raises(ValueError, match="grid_ratio: the grid term samples fresh chains"):
+        nuts_posterior(objective, result, draws=10, resume=post, grid_ratio=1.5)
+    with pytest.raises(ValueError, match="grid_ratio must be off"):
+        nuts_posterior(objective, result, grid_ratio=0.5)
+    plain = LinearObjective(np.ones((1, 1)), np.array([0.3]), lower=(-5.0,), upper=(5.0,))
+    bare = nuts_posterior(plain, result, chains=2, warmup=20, draws=20, seed=2, grid_ratio=1.5)
+    assert bare.grid is None and "no coarsened method" in bare.to_json()["grid"]["why"]
