@@ -4,13 +4,14 @@ A fit's grid term (``calibration.uncertainty.grid_shift``) is the Gauss–Newton
 on a grid ``ratio`` times coarser. A posterior needs more than that linearisation: along a flat,
 curved valley a small systematic change of the residuals moves the posterior's mass far. On the
 five keys of three filmed collapses (L/12, I0 measured) the linearised shift at the posterior's
-mean moved μ2 by −0.005 where the same posterior at L/8 moved its mean by −0.11 (docs/verdict.md).
+mean moved μ2 by −0.005 where the same posterior at L/8 moved its mean by −0.10 (docs/verdict.md).
 So the posterior is sampled again, with the same noise, prior and settings, on the objective
 rebuilt at ``ratio`` × dx (and ``ratio``² × dx), and the shift of its mean gives Roache's index as
 for a fit: 3 |δ| / (ρ − 1) from two grids (order 1 assumed), the observed order's from three
-(``three_grid_index``). The index is added in quadrature to each side of the 95 % interval,
-measured from the mean (``ci95_with_grid``, kept inside the bounds). In 2D each coarser level costs
-about ρ⁻³ of the posterior (ρ⁻² the particles, ρ⁻¹ the steps).
+(``three_grid_index``, the shifts measured in the posterior's sds). The index is added in
+quadrature to each side of the 95 % interval, measured from the mean (``ci95_with_grid``, kept
+inside the bounds). In 2D each coarser level costs about ρ⁻³ of the posterior (ρ⁻² the
+particles, ρ⁻¹ the steps).
 
 ``GridTerm`` gives a posterior's dataclass the reading of it (``grid_converged``, ``adequate_dx``,
 ``grid_statement``, ``grid_json``); ``coarse_objectives`` refuses a bad option before any run;
@@ -33,8 +34,8 @@ __all__ = ["GridTerm", "coarse_objectives", "with_grid_term"]
 
 
 class GridTerm:
-    """The grid term's reading for a posterior dataclass with ``keys``, ``mean``, ``ci95`` (by
-    key) and the fields ``grid`` (a ``GridCheck`` or None), ``ci95_with_grid``,
+    """The grid term's reading for a posterior dataclass with ``keys``, ``mean``, ``sd``, ``ci95``
+    (by key) and the fields ``grid`` (a ``GridCheck`` or None), ``ci95_with_grid``,
     ``grid_posteriors`` (the coarser posteriors' summaries) and ``grid_note`` (why it is missing)."""
 
     def _half(self, k: str) -> float:
@@ -68,15 +69,18 @@ class GridTerm:
         g, fine = self.grid, self.grid_converged
         moved = [f"{k} (±{h:.2g} against ±{self._half(k):.2g})" for k, h in zip(self.keys, g.halfwidth) if not fine[k]]
         levels = f"{g.ratio:.3g} × dx" + ("" if g.shift2 is None else f" and {g.ratio ** 2:.3g} × dx")
+        rough = [f"{p['dx'] / g.dx:.3g} × dx" for p in self.grid_posteriors if not p["converged"]]
+        caveat = (f" The posterior at {' and '.join(rough)} did not converge: its mean, and so the grid term, is "
+                  "rough." if rough else "")
         if not moved:
             return (f"Converged in the grid as far as the posterior at {levels} can show: its share stays within "
-                    "the data's interval for every key.")
+                    "the data's interval for every key." + caveat)
         return (f"Not converged in the grid: the posterior at {g.ratio:.3g} × dx moves its mean by " + ", ".join(
             f"{k} {d:+.2g}" for k, d in zip(self.keys, g.shift)) + "; the grid's share of the interval of "
             + ", ".join(moved) + " exceeds the data's. At this dx that part of the answer is a property of the "
             f"grid, not of the material ({g.method}); ci95_with_grid carries it. The grid term would fall within "
             "the data's interval on a grid about " + ", ".join(
-                f"{g.dx / self.adequate_dx[k]:.3g}× finer for {k}" for k in self.keys if not fine[k]) + ".")
+                f"{g.dx / self.adequate_dx[k]:.3g}× finer for {k}" for k in self.keys if not fine[k]) + "." + caveat)
 
     def grid_json(self) -> dict[str, Any]:
         """The JSON fields of the grid term (none where it was not asked for)."""
@@ -125,7 +129,8 @@ def with_grid_term(found, objective, coarse: list, ratio: float, sample: Callabl
                          time.perf_counter() - clock, method="two posteriors' means: Roache's GCI with the order "
                                                                  "assumed 1 and safety factor 3")
     else:
-        halfwidth, order, method = three_grid_index(shifts[0], shifts[1], ratio)
+        halfwidth, order, method = three_grid_index(shifts[0], shifts[1], ratio,
+                                                    scale=[max(found.sd[k], 1e-300) for k in keys])
         grid = GridCheck(float(objective.dx), float(coarse[0].dx), 1, shifts[0], halfwidth,
                          time.perf_counter() - clock, shift2=shifts[1], order=order,
                          method=method.replace("three grids", "three posteriors' means"))

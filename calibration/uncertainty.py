@@ -375,20 +375,26 @@ class GridCheck:
         return out
 
 
-def three_grid_index(shift1, shift2, ratio: float) -> tuple[np.ndarray, float | None, str]:
+def three_grid_index(shift1, shift2, ratio: float, scale=None) -> tuple[np.ndarray, float | None, str]:
     """The grid convergence index from three grids (dx, ρ dx, ρ² dx) by the shifts of θ to the
     two coarser ones: (95 % half-width per key, the observed order or None, how it was made).
 
-    With e21 = shift1 and e32 = shift2 − shift1, their ratio along e21, q = e32·e21 / |e21|²,
-    is ρ^p on a grid converging with order p. When q > 1 (the changes shrink as the grid is
+    With e21 = shift1 and e32 = shift2 − shift1, each key divided by its ``scale`` (the data's
+    standard error or the posterior's sd: without it a key in large units, ξ ~ 50 beside μ ~ 0.4,
+    decides the order alone), their ratio along e21, q = e32·e21 / |e21|², is ρ^p on a grid
+    converging with order p. When q > 1 (the changes shrink as the grid is
     refined) p = ln q / ln ρ, limited to [0.5, 2], and the index is Roache's three-grid one,
     1.25 |e21| / (ρ^p − 1). Otherwise the grids oscillate or are not yet in the range where the
     error shrinks (what the S4 study shows, docs/grid_convergence.md): the index is 3 max(|e21|,
     |e32|) / (ρ − 1), the two-grid one on the larger change."""
     e21 = np.asarray(shift1, float)
     e32 = np.asarray(shift2, float) - e21
-    norm2 = float(e21 @ e21)
-    q = float(e32 @ e21) / norm2 if norm2 > 0 else math.inf
+    scale = np.ones_like(e21) if scale is None else np.asarray(scale, float)
+    if not np.all(np.isfinite(scale) & (scale > 0)):
+        raise ValueError(f"scale must be positive and finite for every key, got {scale!r}")
+    w = 1.0 / scale**2
+    norm2 = float(e21 @ (w * e21))
+    q = float(e32 @ (w * e21)) / norm2 if norm2 > 0 else math.inf
     if norm2 > 0 and q > 1.0:
         order = min(max(math.log(q) / math.log(ratio), 0.5), 2.0)
         return (1.25 * np.abs(e21) / (ratio ** order - 1.0), order,
@@ -441,7 +447,7 @@ def grid_shift(objective: ObjectiveLike, theta, J, *, ratio: float = GRID_RATIO,
     if not kept2:
         return None
     shift2 = -np.linalg.lstsq(J, np.mean(kept2, axis=0), rcond=None)[0]
-    halfwidth, order, method = three_grid_index(shift, shift2, ratio)
+    halfwidth, order, method = three_grid_index(shift, shift2, ratio, scale=np.sqrt(np.diag(_inverse(J.T @ J))))
     return GridCheck(dx, coarse.dx, min(len(kept), len(kept2)), shift, halfwidth, time.perf_counter() - clock,
                      shift2=shift2, order=order, method=method)
 

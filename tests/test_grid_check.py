@@ -171,3 +171,24 @@ def test_intervals_are_the_sandwich_of_the_fit_as_weighted():
     one = gauss_newton_uncertainty(J[:20], r[:20], KEYS, np.array([0.3, 0.4]), {"profile": slice(0, 20)},
                                    row_scale[:20], noise=sigma)
     np.testing.assert_allclose(one.cov, np.linalg.inv(Je[:20].T @ Je[:20] / sigma ** 2), rtol=1e-8)
+
+
+def test_the_three_grid_order_does_not_depend_on_the_keys_units():
+    """A key in large units (ξ ~ 50 beside μ ~ 0.4) must not decide the order alone: with the
+    shifts measured in each key's scale, changing a key's units (its shifts and scale together)
+    leaves the order and the index in those units unchanged. Here μ2 converges with order 2 and
+    ξ oscillates by about one of its sds: measured in raw units ξ alone says "oscillate"."""
+    from calibration.uncertainty import three_grid_index
+
+    shift1 = np.array([-0.10, -3.4])
+    shift2 = shift1 + np.array([-0.225, 28.0])  # e32: mu2 1.5^2 times e21, xi the other way
+    scale = np.array([0.03, 5.0])
+    base = three_grid_index(shift1, shift2, 1.5, scale)
+    assert base[1] == pytest.approx(1.49, abs=0.01) and "converging" in base[2]
+    units = np.array([1.0, 100.0])  # xi in other units
+    other = three_grid_index(shift1 * units, shift2 * units, 1.5, scale * units)
+    assert other[1] == pytest.approx(base[1], rel=1e-12) and other[2] == base[2]
+    np.testing.assert_allclose(other[0], base[0] * units, rtol=1e-12)
+    assert three_grid_index(shift1, shift2, 1.5)[1] is None  # unscaled: xi's units decide
+    with pytest.raises(ValueError, match="scale must be positive"):
+        three_grid_index(shift1, shift2, 1.5, [0.03, 0.0])
