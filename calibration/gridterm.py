@@ -30,7 +30,15 @@ import numpy as np
 
 from .uncertainty import GCI_SAFETY, GRID_ORDER, GridCheck, check_grid_options, three_grid_index
 
-__all__ = ["GridTerm", "coarse_objectives", "with_grid_term"]
+__all__ = ["GridTerm", "coarse_objectives", "widened", "with_grid_term"]
+
+
+def widened(lo, hi, centre: float, halfwidth: float, lower: float, upper: float) -> tuple[float | None, float | None]:
+    """The 95 % interval (``lo``, ``hi``) with a grid term of 95 % half-width ``halfwidth`` added
+    in quadrature to each side, measured from ``centre`` and kept inside [``lower``, ``upper``];
+    an end the interval does not reach (None) stays None."""
+    return (None if lo is None else float(max(centre - math.hypot(centre - lo, halfwidth), lower)),
+            None if hi is None else float(min(centre + math.hypot(hi - centre, halfwidth), upper)))
 
 
 class GridTerm:
@@ -135,9 +143,5 @@ def with_grid_term(found, objective, coarse: list, ratio: float, sample: Callabl
                          time.perf_counter() - clock, shift2=shifts[1], order=order,
                          method=method.replace("three grids", "three posteriors' means"))
     lower, upper = np.asarray(objective.bounds.lower, float), np.asarray(objective.bounds.upper, float)
-    wide = {}
-    for j, k in enumerate(keys):
-        (lo, hi), m = found.ci95[k], found.mean[k]
-        wide[k] = (float(max(m - math.hypot(m - lo, halfwidth[j]), lower[j])),
-                   float(min(m + math.hypot(hi - m, halfwidth[j]), upper[j])))
+    wide = {k: widened(*found.ci95[k], found.mean[k], halfwidth[j], lower[j], upper[j]) for j, k in enumerate(keys)}
     return dataclasses.replace(found, grid=grid, ci95_with_grid=wide, grid_posteriors=tuple(summaries))

@@ -70,7 +70,8 @@ def posterior_checks(objective, result, *, profiles: int = 0, posterior: int = 0
     measured elsewhere, a normal prior in the NUTS and emulated posteriors (reported as "prior").
     ``grid_ratio``, ``grid_levels``: the NUTS and emulated posteriors' grid term (the same
     posterior at ``grid_ratio`` × dx, and its square with two levels; ``calibration.gridterm``;
-    None: not measured).
+    None: not measured). The profile likelihood's and the grid posterior's intervals get the fit's
+    own grid term where it carries one (``ci95_profile_with_grid``, ``ci95_with_grid``).
     What ``python -m calibration
     fit --profiles N --posterior N --nuts N --emulated N`` adds."""
     if not (profiles or posterior or nuts or emulated):
@@ -129,4 +130,29 @@ def posterior_checks(objective, result, *, profiles: int = 0, posterior: int = 0
         else:
             grid = grid_posterior(objective, result, n=posterior, noise=noise)
             report["posterior"] = grid.to_json()
+    _add_fit_grid_term(report, objective, result, scans, grid)
     return PosteriorChecks(report, scans, grid)
+
+
+def _add_fit_grid_term(report: dict[str, Any], objective, result, scans, grid) -> None:
+    """The fit's grid term (``Uncertainty.grid``: one Gauss–Newton step at ρ dx) on the profile
+    intervals and the grid posterior's, as ``ci95_profile_with_grid`` and ``ci95_with_grid``:
+    its 95 % half-width in quadrature on each side (``calibration.gridterm.widened``)."""
+    from .gridterm import widened
+
+    term = getattr(result.uncertainty, "grid", None)
+    if term is None or not (scans or grid is not None):
+        return
+    keys = tuple(result.keys)
+    bounds = dict(zip(objective.keys, zip(objective.bounds.lower, objective.bounds.upper)))
+    half = dict(zip(keys, map(float, term.halfwidth)))
+    note = ("the fit's grid term (grid.halfwidth95, one Gauss-Newton step at "
+            f"{term.ratio:.3g} x dx) added in quadrature to each side")
+    for scan in scans:
+        block = report["profile_likelihood"][scan.key]
+        block["ci95_profile_with_grid"] = list(widened(*scan.ci95, scan.theta_hat, half[scan.key], *bounds[scan.key]))
+        block["grid_term"] = note
+    if grid is not None:
+        report["posterior"]["ci95_with_grid"] = {k: list(widened(*grid.ci95[k], grid.mean[k], half[k], *bounds[k]))
+                                                 for k in grid.keys}
+        report["posterior"]["grid_term"] = note

@@ -497,3 +497,39 @@ def test_fit_checks_pass_the_grid_term_to_the_emulated_posterior(banana, monkeyp
     checks = posterior_checks(objective, result, emulated=30, grid_ratio=1.5, grid_levels=2)
     assert seen["grid_ratio"] == 1.5 and seen["grid_levels"] == 2 and seen["checks"] == 30
     assert checks.report["emulated_posterior"]["grid"] == {"ratio": 1.5}
+
+
+def test_the_profile_and_grid_posterior_intervals_carry_the_fits_grid_term(banana, monkeypatch):
+    """``posterior_checks`` adds the fit's own grid term (one Gauss–Newton step at ρ dx) to the
+    profile likelihood's and the grid posterior's intervals, in quadrature on each side, inside
+    the bounds; an end a profile does not reach stays open."""
+    import calibration.likelihood as likelihood_module
+    from calibration.report import posterior_checks
+    from calibration.uncertainty import GridCheck
+
+    objective, result, *_ = banana
+    keys = objective.keys
+    term = GridCheck(0.01, 0.015, 2, np.array([0.1, -0.02]), np.array([0.6, 0.12]), 1.0)
+    result = types.SimpleNamespace(keys=keys, theta=result.theta, uncertainty=types.SimpleNamespace(
+        **vars(result.uncertainty), grid=term))
+    scans = {"k0": (-1.2, None), "k1": (0.4, 0.7)}
+
+    def profile(objective, result, key, n, noise):
+        ci = scans[key]
+        return types.SimpleNamespace(key=key, ci95=ci, theta_hat=result.theta[key],
+                                     to_json=lambda: {"ci95_profile": list(ci)})
+
+    post = types.SimpleNamespace(keys=keys, ci95={"k0": (-0.5, 1.9), "k1": (0.3, 0.8)},
+                                 mean={"k0": 0.6, "k1": 0.55}, to_json=lambda: {})
+    monkeypatch.setattr(likelihood_module, "profile_likelihood", profile)
+    monkeypatch.setattr(likelihood_module, "grid_posterior", lambda *a, **kw: post)
+    report = posterior_checks(objective, result, profiles=3, posterior=3).report
+    t0, t1 = result.theta["k0"], result.theta["k1"]
+    assert report["profile_likelihood"]["k0"]["ci95_profile_with_grid"] == pytest.approx(
+        [t0 - np.hypot(t0 + 1.2, 0.6), None])
+    assert report["profile_likelihood"]["k1"]["ci95_profile_with_grid"] == pytest.approx(
+        [t1 - np.hypot(t1 - 0.4, 0.12), t1 + np.hypot(0.7 - t1, 0.12)])
+    wide = report["posterior"]["ci95_with_grid"]
+    assert wide["k0"] == pytest.approx([0.6 - np.hypot(1.1, 0.6), 2.0])  # the upper bound of k0's box
+    assert wide["k1"] == pytest.approx([0.55 - np.hypot(0.25, 0.12), 0.55 + np.hypot(0.25, 0.12)])
+    assert "grid term" in report["posterior"]["grid_term"]
