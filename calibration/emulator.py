@@ -498,15 +498,11 @@ def emulated_posterior(objective: ObjectiveLike, centre, *, noise: Mapping[str, 
     (``calibration.mcmc.gaussian_prior``), beside the flat prior in the bounds; the emulator's
     chains and the model's posterior both carry it, so the importance weights do not.
 
-    ``grid_ratio``: the grid term (None: not measured). The same posterior, with the same noise,
-    prior and settings, on the objective rebuilt at ``grid_ratio`` × dx (``grid_levels=2``: also at
-    ``grid_ratio``² × dx), centred on this one's mean; the shift of its mean is the grid's effect,
-    and the index made from it as for a fit (``calibration.uncertainty.grid_shift``: Roache's GCI,
-    order 1 and safety factor 3 from two grids, the observed order from three) is ``grid``, added
-    in quadrature to each side of the 95 % interval (``ci95_with_grid``). The linearised shift a fit
-    uses is not enough here: on the five keys' valley it gave μ2 −0.005 where the coarse
-    posterior's mean moved −0.11 (docs/verdict.md). Costs about ``grid_ratio``⁻³ of the posterior
-    per level in 2D."""
+    ``grid_ratio``, ``grid_levels``: the grid term (``calibration.gridterm``; None: not measured):
+    the same posterior, with the same noise, prior and settings, on the objective rebuilt at
+    ``grid_ratio`` × dx (and its square with ``grid_levels=2``), centred on this one's mean; the
+    shift of its mean gives ``grid`` and ``ci95_with_grid``. About ``grid_ratio``⁻³ of the cost per
+    level in 2D."""
     from .mcmc import _row_weights, gauss_newton_point, gaussian_prior, nuts_posterior
 
     keys = tuple(objective.keys)

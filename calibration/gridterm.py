@@ -28,7 +28,7 @@ from typing import Any
 
 import numpy as np
 
-from .uncertainty import GCI_SAFETY, GRID_ORDER, GridCheck, check_grid_options, three_grid_index
+from .uncertainty import GRID_ORDER, GridCheck, check_grid_options, three_grid_index, two_grid_index
 
 __all__ = ["GridTerm", "coarse_objectives", "widened", "with_grid_term"]
 
@@ -132,16 +132,15 @@ def with_grid_term(found, objective, coarse: list, ratio: float, sample: Callabl
                           "ci95": {k: list(v) for k, v in other.ci95.items()}, "converged": bool(other.converged),
                           **(summary(other) if summary else {}), "wall_s": round(other.wall_s, 1)})
     if len(shifts) == 1:
-        halfwidth = GCI_SAFETY * np.abs(shifts[0]) / (ratio**GRID_ORDER - 1.0)
+        halfwidth = two_grid_index(shifts[0], ratio)
         grid = GridCheck(float(objective.dx), float(coarse[0].dx), 1, shifts[0], halfwidth,
                          time.perf_counter() - clock, method="two posteriors' means: Roache's GCI with the order "
                                                                  "assumed 1 and safety factor 3")
     else:
-        halfwidth, order, method = three_grid_index(shifts[0], shifts[1], ratio,
-                                                    scale=[max(found.sd[k], 1e-300) for k in keys])
+        scale = [max(found.sd[k], 1e-300) for k in keys]
+        halfwidth, order, method = three_grid_index(shifts[0], shifts[1], ratio, scale, what="posteriors' means")
         grid = GridCheck(float(objective.dx), float(coarse[0].dx), 1, shifts[0], halfwidth,
-                         time.perf_counter() - clock, shift2=shifts[1], order=order,
-                         method=method.replace("three grids", "three posteriors' means"))
+                         time.perf_counter() - clock, shift2=shifts[1], order=order, method=method)
     lower, upper = np.asarray(objective.bounds.lower, float), np.asarray(objective.bounds.upper, float)
     wide = {k: widened(*found.ci95[k], found.mean[k], halfwidth[j], lower[j], upper[j]) for j, k in enumerate(keys)}
     return dataclasses.replace(found, grid=grid, ci95_with_grid=wide, grid_posteriors=tuple(summaries))

@@ -520,9 +520,6 @@ def nuts_posterior(objective: ObjectiveLike, fit_result, *, chains: int | None =
     ``start_chain``, ``warm_up`` and ``sample_chain``, and ``diagnose`` (the summary)."""
     _blackjax()
     prior_terms = gaussian_prior(objective.keys, prior)
-    if resume is not None and isinstance(resume, McmcPosterior) and resume.prior != _prior_of(prior):
-        raise ValueError(f"prior: the resumed chains were drawn with {resume.prior or 'the flat prior'}, got "
-                         f"{_prior_of(prior) or 'the flat prior'}: a chain goes on only on its own target")
     coarse, grid_note = coarse_objectives(objective, grid_ratio, grid_levels)
     if resume is not None and grid_ratio is not None:
         raise ValueError("grid_ratio: the grid term samples fresh chains on coarser grids, which a resumed run "
@@ -531,6 +528,9 @@ def nuts_posterior(objective: ObjectiveLike, fit_result, *, chains: int | None =
         if not isinstance(resume, McmcPosterior):
             raise ValueError(f"resume must be a McmcPosterior (McmcPosterior.from_json of a record), got "
                              f"{type(resume).__name__}")
+        if resume.prior != _prior_of(prior):
+            raise ValueError(f"prior: the resumed chains were drawn with {resume.prior or 'the flat prior'}, got "
+                             f"{_prior_of(prior) or 'the flat prior'}: a chain goes on only on its own target")
         if warmup is not None:
             raise ValueError("warmup: a resumed chain keeps its adapted step size and runs no warm-up; pass none")
         if chains is not None and chains != resume.chains:

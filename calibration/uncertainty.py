@@ -375,7 +375,14 @@ class GridCheck:
         return out
 
 
-def three_grid_index(shift1, shift2, ratio: float, scale=None) -> tuple[np.ndarray, float | None, str]:
+def two_grid_index(shift, ratio: float) -> np.ndarray:
+    """Roache's grid convergence index from two grids: the 95 % half-width 3 |shift| / (ρ^p − 1)
+    with the order p assumed 1 (``GCI_SAFETY``, ``GRID_ORDER``)."""
+    return GCI_SAFETY * np.abs(np.asarray(shift, float)) / (ratio**GRID_ORDER - 1.0)
+
+
+def three_grid_index(shift1, shift2, ratio: float, scale=None,
+                     what: str = "grids") -> tuple[np.ndarray, float | None, str]:
     """The grid convergence index from three grids (dx, ρ dx, ρ² dx) by the shifts of θ to the
     two coarser ones: (95 % half-width per key, the observed order or None, how it was made).
 
@@ -386,7 +393,8 @@ def three_grid_index(shift1, shift2, ratio: float, scale=None) -> tuple[np.ndarr
     refined) p = ln q / ln ρ, limited to [0.5, 2], and the index is Roache's three-grid one,
     1.25 |e21| / (ρ^p − 1). Otherwise the grids oscillate or are not yet in the range where the
     error shrinks (what the S4 study shows, docs/grid_convergence.md): the index is 3 max(|e21|,
-    |e32|) / (ρ − 1), the two-grid one on the larger change."""
+    |e32|) / (ρ − 1), the two-grid one on the larger change. ``what``: the three things compared,
+    in the method's words (grids, or posteriors' means)."""
     e21 = np.asarray(shift1, float)
     e32 = np.asarray(shift2, float) - e21
     scale = np.ones_like(e21) if scale is None else np.asarray(scale, float)
@@ -398,10 +406,10 @@ def three_grid_index(shift1, shift2, ratio: float, scale=None) -> tuple[np.ndarr
     if norm2 > 0 and q > 1.0:
         order = min(max(math.log(q) / math.log(ratio), 0.5), 2.0)
         return (1.25 * np.abs(e21) / (ratio ** order - 1.0), order,
-                f"three grids converging with observed order {order:.2g}: Roache's GCI, safety factor 1.25")
+                f"three {what} converging with observed order {order:.2g}: Roache's GCI, safety factor 1.25")
     kind = "oscillate" if q <= 0 else "do not yet converge (the finer change is the larger)"
-    return (GCI_SAFETY * np.maximum(np.abs(e21), np.abs(e32)) / (ratio - 1.0), None,
-            f"three grids {kind}: the larger change with the order assumed 1 and safety factor 3")
+    return (two_grid_index(np.maximum(np.abs(e21), np.abs(e32)), ratio), None,
+            f"three {what} {kind}: the larger change with the order assumed 1 and safety factor 3")
 
 
 def check_grid_options(ratio, draws, levels: int = 1) -> None:
@@ -441,8 +449,7 @@ def grid_shift(objective: ObjectiveLike, theta, J, *, ratio: float = GRID_RATIO,
     J = np.asarray(J, float)
     shift = -np.linalg.lstsq(J, np.mean(kept, axis=0), rcond=None)[0]
     if levels == 1:
-        halfwidth = GCI_SAFETY * np.abs(shift) / (ratio ** GRID_ORDER - 1.0)
-        return GridCheck(dx, coarse.dx, len(kept), shift, halfwidth, time.perf_counter() - clock)
+        return GridCheck(dx, coarse.dx, len(kept), shift, two_grid_index(shift, ratio), time.perf_counter() - clock)
     _, kept2 = coarse_residuals(objective, theta, ratio * ratio, draws, workers)
     if not kept2:
         return None

@@ -191,18 +191,24 @@ def test_corrected_quadratic_follows_the_design_and_beats_the_quadratic_off_it()
     assert em.rms == em.quadratic.rms and em.length >= 0.5
 
 
+def _quadrature(data):
+    """The crescent's posterior (flat prior in the box) on an 801 × 801 grid of θ: the grid
+    (T0, T1), log p up to a constant, and p normalised."""
+    T0, T1 = np.meshgrid(np.linspace(-2, 2, 801), np.linspace(-1, 3, 801), indexing="ij")
+    r = np.stack([T1 - T0**2 - 0.3, 0.4 * T0 + 0.1 * T1 - 0.2, np.sin(2 * T1) - 0.5], -1) - data
+    logp = -0.5 * np.sum(r**2, -1) / SIGMA**2
+    p = np.exp(logp - logp.max())
+    return T0, T1, logp, p / p.sum()
+
+
 @pytest.fixture(scope="module")
 def banana():
     truth = np.array([0.5, 0.55])
     data = np.asarray(_banana(jnp.asarray(truth))) + SIGMA * np.random.default_rng(3).standard_normal(3)
     objective = Banana(data)
     # The quadrature on a fine grid of θ (flat prior in the box): the exact posterior moments.
-    g0, g1 = np.linspace(-2, 2, 801), np.linspace(-1, 3, 801)
-    T0, T1 = np.meshgrid(g0, g1, indexing="ij")
-    r = np.stack([T1 - T0**2 - 0.3, 0.4 * T0 + 0.1 * T1 - 0.2, np.sin(2 * T1) - 0.5], -1) - data
-    logp = -0.5 * np.sum(r**2, -1) / SIGMA**2
-    p = np.exp(logp - logp.max())
-    p /= p.sum()
+    T0, T1, logp, p = _quadrature(data)
+    g0, g1 = T0[:, 0], T1[0]
     mean = np.array([np.sum(p * T0), np.sum(p * T1)])
     sd = np.sqrt([np.sum(p * (T0 - mean[0]) ** 2), np.sum(p * (T1 - mean[1]) ** 2)])
     best = np.unravel_index(np.argmax(logp), logp.shape)
@@ -401,12 +407,7 @@ class GriddedBanana(Banana):
 
 
 def _quadrature_mean(data):
-    g0, g1 = np.linspace(-2, 2, 801), np.linspace(-1, 3, 801)
-    T0, T1 = np.meshgrid(g0, g1, indexing="ij")
-    r = np.stack([T1 - T0**2 - 0.3, 0.4 * T0 + 0.1 * T1 - 0.2, np.sin(2 * T1) - 0.5], -1) - data
-    logp = -0.5 * np.sum(r**2, -1) / SIGMA**2
-    p = np.exp(logp - logp.max())
-    p /= p.sum()
+    T0, T1, _, p = _quadrature(data)
     return np.array([np.sum(p * T0), np.sum(p * T1)])
 
 
