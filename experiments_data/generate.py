@@ -7,6 +7,8 @@
 ``tables`` only evaluates formulas (and reads synthetic/S4_beta0.25.csv for the WebPlotDigitizer
 format example, so run ``profiles`` first on a fresh checkout). ``profiles`` runs exactly the
 command lines recorded in each profile's ``source`` header. Nothing here is a measurement.
+Tables are read and written with ``jaxmpm.tables`` (the project's one CSV format): the shipped
+data depend on the engine alone, not on the calibration package built on it.
 """
 
 from __future__ import annotations
@@ -101,12 +103,14 @@ def bagnold() -> None:
 
 
 def wpd_example() -> None:
-    sys.path.insert(0, str(ROOT))
-    from calibration.data import load_profile
+    from jaxmpm.tables import PROFILE_COLUMNS, read_columns
 
-    profile = load_profile(HERE / "synthetic" / "S4_beta0.25.csv")
+    header, columns = read_columns(HERE / "synthetic" / "S4_beta0.25.csv", required=PROFILE_COLUMNS)
+    if header.get("units", "m") != "m":
+        raise SystemExit(f"synthetic/S4_beta0.25.csv: expected a profile in metres, got units = {header['units']!r}")
+    x, h = (columns[name] for name in PROFILE_COLUMNS)
     x_mm = np.array([10.0, 20.0, 40.0, 60.0, 80.0, 100.0, 120.0, 140.0, 160.0])
-    h_mm = np.round(np.interp(x_mm * 1e-3, profile.x, profile.h) * 1e3, 1)
+    h_mm = np.round(np.interp(x_mm * 1e-3, x, h) * 1e3, 1)
     path = HERE / "examples" / "wpd_example.csv"
     path.write_text("".join(f"{x:.1f},{h:.1f}\n" for x, h in zip(x_mm, h_mm)))
     print(f"wrote {path.relative_to(ROOT)}")
@@ -126,22 +130,19 @@ def front() -> None:
     import jax.numpy as jnp
 
     from jaxmpm import __version__, scenes, simulate
-
-    sys.path.insert(0, str(ROOT))
-    from calibration.data import FrontHistory
+    from jaxmpm.tables import FRONT_COLUMNS, write_table
 
     scene = scenes.slope_collapse(10.0, dx=0.01, frames=20)
     config, state, params = scene
     result = simulate(config, state, params, observer=lambda s, p: {"front": jnp.max(s.x[:, 0])}, throw=False)
     t = np.asarray(result.frame_times, float)
     xf = np.asarray(result.frames["front"], float)
-    FrontHistory(
-        t=t, x_front=xf, experiment=f"slope-collapse 10 deg front position (synthetic, jaxmpm {__version__})",
-        source="python experiments_data/generate.py front", synthetic=True,
-        meta={"front_definition": "largest particle x (along the bed, from the back wall) at each frame",
-              "parameters": params.to_dict(), "scene": scene.info.to_dict(),
-              "status": int(result.status)},
-    ).to_csv(HERE / "synthetic" / "S3_10deg_front.csv")
+    # A front history's header (what calibration's front-history loader reads): its fields, then the run's facts.
+    header = {"experiment": f"slope-collapse 10 deg front position (synthetic, jaxmpm {__version__})", "units": "m",
+              "source": "python experiments_data/generate.py front", "synthetic": True,
+              "front_definition": "largest particle x (along the bed, from the back wall) at each frame",
+              "parameters": params.to_dict(), "scene": scene.info.to_dict(), "status": int(result.status)}
+    write_table(HERE / "synthetic" / "S3_10deg_front.csv", dict(zip(FRONT_COLUMNS, (t, xf))), header)
     print("wrote experiments_data/synthetic/S3_10deg_front.csv")
 
 

@@ -1,8 +1,9 @@
 """jaxmpm: a differentiable Material Point Method in JAX for granular flows.
 
 The public surface: static configuration (``Grid``, ``Config``, ``Wall``, materials), the
-parameter pytree (``Params``), the state (``State``, ``init_state``), particle sampling (``seed_box``), the pure
-step and rollout factories, the public ``simulate`` call, HDF5 output (``io``) and the CSV format (``tables``).
+parameter table (``PARAMS`` of ``ParamSpec``) and pytree (``Params``), the state (``State``,
+``init_state``), particle sampling (``seed_box``), the pure step and rollout factories, the public
+``simulate`` call, HDF5 output (``io``) and the CSV format (``tables``).
 """
 
 from importlib import metadata as _metadata
@@ -13,7 +14,7 @@ from .boundary import Terrain, Wall
 from .config import Config, Grid
 from .experiment import Experiment, ExperimentError
 from .materials import CriticalState, Hencky, Material, hencky_stress, invariants
-from .params import DEFAULTS, MATERIAL_KEYS, PARAM_KEYS, Params, validate_params
+from .params import DEFAULTS, MATERIAL_KEYS, PARAM_KEYS, PARAMS, Params, ParamSpec, validate_params
 from .rollout import frame_observer, make_rollout
 from .sampling import SAMPLINGS, seed_box
 from .simulate import Result, SimulationError, compiled_rollout, simulate
@@ -52,7 +53,8 @@ _warn_known_bad_jaxlib()
 __all__ = [
     "BUDGET", "Config", "Experiment", "ExperimentError", "CriticalState", "EDGE", "DEFAULTS", "GRID_FULL", "Grid",
     "Hencky", "J_NONPOSITIVE",
-    "LEFT_GRID", "Material", "MATERIAL_KEYS", "NONFINITE", "PARAM_KEYS", "Params", "Result", "SAMPLINGS",
+    "LEFT_GRID", "Material", "MATERIAL_KEYS", "NONFINITE", "PARAM_KEYS", "PARAMS", "Params", "ParamSpec", "Result",
+    "SAMPLINGS",
     "SimulationError", "State", "Terrain", "Wall",
     "compiled_rollout", "describe_status", "frame_observer", "hencky_stress", "init_state",
     "invariants", "io", "make_rollout", "make_step", "scenes", "seed_box", "simulate", "tables", "validate_params",

@@ -22,7 +22,7 @@ from .cli import (
     scene_dtype,
     scene_from_args,
 )
-from .precision import use_dtype
+from .precision import DTYPES, use_dtype
 from .scenes import SCENE_NAMES, is_experiment_file
 from .threads import apply_threads
 
@@ -283,7 +283,7 @@ def build_parser() -> argparse.ArgumentParser:
                           help="XPIC order on the FLIP part, bagnold studies only (0: off)")
     validate.add_argument("--slopes", default=None, help="comma-separated slopes (deg), bagnold only")
     validate.add_argument("--divisions", default=None, help="comma-separated h/dx, bagnold only")
-    validate.add_argument("--dtype", choices=("float32", "float64"), default="float32",
+    validate.add_argument("--dtype", choices=DTYPES, default="float32",
                           help="precision of the study's runs (default float32, the run command's default)")
 
     bench = sub.add_parser("bench", help="time the engine and print JSON")
@@ -292,7 +292,7 @@ def build_parser() -> argparse.ArgumentParser:
     bench.add_argument("--quick", action="store_true", help="a small, fast case")
     bench.add_argument("--json", action="store_true", help="print one line of JSON")
     bench.add_argument("--dim", type=int, default=2, choices=(2, 3))
-    bench.add_argument("--dtype", choices=("float32", "float64"), default="float32")
+    bench.add_argument("--dtype", choices=DTYPES, default="float32")
     bench.add_argument("--repeat", type=int, default=3, help="timed runs; the median is reported")
     bench.add_argument("--particles", type=int, default=None, help="override the particle count")
     bench.add_argument("--grad", action="store_true", help="benchmark reverse-mode gradients instead")

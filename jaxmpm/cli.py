@@ -19,6 +19,9 @@ from typing import Any
 import jax
 import numpy as np
 
+from .params import param_help
+from .precision import DTYPES
+from .sampling import SAMPLINGS
 from .scenes import SCENE_NAMES, build_scene, is_experiment_file
 from .threads import THREAD_CHOICES
 
@@ -40,11 +43,12 @@ def add_scene_arguments(parser, scene_choices: bool = True) -> None:
     if scene_choices:
         parser.add_argument("scene", type=_scene_argument, metavar="SCENE|EXPERIMENT.toml",
                             help=f"a scene ({', '.join(SCENE_NAMES)}) or an experiment file")
-    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="material parameter")
+    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                        help=f"material parameter, in SI units: {param_help()}")
     parser.add_argument("--dx", type=float, default=None, help="grid spacing, m (default: the scene's)")
     parser.add_argument("--ppc", type=float, default=None, help="particles per cell and axis (default: the "
                         "scene's, DEFAULT_PPC; an integer for lattice and jitter sampling)")
-    parser.add_argument("--sampling", choices=("lattice", "jitter", "poisson"), default=None,
+    parser.add_argument("--sampling", choices=SAMPLINGS, default=None,
                         help="particle sampling (default: the scene's, DEFAULT_SAMPLING; poisson needs scipy)")
     parser.add_argument("--seed", type=int, default=None, help="random seed of jitter and poisson sampling "
                         "(default: the experiment's, else 0)")
@@ -54,7 +58,7 @@ def add_scene_arguments(parser, scene_choices: bool = True) -> None:
     parser.add_argument("--slope", type=float, default=None, help="bed angle for slope-collapse, degrees")
     parser.add_argument("--aspect", type=float, default=None, help="aspect ratio H0/L0 for aspect-ratio")
     parser.add_argument("--t-end", type=float, default=None, help="end time, s (default: the scene's)")
-    parser.add_argument("--dtype", choices=("float32", "float64"), default=None,
+    parser.add_argument("--dtype", choices=DTYPES, default=None,
                         help="default: the experiment's, else float32")
 
 

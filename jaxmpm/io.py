@@ -51,7 +51,7 @@ from .simulate import Result
 from .state import State, describe_status
 from .tables import PROFILE_COLUMNS, write_profile_csv  # the CSV format's home is tables
 
-__all__ = ["write_h5", "read_h5", "write_ply", "write_ply_frames", "atomic_write", "write_profile_csv",
+__all__ = ["write_h5", "read_h5", "write_ply", "write_ply_frames", "atomic_write", "atomic_h5", "write_profile_csv",
            "PROFILE_COLUMNS"]
 
 #: Root attributes stored as JSON strings (decoded by ``read_h5``).
@@ -159,6 +159,17 @@ def atomic_write(path: str | os.PathLike, write, hidden: bool = False) -> pathli
         tmp.unlink(missing_ok=True)
         raise
     return path
+
+
+def atomic_h5(path: str | os.PathLike, write) -> pathlib.Path:
+    """``write(f)`` an open HDF5 file at a hidden temporary path next to ``path``, then rename it
+    onto ``path`` (``atomic_write``)."""
+
+    def write_file(tmp):
+        with h5py.File(tmp, "w") as f:
+            write(f)
+
+    return atomic_write(path, write_file, hidden=True)
 
 
 def write_h5(

@@ -1,8 +1,15 @@
-"""Material parameters: one pytree of float arrays.
+"""Material parameters: one table of what each key means, and one pytree of float arrays.
 
-Every parameter of docs/model.md §4 is a leaf, so that ``jax.grad``, ``jax.vmap`` and optax act on
-them without rebuilding anything. A material uses the leaves it needs and ignores the rest.
-Units are SI throughout.
+Every parameter of docs/model.md §4 is a leaf of ``Params``, so that ``jax.grad``, ``jax.vmap``
+and optax act on them without rebuilding anything. A material uses the leaves it needs
+(``Material.keys``) and ignores the rest. Units are SI throughout.
+
+``PARAMS`` is the one table of the keys: each ``ParamSpec`` holds the key's default, its SI unit
+and the units a file may give it in, the rule a value must obey, the default bounds of a fit and
+a one-line description. ``DEFAULTS``, ``PARAM_KEYS``, ``MATERIAL_KEYS``, the checks of
+``validate_params`` and the experiment files' units (``jaxmpm.experiment``) are read from it.
+A rule across keys is a ``Relation`` (``RELATIONS``: μ2 >= μ1). The glossary below is the table's
+descriptions in short, with the SI units.
 
 Glossary
 --------
@@ -23,33 +30,99 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from collections.abc import Mapping
-from typing import Any
+import types
+from collections.abc import Callable, Mapping
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-__all__ = ["Params", "PARAM_KEYS", "MATERIAL_KEYS", "DEFAULTS", "validate_params"]
+__all__ = ["Params", "ParamSpec", "PARAMS", "PARAM_KEYS", "MATERIAL_KEYS", "DEFAULTS", "Relation", "RELATIONS", "Rule",
+           "LENGTH_UNITS", "PURE_UNITS", "param_help", "param_problem", "validate_params"]
+
+#: Unit names a file may use, with their factors to SI (the SI unit first).
+LENGTH_UNITS: Mapping[str, float] = types.MappingProxyType({"m": 1.0, "cm": 1e-2, "mm": 1e-3})
+_PRESSURE = types.MappingProxyType({"Pa": 1.0, "kPa": 1e3, "MPa": 1e6})
+_DENSITY = types.MappingProxyType({"kg/m^3": 1.0, "kg/m3": 1.0, "g/cm^3": 1e3, "g/cm3": 1e3})
+PURE_UNITS: Mapping[str, float] = types.MappingProxyType({"-": 1.0, "": 1.0})
+
+
+class Rule(NamedTuple):
+    """What a value must satisfy: ``test`` (numpy array -> boolean array) and its ``text``."""
+
+    test: Callable[[np.ndarray], Any]
+    text: str
+
+
+@dataclasses.dataclass(frozen=True)
+class ParamSpec:
+    """One parameter key: its default (docs/model.md §4), its SI unit's symbol, the units a file
+    may give it in (name -> factor to SI), the rule every value obeys, the default bounds
+    (lo, hi) of a fit (None: not fitted by default) and a one-line description."""
+
+    name: str
+    default: float
+    unit: str
+    units: Mapping[str, float]
+    rule: Rule
+    fit_bounds: tuple[float, float] | None
+    description: str
+
+
+def _spec(name, default, unit, units, rule, fit_bounds, description) -> ParamSpec:
+    return ParamSpec(name, float(default), unit, units, rule, fit_bounds, description)
+
+
+_POSITIVE = Rule(lambda v: v > 0, "> 0")
+_NON_NEGATIVE = Rule(lambda v: v >= 0, ">= 0")
+
+#: The parameter table, in the order of ``Params``'s leaves. Defaults: glass beads, the
+#: reference code's scene values; fit bounds: wide physical limits, not priors (μ1, μ2, μ_w
+#: from tan 3° to tan 63°).
+PARAMS: dict[str, ParamSpec] = {s.name: s for s in (
+    _spec("E", 1.0e6, "Pa", _PRESSURE, _POSITIVE, (1e4, 1e9), "Young's modulus"),
+    _spec("nu", 0.3, "-", PURE_UNITS, Rule(lambda v: (v > -1.0) & (v < 0.5), "in (-1, 0.5)"), (0.0, 0.49),
+          "Poisson's ratio"),
+    _spec("rho", 1550.0, "kg/m^3", _DENSITY, _POSITIVE, None, "bulk density; a particle's mass is rho V0"),
+    _spec("rho_s", 2500.0, "kg/m^3", _DENSITY, _POSITIVE, None, "grain density (enters the inertial number only)"),
+    _spec("d", 0.7e-3, "m", LENGTH_UNITS, _POSITIVE, (1e-5, 0.1), "grain diameter"),
+    _spec("mu1", math.tan(math.radians(20.9)), "-", PURE_UNITS, _NON_NEGATIVE, (0.05, 2.0),
+          "static friction coefficient of the mu(I) law"),
+    _spec("mu2", math.tan(math.radians(32.76)), "-", PURE_UNITS, _NON_NEGATIVE, (0.05, 2.0),
+          "limiting friction coefficient of the mu(I) law"),
+    _spec("I0", 0.279, "-", PURE_UNITS, _POSITIVE, (1e-3, 3.0), "reference inertial number"),
+    _spec("beta", 0.0, "-", PURE_UNITS, _NON_NEGATIVE, (0.0, 1.0),
+          "cohesion: ratio of tensile to compressive strength"),
+    _spec("pc0", 100.0, "Pa", _PRESSURE, _NON_NEGATIVE, (1.0, 1e5), "initial compressive strength p_c"),
+    _spec("xi", 0.0, "-", PURE_UNITS, _NON_NEGATIVE, (0.0, 500.0), "hardening rate"),
+    _spec("mu_w", 0.0, "-", PURE_UNITS, _NON_NEGATIVE, (0.0, 2.0),
+          "Coulomb friction of the walls and terrains declared with friction=\"mu_w\""),
+)}
+
+
+class Relation(NamedTuple):
+    """A rule across two keys: ``key`` must be >= ``other``; ``why`` says what ``key`` is."""
+
+    key: str
+    other: str
+    why: str
+
+
+#: μ2 is the limiting friction of μ(I) = μ1 + (μ2 - μ1) I/(I0 + I): below μ1 the law would be
+#: rate-weakening, which docs/model.md's rheology is not.
+RELATIONS: tuple[Relation, ...] = (Relation("mu2", "mu1", "the limiting friction"),)
 
 #: Defaults of docs/model.md §4 (glass beads, the reference code's scene values).
-DEFAULTS: dict[str, float] = {
-    "E": 1.0e6,
-    "nu": 0.3,
-    "rho": 1550.0,
-    "rho_s": 2500.0,
-    "d": 0.7e-3,
-    "mu1": math.tan(math.radians(20.9)),
-    "mu2": math.tan(math.radians(32.76)),
-    "I0": 0.279,
-    "beta": 0.0,
-    "pc0": 100.0,
-    "xi": 0.0,
-    "mu_w": 0.0,
-}
-PARAM_KEYS: tuple[str, ...] = tuple(DEFAULTS)
+DEFAULTS: dict[str, float] = {k: s.default for k, s in PARAMS.items()}
+PARAM_KEYS: tuple[str, ...] = tuple(PARAMS)
 #: The keys of the material itself (μ_w belongs to a scene's walls and terrain).
 MATERIAL_KEYS: tuple[str, ...] = tuple(k for k in PARAM_KEYS if k != "mu_w")
+
+
+def param_help() -> str:
+    """The keys with their SI units, for a command line's help: ``"E [Pa], nu [-], ..."``."""
+    return ", ".join(f"{k} [{s.unit}]" for k, s in PARAMS.items())
 
 
 @jax.tree_util.register_dataclass
@@ -112,49 +185,46 @@ def _concrete(value) -> np.ndarray | None:
     return np.asarray(value, dtype=float)
 
 
-# (key, test, what the test requires) for the checks a material-independent caller can make.
-_RULES: tuple[tuple[str, Any, str], ...] = (
-    ("E", lambda v: v > 0, "> 0"),
-    ("nu", lambda v: (v > -1.0) & (v < 0.5), "in (-1, 0.5)"),
-    ("rho", lambda v: v > 0, "> 0"),
-    ("rho_s", lambda v: v > 0, "> 0"),
-    ("d", lambda v: v > 0, "> 0"),
-    ("mu1", lambda v: v >= 0, ">= 0"),
-    ("mu2", lambda v: v >= 0, ">= 0"),
-    ("I0", lambda v: v > 0, "> 0"),
-    ("beta", lambda v: v >= 0, ">= 0"),
-    ("pc0", lambda v: v >= 0, ">= 0"),
-    ("xi", lambda v: v >= 0, ">= 0"),
-    ("mu_w", lambda v: v >= 0, ">= 0"),
-)
+def param_problem(key: str, value) -> str | None:
+    """What is wrong with ``value`` (a number or an array of members) as parameter ``key``
+    (``"must be finite, got nan"``, ``"must be > 0, got -1.0"``), or None when every member obeys
+    ``PARAMS[key].rule``."""
+    try:
+        value = np.asarray(value, dtype=float)
+    except (TypeError, ValueError):
+        return f"must be a real number, got {value!r}"
+    if not np.all(np.isfinite(value)):
+        return f"must be finite, got {_show(value)}"
+    rule = PARAMS[key].rule
+    bad = ~np.asarray(rule.test(value))
+    if np.any(bad):
+        return f"must be {rule.text}, got {_show(value[bad] if value.ndim else value)}"
+    return None
 
 
 def validate_params(params: Params | Mapping[str, Any]) -> None:
-    """Raise ``ValueError`` naming the first parameter that is non-finite or out of range.
+    """Raise ``ValueError`` naming the first parameter that is non-finite or out of range
+    (``PARAMS``' rules), then the first broken ``RELATIONS``.
 
     Works on scalars and on batched leaves (every member is checked). Leaves that are tracers
     are skipped: validation belongs before tracing, at the public entry points.
     """
     get = params.get if isinstance(params, Mapping) else lambda k: getattr(params, k)
-    for key, rule, requirement in _RULES:
-        value = _concrete(get(key))
-        if value is None:
+    for key in PARAMS:
+        value = get(key)
+        problem = None if isinstance(value, jax.core.Tracer) else param_problem(key, value)
+        if problem is not None:
+            raise ValueError(f"{key} {problem}")
+    for relation in RELATIONS:
+        key, other = _concrete(get(relation.key)), _concrete(get(relation.other))
+        if key is None or other is None:
             continue
-        if not np.all(np.isfinite(value)):
-            raise ValueError(f"{key} must be finite, got {_show(value)}")
-        bad = ~np.asarray(rule(value))
+        key, other = np.broadcast_arrays(key, other)
+        bad = key < other
         if np.any(bad):
-            raise ValueError(f"{key} must be {requirement}, got {_show(value[bad] if value.ndim else value)}")
-    # μ2 is the limiting friction of μ(I) = μ1 + (μ2 - μ1) I/(I0 + I): below μ1 the law would be
-    # rate-weakening, which docs/model.md's rheology is not.
-    mu1, mu2 = _concrete(get("mu1")), _concrete(get("mu2"))
-    if mu1 is not None and mu2 is not None:
-        mu1, mu2 = np.broadcast_arrays(mu1, mu2)
-        bad = mu2 < mu1
-        if np.any(bad):
-            raise ValueError("mu2 (the limiting friction) must be >= mu1, got "
-                             f"mu1 = {_show(mu1[bad] if mu1.ndim else mu1)} and "
-                             f"mu2 = {_show(mu2[bad] if mu2.ndim else mu2)}")
+            raise ValueError(f"{relation.key} ({relation.why}) must be >= {relation.other}, got "
+                             f"{relation.other} = {_show(other[bad] if other.ndim else other)} and "
+                             f"{relation.key} = {_show(key[bad] if key.ndim else key)}")
 
 
 def _show(value: np.ndarray) -> str:

@@ -13,7 +13,10 @@ import contextlib
 
 import jax
 
-__all__ = ["enable_x64", "use_dtype", "x64", "x64_enabled"]
+__all__ = ["DTYPES", "enable_x64", "use_dtype", "x64", "x64_enabled"]
+
+#: The floating-point types a run may use (experiment files' ``dtype``, the command lines' ``--dtype``).
+DTYPES = ("float32", "float64")
 
 
 def use_dtype(dtype: str | None) -> None:
@@ -21,8 +24,8 @@ def use_dtype(dtype: str | None) -> None:
     (for the rest of the process); float32 or None (the default type) leaves the mode as it is."""
     if dtype is None:
         return
-    if dtype not in ("float32", "float64"):
-        raise ValueError(f"dtype must be 'float32' or 'float64', got {dtype!r}")
+    if dtype not in DTYPES:
+        raise ValueError(f"dtype must be one of {DTYPES}, got {dtype!r}")
     if dtype == "float64":
         enable_x64(True)
 

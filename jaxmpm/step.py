@@ -79,31 +79,59 @@ def _always_true_batched(axis_size, in_batched, steps):
     return jnp.all(steps >= 0), False
 
 
+def _stencil_and_nodes(x, config: Config, node_x_np):
+    """(the particles' stencil, the positions of the grid's nodes (of its active slots on a
+    sparse grid), the number of nodes or slots, the number of nodes touched (0 on a dense
+    grid))."""
+    grid = config.grid
+    stencil = make_stencil(x, grid)
+    if config.active_nodes is None:
+        return stencil, jnp.asarray(node_x_np, x.dtype), grid.n_nodes, 0
+    slots, keys, touched = sparse.activate(stencil.index, config.active_nodes, grid.n_nodes,
+                                           consecutive_rows=not grid.periodic[-1])
+    return stencil._replace(index=slots), sparse.slot_positions(keys, grid, x.dtype), config.active_nodes, touched
+
+
+def _status_flags(x, v, tau, F_trial, touched, n_grid, bounds):
+    """The status bits a step sets (``jaxmpm.state``): a particle outside the grid's interior
+    (``x``, per axis) or within its edge band, a non-finite position, velocity or stress, an
+    inverted trial deformation, more nodes touched than a sparse grid's slots. ``bounds``:
+    (lower, upper, edge band's lower, edge band's upper), per axis."""
+    lower, upper, edge_lo, edge_hi = bounds
+    left = edge = finite = None
+    for a in range(len(x)):
+        out_a = (x[a] < lower[a]) | (x[a] >= upper[a])
+        edge_a = (x[a] < edge_lo[a]) | (x[a] >= edge_hi[a])
+        finite_a = jnp.isfinite(x[a]) & jnp.isfinite(v[a])
+        left, edge = (out_a, edge_a) if left is None else (left | out_a, edge | edge_a)
+        finite = finite_a if finite is None else finite & finite_a
+    for row in tau:
+        for t in row:
+            finite = finite & jnp.isfinite(t)
+    return (
+        jnp.where(jnp.any(left), st.LEFT_GRID, 0)
+        | jnp.where(jnp.any(edge), st.EDGE, 0)
+        | jnp.where(jnp.all(finite), 0, st.NONFINITE)
+        | jnp.where(jnp.any(det_planes(F_trial) <= 0), st.J_NONPOSITIVE, 0)
+        | jnp.where(touched > n_grid, st.GRID_FULL, 0)
+    )
+
+
 def make_step(config: Config):
     """Build ``step(state, params) -> state`` for this static configuration."""
     grid = config.grid
     dim, dx = grid.dim, grid.dx
     alpha = 0.0 if config.transfer == "apic" else config.alpha
-    sparse_grid = config.active_nodes is not None
-    node_x_np = None if sparse_grid else grid.node_positions().T
+    node_x_np = None if config.active_nodes is not None else grid.node_positions().T
     stops_np = np.asarray(config.stop_times)
     # Python floats (weakly typed): the bounds take the particles' dtype.
-    lower, upper = grid.lower.tolist(), grid.upper.tolist()
-    edge_lo, edge_hi = (b.tolist() for b in grid.edge_band)
+    bounds = (grid.lower.tolist(), grid.upper.tolist(), *(b.tolist() for b in grid.edge_band))
     origin, length, periodic = grid.origin, grid.length.tolist(), grid.periodic
 
     def advance(state, params, dt, t_new):
         dtype = state.x.dtype
         token = _always_true(state.steps)
-        stencil = make_stencil(state.x, grid)
-        if sparse_grid:
-            slots, keys, touched = sparse.activate(stencil.index, config.active_nodes, grid.n_nodes,
-                                                   consecutive_rows=not grid.periodic[-1])
-            stencil = stencil._replace(index=slots)
-            node_x = sparse.slot_positions(keys, grid, dtype)
-            n_grid = config.active_nodes
-        else:
-            node_x, n_grid, touched = jnp.asarray(node_x_np, dtype), grid.n_nodes, 0
+        stencil, node_x, n_grid, touched = _stencil_and_nodes(state.x, config, node_x_np)
         stencil = _materialize(stencil, token)
         mass = params.rho * state.vol0
         v = list(jnp.unstack(state.v, axis=-1))  # unstack: its transpose is a stack (linalg.planes)
@@ -124,24 +152,7 @@ def make_step(config: Config):
         F_trial = [[F[a][b] + dt * grad_v_F[a][b] for b in range(dim)] for a in range(dim)]
         F, tau, internal = config.material.update_planes(F_trial, state.internal, params, dt)
         F, tau = _materialize((F, tau), token)
-
-        left = edge = finite = None
-        for a in range(dim):
-            out_a = (x[a] < lower[a]) | (x[a] >= upper[a])
-            edge_a = (x[a] < edge_lo[a]) | (x[a] >= edge_hi[a])
-            finite_a = jnp.isfinite(x[a]) & jnp.isfinite(moved.v[a])
-            left, edge = (out_a, edge_a) if left is None else (left | out_a, edge | edge_a)
-            finite = finite_a if finite is None else finite & finite_a
-        for row in tau:
-            for t in row:
-                finite = finite & jnp.isfinite(t)
-        flags = (
-            jnp.where(jnp.any(left), st.LEFT_GRID, 0)
-            | jnp.where(jnp.any(edge), st.EDGE, 0)
-            | jnp.where(jnp.all(finite), 0, st.NONFINITE)
-            | jnp.where(jnp.any(det_planes(F_trial) <= 0), st.J_NONPOSITIVE, 0)
-            | jnp.where(touched > n_grid, st.GRID_FULL, 0)
-        )
+        flags = _status_flags(x, moved.v, tau, F_trial, touched, n_grid, bounds)
         return state.replace(
             x=jnp.stack(x, -1), v=jnp.stack(moved.v, -1), C=unplanes(moved.C), F=unplanes(F), tau=unplanes(tau),
             internal=internal, t=t_new, dt=dt, steps=state.steps + 1, status=state.status | flags,

@@ -9,11 +9,22 @@ told otherwise (``--threads all``), and independent runs use one such process pe
 
 XLA reads its flags once, when the backend starts; ``use_one_thread`` must run before the first
 computation, and raises if it comes too late rather than being silently ignored.
+
+JAX has no public call that tells whether its backend has started without starting it (the
+``backends_are_initialized`` of ``jax._src.xla_bridge`` is private). The check asks JAX through
+its public configuration instead: the option ``jax_num_cpu_devices`` refuses a new value once
+the backend has started (its documented contract, "must be set before JAX is initialized"), so
+``_backend_started`` offers it another value and puts the old one back. Before the backend
+starts the change is a plain setting, undone at once; after, JAX raises and nothing changes. A
+JAX without that refusal (0.4.36 has no such option; 0.5.0 has it unchecked) cannot tell: there
+a late call is not detected and the flag silently has no effect. A process that has not
+imported JAX has not started it, and is not made to import it.
 """
 
 from __future__ import annotations
 
 import os
+import sys
 
 __all__ = ["SINGLE_THREAD_FLAGS", "THREAD_CHOICES", "apply_threads", "use_one_thread", "single_threaded"]
 
@@ -22,11 +33,21 @@ SINGLE_THREAD_FLAGS = "--xla_cpu_multi_thread_eigen=false intra_op_parallelism_t
 
 
 def _backend_started() -> bool:
-    try:
-        from jax._src import xla_bridge
-    except ImportError:  # pragma: no cover (a JAX without the private module: assume not started)
+    """Whether JAX's backend has started (module docstring: how, and where it cannot tell)."""
+    if "jax" not in sys.modules:
         return False
-    return bool(xla_bridge.backends_are_initialized())
+    import jax
+
+    try:
+        before = jax.config.jax_num_cpu_devices
+    except AttributeError:  # pragma: no cover (a JAX without the option: it cannot tell)
+        return False
+    try:
+        jax.config.update("jax_num_cpu_devices", before + 1)
+    except RuntimeError:  # "... should be updated before backends are initialized"
+        return True
+    jax.config.update("jax_num_cpu_devices", before)
+    return False
 
 
 def single_threaded() -> bool:

@@ -67,6 +67,17 @@ def test_run_rejects_bad_input(argv, message, tmp_path):
     assert out.returncode == 2 and message in out.stderr
 
 
+
+def test_run_refuses_an_experiment_file_naming_a_missing_measurement(tmp_path):
+    """`run FILE.toml` with a [[profile]] whose file is not there ran and exited 0; now it is
+    refused before anything compiles, at the key's line, as every command refuses it."""
+    path = tmp_path / "column.toml"
+    path.write_text('[geometry]\nlength = "60 mm"\nheight = "90 mm"\n[numerics]\ndx = "15 mm"\nt_end = "0.01 s"\n'
+                    '\n[[profile]]\nfile = "missing.csv"\n')
+    out = _cli("run", str(path), "--json", "--no-progress", cwd=tmp_path)
+    assert out.returncode == 2 and out.stdout == "", out.stderr
+    assert out.stderr.strip().endswith(f"{path}:9: [[profile]] #1 file: no such file: {tmp_path / 'missing.csv'}")
+
 def test_bench_prints_the_documented_fields():
     out = _cli("bench", "--quick", "--json", "--particles", "256", "--repeat", "1")
     assert out.returncode == 0, out.stderr

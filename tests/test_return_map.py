@@ -785,7 +785,7 @@ def test_elastic_tangent_at_zero_strain(dim):
 
 @pytest.mark.xfail(strict=True, reason="exactly at the apex (p_tr = (1−β) p_c/2, ε_apex = 0) the bracket "
                    "has zero width and the radial-return ratio μ1²h/(μ1²h − 2Gε) is 0/0, so the implicit step "
-                   "cannot supply the limit of the plastic tangent (critical_state.py _surface_residual)")
+                   "cannot supply the limit of the plastic tangent (critical_state.py surface_residual)")
 def test_apex_derivative_is_continuous():
     """The static return is smooth through the apex: dp/dp_tr exactly at p_tr = apex equals the
     central difference across it (1e-6 relative). Measured now: 1.0 vs 0.847."""

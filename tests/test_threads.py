@@ -44,3 +44,22 @@ def test_bad_choice_names_the_option():
 
     with pytest.raises(ValueError, match="--threads"):
         apply_threads("2")
+
+
+def test_the_backend_check_is_made_through_public_jax():
+    """Whether the backend has started is asked through JAX's public configuration (no private
+    ``jax._src``), before and after the first computation, and the question changes nothing."""
+    import ast
+    import pathlib
+
+    tree = ast.parse((pathlib.Path(__file__).resolve().parents[1] / "jaxmpm" / "threads.py").read_text())
+    imported = [a.name for n in ast.walk(tree) if isinstance(n, ast.Import) for a in n.names]
+    imported += [n.module or "" for n in ast.walk(tree) if isinstance(n, ast.ImportFrom)]
+    assert "jax" in imported and not [m for m in imported if "_src" in m]
+    code = ("import jax; from jaxmpm.threads import _backend_started; before = jax.config.jax_num_cpu_devices; "
+            "print(_backend_started(), jax.config.jax_num_cpu_devices == before); "
+            "import jax.numpy as jnp; jnp.zeros(1).block_until_ready(); "
+            "print(_backend_started(), jax.config.jax_num_cpu_devices == before, len(jax.devices('cpu')))")
+    run = _python(code, None)
+    assert run.returncode == 0, run.stderr
+    assert run.stdout.split() == ["False", "True", "True", "True", "1"]

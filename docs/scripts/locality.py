@@ -21,7 +21,7 @@ import numpy as np
 from jaxmpm.kernels import node_strides
 from jaxmpm.rollout import make_rollout
 from jaxmpm.step import make_step
-from jaxmpm.studies.bench import _device, _scene, median_time
+from jaxmpm.studies.bench import bench_scene, device_name, median_time
 
 
 def timed(fn, *args, repeat=5):
@@ -35,7 +35,7 @@ def permute(state, order):
 
 
 def case(scene, dim, warm_t):
-    config, state, params = _scene(scene, False, dim, "float32")
+    config, state, params = bench_scene(scene, False, dim, "float32")
     warm = make_rollout(dataclasses.replace(config, t_end=warm_t, block_size=None), observer=None)
     state = jax.jit(warm)(state, params)[0]
     step = make_step(config)
@@ -57,7 +57,7 @@ def case(scene, dim, warm_t):
 
 
 def main():
-    out = {"device": _device(), "dtype": "float32",
+    out = {"device": device_name(), "dtype": "float32",
            "column-S2 (2D, full model)": case("column", 2, 0.02),
            "elastic-block (3D)": case("block", 3, 0.05)}
     print(json.dumps(out, indent=1))

@@ -21,7 +21,7 @@ from profile_step import timed, transfer_phases, whole_step  # the same phases, 
 from jaxmpm.linalg import eigh_sym, mm, planes, sym_log, unplanes
 from jaxmpm.rollout import make_rollout
 from jaxmpm.scenes import falling_block
-from jaxmpm.studies.bench import _device
+from jaxmpm.studies.bench import device_name
 from jaxmpm.transfer import g2p_planes
 
 
@@ -66,7 +66,7 @@ def main():
     ratio = {k: round(three["parts_ms"][k] / two["parts_ms"][k], 2) for k in two["parts_ms"]}
     ratio["whole_step"] = round(three["whole_step_ms"] / two["whole_step_ms"], 2)
     per_particle = round(three["whole_us_per_particle"] / two["whole_us_per_particle"], 2)
-    out = {"case": "Hencky block, float32, AFLIP, one thread", "device": _device(), "2d": two, "3d": three,
+    out = {"case": "Hencky block, float32, AFLIP, one thread", "device": device_name(), "2d": two, "3d": three,
            "ratio_3d_over_2d": ratio, "per_particle_ratio_3d_over_2d": per_particle}
     print(json.dumps(out, indent=1))
 

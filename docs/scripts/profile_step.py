@@ -21,11 +21,11 @@ import jax.numpy as jnp
 from jaxmpm.boundary import apply_walls
 from jaxmpm.kernels import make_stencil
 from jaxmpm.linalg import mm
-from jaxmpm.materials.critical_state import _surface_residual, bulk_modulus, return_map
+from jaxmpm.materials.critical_state import bulk_modulus, return_map, surface_residual
 from jaxmpm.materials.hencky import hencky_strain
 from jaxmpm.rollout import make_rollout
 from jaxmpm.step import make_step, time_step
-from jaxmpm.studies.bench import _device, _scene, median_time
+from jaxmpm.studies.bench import bench_scene, device_name, median_time
 from jaxmpm.transfer import g2p, grid_velocities, p2g
 
 
@@ -68,7 +68,7 @@ def main():
     parser.add_argument("--iterations", type=int, nargs="*", default=[])
     parser.add_argument("--particles", type=int, default=None, help="override the column's 10,240 particles")
     args = parser.parse_args()
-    config, state, params = _scene("column", False, 2, "float32", args.particles)
+    config, state, params = bench_scene("column", False, 2, "float32", args.particles)
     grid = config.grid
     warm = make_rollout(dataclasses.replace(config, t_end=0.02), observer=None)
     state = jax.jit(warm)(state, params)[0]
@@ -95,7 +95,7 @@ def main():
         "  of which return_map": timed(rmap_fn, strain, state.internal["eps_v_p"]),
         "time_step": timed(dt_fn, state),
     }
-    out = {"scene": "column-S2", "n_particles": state.n_particles, "device": _device(), "dtype": "float32",
+    out = {"scene": "column-S2", "n_particles": state.n_particles, "device": device_name(), "dtype": "float32",
            "iterations": material.iterations, "whole_step_ms": round(1e3 * whole, 3),
            "parts_ms": {k: round(1e3 * v, 3) for k, v in parts.items()},
            "parts_share_of_whole": {k: round(v / whole, 3) for k, v in parts.items()},
@@ -110,7 +110,7 @@ def main():
         dev = strain - (e_v / 2)[:, None, None] * jnp.eye(2, dtype=strain.dtype)
         q_tr = 2.0 * G * jnp.sqrt(0.5 * jnp.sum(dev * dev, axis=(-2, -1)))
         pc_n = params.pc0 * jnp.exp(-params.xi * state.internal["eps_v_p"])
-        g = _surface_residual(o["deps_v_p"], -K * e_v, q_tr, pc_n, params, K, G)
+        g = surface_residual(o["deps_v_p"], -K * e_v, q_tr, pc_n, params, K, G)
         return float(jnp.max(jnp.where(o["plastic"] > 0, jnp.abs(g) / pc_n, 0.0)))
 
     sweep = {}

@@ -28,7 +28,7 @@ from jaxmpm.linalg import mm
 from jaxmpm.rollout import make_rollout
 from jaxmpm.scenes import falling_block
 from jaxmpm.step import make_step
-from jaxmpm.studies.bench import _device, median_time
+from jaxmpm.studies.bench import device_name, median_time
 from jaxmpm.transfer import g2p, grid_velocities, p2g
 
 
@@ -105,7 +105,7 @@ def main():
     per_step = lambda t: round(1e3 * t / n, 4)  # noqa: E731
     out = {
         "case": "bench --grad: 2D Hencky block, float32", "n_particles": state.n_particles,
-        "device": _device(),
+        "device": device_name(),
         "step_ms": {"forward": per_step(t_forward), "forward_with_residuals": per_step(t_residuals),
                     "backward": per_step(t_backward), "grad_in_one_jit": per_step(t_value_and_grad)},
         "checkpointed_gradient_in_forward_runs": round(1 + (t_residuals + t_backward) / t_forward, 2),

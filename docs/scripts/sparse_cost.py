@@ -44,7 +44,7 @@ from jaxmpm.params import Params
 from jaxmpm.rollout import make_rollout
 from jaxmpm.sampling import seed_box
 from jaxmpm.state import BUDGET, describe_status, init_state
-from jaxmpm.studies.bench import _device, _temp_mb
+from jaxmpm.studies.bench import device_name, temp_mb
 
 ROOT = pathlib.Path(__file__).resolve().parents[2]
 DX = 1.0 / 64  # a 4,096-particle block is 32 cells (0.5 m) wide
@@ -112,7 +112,7 @@ def run_case(cells: int, n_particles: int, steps: int, sparse: bool, repeat: int
         "run_s_all": [round(t, 4) for t in times],
         "ms_per_step": round(1e3 * run_s / n_steps, 4),
         "particle_steps_per_s": round(n * n_steps / run_s),
-        "xla_temp_mb": _temp_mb(compiled),
+        "xla_temp_mb": temp_mb(compiled),
         "status": status,
         "status_unexpected": describe_status(status & ~BUDGET),
         "touched_nodes_start": touched_nodes(state.x, config.grid),
@@ -220,7 +220,7 @@ def main() -> None:
     results = {
         "description": DESCRIPTION,
         "date": datetime.date.today().isoformat(),
-        "device": _device(),
+        "device": device_name(),
         "jax": jax.__version__,
         "dtype": "float32",
         "dim": 2,

@@ -1,13 +1,14 @@
 """The interface every material implements, and stress invariants shared by all of them.
 
 A material is a small frozen dataclass (static configuration: hashable, part of ``Config``).
-Its methods are pure functions of arrays; parameters come in as a ``Params`` pytree.
+Its methods are pure functions of arrays; parameters come in as a ``Params`` pytree, of which it
+reads the leaves its ``keys`` name (the rest, e.g. μ_w of the walls, are not its own).
 """
 
 from __future__ import annotations
 
 import abc
-from typing import Any
+from typing import Any, ClassVar
 
 import jax.numpy as jnp
 
@@ -40,7 +41,10 @@ class Material(abc.ABC):
     """Constitutive update of the elastic deformation gradient and Kirchhoff stress.
 
     A material implements ``update_planes``, on matrices held as planes (lists of (N,) arrays,
-    ``jaxmpm.linalg``), which the time step calls; ``update`` is the same on (N, d, d) arrays."""
+    ``jaxmpm.linalg``), which the time step calls; ``update`` is the same on (N, d, d) arrays.
+    ``keys``: the parameters (``jaxmpm.params.PARAMS``) its update and ``wave_speed`` read."""
+
+    keys: ClassVar[tuple[str, ...]] = ()
 
     @abc.abstractmethod
     def init_internal(self, n: int, dtype) -> dict[str, Any]:

@@ -28,6 +28,7 @@ and the forward cost of a gradient is that of the forward pass plus one step.
 from __future__ import annotations
 
 import dataclasses
+from typing import ClassVar
 
 import jax
 import jax.numpy as jnp
@@ -36,7 +37,8 @@ from ..linalg import mm_planes, planes, safe_div, safe_sqrt, sym_exp_planes, unp
 from .base import Material, lame
 from .hencky import hencky_strain_planes
 
-__all__ = ["CriticalState", "return_map", "return_map_planes", "return_invariants", "yield_function", "mu_of_I",
+__all__ = ["CriticalState", "return_map", "return_map_planes", "return_invariants", "surface_residual",
+           "yield_function", "mu_of_I",
            "INTERNAL_KEYS"]
 
 #: A solve stops once no lane moves by more than STEP_TOL machine epsilons of its scale in one
@@ -142,8 +144,9 @@ def _near_apex(eps_apex, q_tr, pc_n, params, K, G):
     return eps_apex + safe_div((1.0 + params.beta) * pc * (-G * eps_apex), q_tr * params.mu1 * slope)
 
 
-def _surface_residual(eps, p_tr, q_tr, pc_n, params, K, G):
-    """g(ε) = y(p(ε), q(ε), p_c(ε)) along the return path."""
+def surface_residual(eps, p_tr, q_tr, pc_n, params, K, G):
+    """g(ε) = y(p(ε), q(ε), p_c(ε)) along the return path: the residual of the scalar solve the
+    return map's Newton iterations zero (``docs/scripts/profile_step.py`` measures it)."""
     p = p_tr + K * eps
     pc = pc_n * jnp.exp(-params.xi * eps)
     h = 2.0 * p + (params.beta - 1.0) * pc
@@ -243,7 +246,7 @@ def return_invariants(p_tr, q_tr, eps_v_p, params, dt, dim, iterations=12):
     # whose cancellation in p = p_tr + Kε limits how well any ε can be resolved.
     scale = jnp.where(plastic, (jnp.abs(p_s) + pc_s) / K_s, 0.0)
     eps_apex = _apex_increment(p_s, pc_s, params_s, K_s, max(3, iterations // 2), scale)
-    residual_s = lambda e: _surface_residual(e, p_s, q_s, pc_s, params_s, K_s, G_s)  # noqa: E731
+    residual_s = lambda e: surface_residual(e, p_s, q_s, pc_s, params_s, K_s, G_s)  # noqa: E731
     lo, hi = jnp.minimum(eps_apex, zero), jnp.maximum(eps_apex, zero)
     start, best = zero, jnp.abs(residual_s(zero))
     candidates = (0.5 * eps_apex, _near_apex(eps_apex, q_s, pc_s, params_s, K_s, G_s),
@@ -256,7 +259,7 @@ def return_invariants(p_tr, q_tr, eps_v_p, params, dt, dim, iterations=12):
     cleared_s = lambda e: _cleared_residual(e, p_s, q_s, pc_s, params_s, K_s, G_s)  # noqa: E731
     eps_root = _safeguarded_newton(residual_s, eps_apex, zero, start, iterations, scale, cleared_s)
     eps_reg = _implicit_step(
-        lambda e: _surface_residual(e, p_tr, q_tr, pc_n, params, K, G), eps_root, jnp.abs(eps_apex)
+        lambda e: surface_residual(e, p_tr, q_tr, pc_n, params, K, G), eps_root, jnp.abs(eps_apex)
     )
 
     eps = jnp.where(plastic, eps_reg, 0.0)
@@ -327,6 +330,7 @@ class CriticalState(Material):
     """The critical-state μ(I) material. ``iterations``: the most Newton steps of each scalar
     solve (each stops earlier once its step is at round-off)."""
 
+    keys: ClassVar[tuple[str, ...]] = ("E", "nu", "rho", "rho_s", "d", "mu1", "mu2", "I0", "beta", "pc0", "xi")
     iterations: int = 12
 
     def __post_init__(self):

@@ -8,6 +8,7 @@ derivative, so gradients are finite at F_e = I and at any repeated stretch.
 from __future__ import annotations
 
 import dataclasses
+from typing import ClassVar
 
 from ..linalg import planes, sym_log_planes, unplanes
 from .base import Material, lame
@@ -45,6 +46,8 @@ def hencky_stress(F, params):
 @dataclasses.dataclass(frozen=True)
 class Hencky(Material):
     """Purely elastic material: the trial state is the final state."""
+
+    keys: ClassVar[tuple[str, ...]] = ("E", "nu", "rho")
 
     def init_internal(self, n, dtype):
         return {}

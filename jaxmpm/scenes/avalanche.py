@@ -38,7 +38,7 @@ from ..params import Params
 from ..sampling import seed_box
 from ..state import init_state
 from ..step import step_budget
-from .collapse import Scene
+from .base import Scene
 from .info import SceneInfo
 
 __all__ = ["SNOW", "DEFAULT_TERRAIN", "OBSTACLE", "avalanche", "default_terrain_path"]

@@ -19,7 +19,8 @@ from ..params import Params
 from ..sampling import seed_box
 from ..state import init_state
 from ..step import step_budget
-from .collapse import G, Scene, floor_lift
+from .base import Scene
+from .collapse import G, floor_lift
 from .info import SceneInfo
 
 __all__ = ["incline", "S1_DEPTH", "S1_PARAMS", "bagnold_velocity"]

@@ -23,10 +23,10 @@ from ..precision import use_dtype
 from ..rollout import make_rollout
 from ..scenes import S2_HEIGHT, S2_LENGTH, falling_block, gates_collapse
 
-__all__ = ["bench_forward", "bench_gradient", "median_time", "run_bench"]
+__all__ = ["bench_forward", "bench_gradient", "bench_scene", "device_name", "median_time", "run_bench", "temp_mb"]
 
 
-def _device() -> str:
+def device_name() -> str:
     dev = jax.devices()[0]
     kind = getattr(dev, "device_kind", dev.platform)
     return f"{dev.platform}:{kind} ({os.cpu_count()} cores, {platform.machine()})"
@@ -55,7 +55,7 @@ def median_time(fn, *args, repeat=20):
 SCENES = ("block", "column")
 
 
-def _scene(scene: str, quick: bool, dim: int, dtype, n_particles=None):
+def bench_scene(scene: str, quick: bool, dim: int, dtype, n_particles=None):
     if scene == "column":
         if dim != 2:
             raise ValueError(f"--scene column is 2D (a quasi-2D channel), got dim={dim}")
@@ -75,7 +75,7 @@ def bench_forward(quick=False, dim=2, dtype="float32", repeat=3, n_particles=Non
     """Forward rollout throughput. ``steps`` caps the run at that many steps (a fixed-length
     scan; the ``BUDGET`` status bit is then expected), so that large cases stay affordable.
     ``active_nodes`` runs the sparse grid with that many slots instead of the dense grid."""
-    config, state, params = _scene(scene, quick, dim, dtype, n_particles)
+    config, state, params = bench_scene(scene, quick, dim, dtype, n_particles)
     if active_nodes is not None:
         config = dataclasses.replace(config, active_nodes=active_nodes)
     if steps is not None:
@@ -98,17 +98,17 @@ def bench_forward(quick=False, dim=2, dtype="float32", repeat=3, n_particles=Non
         "grid_nodes": config.grid.n_nodes,
         "active_nodes": config.active_nodes,
         "compile_s": round(compile_s, 3),
-        "xla_temp_mb": _temp_mb(compiled),
+        "xla_temp_mb": temp_mb(compiled),
         "run_s": round(run_s, 4),
         "particle_steps_per_s": round(n * steps / run_s),
         "peak_rss_mb": round(_peak_rss_mb(), 1),
-        "device": _device(),
+        "device": device_name(),
         "status": int(final.status),
         "repeat": repeat,
     }
 
 
-def _temp_mb(compiled) -> float | None:
+def temp_mb(compiled) -> float | None:
     analysis = compiled.memory_analysis()
     if analysis is None:
         return None
@@ -124,7 +124,7 @@ def bench_gradient(quick=False, dim=2, dtype="float32", repeat=3, n_particles=No
         raise ValueError(f"steps must be a positive int, got {steps!r}")
     config, state, params = falling_block(n_particles=n_particles, dim=dim, t_end=10.0, max_steps=steps, dtype=dtype)
     out = {"scene": "elastic-block", "dim": dim, "dtype": str(jnp.dtype(state.x.dtype)),
-           "n_particles": state.n_particles, "n_steps": steps, "device": _device()}
+           "n_particles": state.n_particles, "n_steps": steps, "device": device_name()}
 
     def loss_fn(checkpoint):
         rollout = make_rollout(config, observer=None, checkpoint=checkpoint)
@@ -137,7 +137,7 @@ def bench_gradient(quick=False, dim=2, dtype="float32", repeat=3, n_particles=No
         grad = jax.jit(jax.grad(loss_fn(checkpoint))).lower(params).compile()
         tag = "checkpointed" if checkpoint else "plain"
         out[f"grad_{tag}_compile_s"] = round(time.perf_counter() - start, 3)
-        out[f"grad_{tag}_temp_mb"] = _temp_mb(grad)
+        out[f"grad_{tag}temp_mb"] = temp_mb(grad)
         if checkpoint:
             run_s, g = _timed(grad, params, repeat=repeat)
             out["grad_run_s"] = round(run_s, 4)

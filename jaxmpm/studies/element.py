@@ -118,7 +118,6 @@ def drive(
     eye = jnp.eye(dim, dtype=dtype)
     lateral = jnp.diag(jnp.asarray([0.0 if a == 1 else 1.0 for a in range(dim)], dtype))
     pressure = jnp.asarray(pressure, dtype)
-    sg = jax.lax.stop_gradient
 
     def update(F, internal, L_step, prm):
         return material.update(mm(eye + dt * L_step, F), internal, prm, dt)
@@ -127,30 +126,11 @@ def drive(
         F_new, tau, _ = update(F, internal, L_step + rate * lateral, prm)
         return tau[0, 0] / det(F_new) + pressure  # lateral Cauchy stress + confining pressure
 
-    def lateral_rate(rate0, F, internal, L_step):
-        F_s, internal_s, params_s = sg((F, internal, params))
-        fn = lambda x: lateral_residual(x, F_s, internal_s, L_step, params_s)  # noqa: E731
-        bound = rate_bound * jnp.max(jnp.abs(L_step))
-
-        def body(_, carry):
-            x, neg, pos = carry  # iterate; bracket ends where r < 0 and r > 0 (neg < pos)
-            r, slope = jax.jvp(fn, (x,), (jnp.ones_like(x),))
-            neg = jnp.where(r < 0, x, neg)
-            pos = jnp.where(r > 0, x, pos)
-            newton = x - safe_div(r, slope, fill=0.0)
-            inside = (newton > neg) & (newton < pos) & (slope > 0)
-            return jnp.where(r == 0, x, jnp.where(inside, newton, 0.5 * (neg + pos))), neg, pos
-
-        x, neg, pos = jax.lax.fori_loop(0, control_iterations, body, (jnp.clip(rate0, -bound, bound), -bound, bound))
-        r, slope = jax.jvp(lambda y: lateral_residual(y, F, internal, L_step, params), (x,), (jnp.ones_like(x),))
-        correction = -safe_div(r, sg(slope), fill=0.0)
-        small = jnp.isfinite(correction) & (jnp.abs(correction) <= sg(pos - neg) + 1e-12)
-        return x + jnp.where(small, correction, 0.0)
-
     def step(carry, L_step):
         F, internal, t, rate = carry
         if lateral_control:
-            rate = lateral_rate(rate, F, internal, L_step)
+            rate = _lateral_rate(lateral_residual, rate, (F, internal, L_step, params), control_iterations,
+                                 rate_bound)
             L_step = L_step + rate * lateral
         F, tau, internal = update(F, internal, L_step, params)
         p, q = invariants(tau)
@@ -171,6 +151,34 @@ def drive(
     carry = (F0, internal0, jnp.zeros((), dtype), jnp.zeros((), dtype))
     _, history = jax.lax.scan(step, carry, L)
     return ElementHistory(**history)
+
+
+def _lateral_rate(residual, rate0, args, iterations: int, rate_bound: float):
+    """The root of ``residual(rate, F, internal, L_step, params)`` (increasing in the rate; ``args``
+    the last four) from ``rate0``: ``iterations`` safeguarded Newton steps on stop-gradient F,
+    internal and params inside the bracket ±``rate_bound`` × the applied rate (bisection when a
+    step leaves the bracket), then one Newton step on live values for the implicit-function
+    derivative (see ``drive``)."""
+    sg = jax.lax.stop_gradient
+    F, internal, L_step, params = args
+    F_s, internal_s, params_s = sg((F, internal, params))
+    fn = lambda x: residual(x, F_s, internal_s, L_step, params_s)  # noqa: E731
+    bound = rate_bound * jnp.max(jnp.abs(L_step))
+
+    def body(_, carry):
+        x, neg, pos = carry  # iterate; bracket ends where r < 0 and r > 0 (neg < pos)
+        r, slope = jax.jvp(fn, (x,), (jnp.ones_like(x),))
+        neg = jnp.where(r < 0, x, neg)
+        pos = jnp.where(r > 0, x, pos)
+        newton = x - safe_div(r, slope, fill=0.0)
+        inside = (newton > neg) & (newton < pos) & (slope > 0)
+        return jnp.where(r == 0, x, jnp.where(inside, newton, 0.5 * (neg + pos))), neg, pos
+
+    x, neg, pos = jax.lax.fori_loop(0, iterations, body, (jnp.clip(rate0, -bound, bound), -bound, bound))
+    r, slope = jax.jvp(lambda y: residual(y, *args), (x,), (jnp.ones_like(x),))
+    correction = -safe_div(r, sg(slope), fill=0.0)
+    small = jnp.isfinite(correction) & (jnp.abs(correction) <= sg(pos - neg) + 1e-12)
+    return x + jnp.where(small, correction, 0.0)
 
 
 def element_test(

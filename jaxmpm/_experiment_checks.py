@@ -1,0 +1,188 @@
+"""The checks of an experiment's values (``jaxmpm.experiment``), made whenever an ``Experiment``
+is built: in a file or in Python. The parser has checked kinds and units; these check what the
+values mean, each against the one list or table that owns it: the material against
+``jaxmpm.params.PARAMS`` (rules and relations; ``[boundaries] floor_friction`` is the floor's
+``mu_w``), the transfer against ``jaxmpm.config.TRANSFERS``, the sampling against
+``jaxmpm.sampling.SAMPLINGS``, the dtype against ``jaxmpm.precision.DTYPES`` and the floor
+against ``jaxmpm.scenes.collapse.FLOORS``. A failed check raises ``Invalid`` naming the section and
+the key, which the reader turns into ``FILE:LINE: [section] key: what``.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from ._toml import TIME, ExperimentError, key_name
+from .config import TRANSFERS
+from .params import DEFAULTS, LENGTH_UNITS, PARAM_KEYS, RELATIONS, param_help, param_problem
+from .precision import DTYPES
+from .sampling import SAMPLINGS
+from .scenes.collapse import DEFAULT_SAMPLING, FLOORS
+
+if TYPE_CHECKING:
+    from .experiment import Experiment
+
+__all__ = ["GATES", "Invalid", "check_experiment"]
+
+#: The gates of ``[boundaries] gate`` (``Experiment.gate_speeds``).
+GATES = ("none", "front", "back", "both")
+
+
+class Invalid(ExperimentError):
+    """A value that fails a check: its section, its key and what is wrong."""
+
+    def __init__(self, section, key, what):
+        super().__init__(f"{key_name(section, key)}: {what}")
+        self.section, self.key, self.what = section, key, what
+
+
+def _need(ok, section, key, what) -> None:
+    if not ok:
+        raise Invalid(section, key, what)
+
+
+def _positive(section, key, value, unit) -> None:
+    _need(value is not None and math.isfinite(value) and value > 0, section, key, f"must be > 0 {unit}, got {value}")
+
+
+def _one_of(choices: tuple[str, ...], value) -> str:
+    return f"must be one of {choices}, got {value!r}"
+
+
+def _names(units: Mapping[str, float]) -> str:
+    """The unit names as text: "m, cm or mm"."""
+    names = [u for u in units if u]
+    return ", ".join(names[:-1]) + " or " + names[-1]
+
+
+def check_experiment(e: Experiment) -> None:
+    """Check the values of ``e``; raises ``Invalid`` at the first that fails."""
+    _need(isinstance(e.name, str) and e.name.strip() != "", "experiment", "name", "must be a non-empty name")
+    _positive("geometry", "length", e.length, "m")
+    _positive("geometry", "height", e.height, "m")
+    if e.aspect is not None:  # made by the aspect-ratio family: the height is a x length
+        _need(math.isclose(e.height, e.aspect * e.length, rel_tol=1e-12), "geometry", "height",
+              f"must be aspect x length ({e.aspect:g} x {e.length:g} m) for a column made at aspect ratio "
+              f"{e.aspect:g}, got {e.height:g} m; change aspect with the height (None: not made at an aspect ratio)")
+    _need(e.dim in (2, 3), "numerics", "dim", f"must be 2 or 3, got {e.dim!r}")
+    if e.dim == 3:
+        _need(e.width is not None, "geometry", "width", "missing: a 3D run (dim = 3) needs the channel's width")
+        _positive("geometry", "width", e.width, "m")
+    else:
+        _need(e.width is None, "geometry", "width", "applies to dim = 3 (a 2D run has no width); set "
+                                                    "[numerics] dim = 3 or drop it")
+    _need(-60.0 < e.slope < 60.0, "geometry", "slope", f"must be in (-60, 60) degrees, got {e.slope}")
+    _check_boundaries(e)
+    _check_material(e)
+    _check_numerics(e)
+    _check_measurements(e)
+    if e.fit is not None:
+        _check_fit(e)
+
+
+def _check_boundaries(e: Experiment) -> None:
+    _need(e.floor in FLOORS, "boundaries", "floor", _one_of(FLOORS, e.floor))
+    if e.floor == "no-slip":
+        _need(e.floor_friction is None, "boundaries", "floor_friction",
+              "a no-slip floor has no friction coefficient; set floor = \"slip-stick\" to use one")
+    else:
+        _need(e.floor_friction is not None, "boundaries", "floor_friction",
+              f"missing: a {e.floor} floor needs its Coulomb friction coefficient")
+        problem = param_problem("mu_w", e.floor_friction)  # the floor's friction is the parameter mu_w
+        _need(problem is None, "boundaries", "floor_friction", f"{problem} (the floor's mu_w)")
+        _need("mu_w" not in e.material, "material", "mu_w", "the floor's friction is [boundaries] floor_friction")
+    _need(e.gate in GATES, "boundaries", "gate", _one_of(GATES, e.gate))
+    if e.gate == "none":
+        _need(e.gate_speed is None, "boundaries", "gate_speed", "there is no gate (gate = \"none\"); set gate = "
+                                                                "\"front\", \"back\" or \"both\" or drop it")
+    else:
+        _need(e.gate_speed is not None, "boundaries", "gate_speed",
+              f"missing: the {e.gate} gate needs gate_speed or gate_lift_time")
+        _positive("boundaries", "gate_speed", e.gate_speed, "m/s")
+    _need(not (e.gate in ("back", "both") and e.back_wall), "boundaries", "back_wall",
+          "a back gate stands where the back wall would: set back_wall = false")
+
+
+def _check_material(e: Experiment) -> None:
+    """The parameter table's rules on each key given, then its relations, the defaults standing
+    for the keys not given (reported at the relation's key)."""
+    unknown = sorted(set(e.material) - set(PARAM_KEYS))
+    _need(not unknown, "material", unknown[0] if unknown else None,
+          f"unknown parameter; [material] takes {param_help()}")
+    for key, value in e.material.items():
+        problem = param_problem(key, value)
+        _need(problem is None, "material", key, problem)
+    values = {**DEFAULTS, **e.material}
+
+    def shown(key) -> str:
+        return f"{key} = {values[key]!r}" + ("" if key in e.material else " (the default)")
+
+    for relation in RELATIONS:
+        if relation.key in e.material or relation.other in e.material:
+            at_least = np.all(np.asarray(values[relation.key]) >= np.asarray(values[relation.other]))
+            _need(at_least, "material", relation.key,
+                  f"must be >= {relation.other} ({relation.key} is {relation.why}), got {shown(relation.other)} "
+                  f"and {shown(relation.key)}")
+
+
+def _check_numerics(e: Experiment) -> None:
+    if e.dx is not None:
+        _positive("numerics", "dx", e.dx, "m")
+        thinnest = min(e.length, e.height, e.width if e.dim == 3 else math.inf)
+        _need(e.dx <= thinnest, "numerics", "dx", f"must be at most the column's thinnest side ({thinnest:g} m): a "
+                                                  f"body needs at least one cell across, got {e.dx:g} m")
+    sampling = e.sampling or DEFAULT_SAMPLING
+    _need(sampling in SAMPLINGS, "numerics", "sampling", _one_of(SAMPLINGS, e.sampling))
+    if e.ppc is not None:
+        if sampling == "poisson":
+            _need(e.ppc >= 1, "numerics", "ppc", f"must be a number >= 1, got {e.ppc}")
+        else:
+            _need(e.ppc >= 1 and float(e.ppc).is_integer(), "numerics", "ppc",
+                  f"must be a positive integer for {sampling} sampling, got {e.ppc}")
+    _need(isinstance(e.seed, int) and e.seed >= 0, "numerics", "seed", f"must be an integer >= 0, got {e.seed!r}")
+    _need(e.dtype is None or e.dtype in DTYPES, "numerics", "dtype", _one_of(DTYPES, e.dtype))
+    _positive("numerics", "t_end", e.t_end, "s")
+    _need(isinstance(e.frames, int) and e.frames >= 0, "numerics", "frames",
+          f"must be an integer >= 0, got {e.frames!r}")
+    if e.runout is not None:
+        _positive("numerics", "runout", e.runout, "m")
+    if e.backward_runout is not None:
+        _need(e.backward_runout >= 0, "numerics", "backward_runout", f"must be >= 0 m, got {e.backward_runout}")
+    _need(e.transfer in TRANSFERS, "numerics", "transfer", _one_of(TRANSFERS, e.transfer))
+    _need(0.0 <= e.alpha <= 1.0, "numerics", "alpha", f"must be in [0, 1], got {e.alpha}")
+    _need(0.0 < e.cfl <= 1.0, "numerics", "cfl", f"must be in (0, 1], got {e.cfl}")
+
+
+def _check_measurements(e: Experiment) -> None:
+    lengths, times = _names(LENGTH_UNITS), _names(TIME.table)
+    for i, p in enumerate(e.profiles):
+        if p.time is not None:
+            _need(0.0 < p.time <= e.t_end * (1 + 1e-9), "profile", "time",
+                  f"#{i + 1} at {p.time:g} s: must be in (0, t_end = {e.t_end:g} s]")
+        _need(p.units is None or p.units in LENGTH_UNITS, "profile", "units",
+              f"#{i + 1}: must be {lengths}, got {p.units!r}")
+    if e.front is not None:
+        _need(e.front.units is None or e.front.units in LENGTH_UNITS, "front", "units",
+              f"must be {lengths}, got {e.front.units!r}")
+        _need(e.front.time_units is None or e.front.time_units in TIME.table, "front", "time_units",
+              f"must be {times}, got {e.front.time_units!r}")
+        if e.front.correlation_time is not None:
+            _positive("front", "correlation_time", e.front.correlation_time, "s")
+
+
+def _check_fit(e: Experiment) -> None:
+    unknown = sorted(set(e.fit.keys) - set(PARAM_KEYS))
+    _need(not unknown, "fit", "keys", f"unknown parameter(s) {unknown}; valid keys are {list(PARAM_KEYS)}")
+    _need(len(set(e.fit.keys)) == len(e.fit.keys), "fit", "keys", f"a key is listed twice: {list(e.fit.keys)}")
+    _need(e.fit.keys != ("mu_w",) or e.floor != "no-slip", "fit", "keys", "mu_w is the floor's friction: a no-slip "
+                                                                          "floor has none to fit")
+    stray = sorted(set(e.fit.init) - set(e.fit.keys))
+    _need(not stray, "fit", "init", f"{stray} are not fitted (keys = {list(e.fit.keys)})")
+    if e.fit.noise is not None:
+        _need(e.fit.noise >= 0, "fit", "noise", f"must be >= 0, got {e.fit.noise}")
+    for key in ("weight_profile", "weight_front"):
+        _need(getattr(e.fit, key) >= 0, "fit", key, f"must be >= 0, got {getattr(e.fit, key)}")
