@@ -1,51 +1,46 @@
 """calibration: fit the μ(I) rheology's β, μ1, μ2, I0 and ξ to collapse data with jaxmpm.
 
-The data flow: ``data`` (profiles and front histories, validated) -> ``objective`` (a scene's
-residuals against them, an ``ObjectiveLike`` of ``protocol``, what every consumer calls;
-``observe`` holds what the run observes, apart from the data, and compiles the pure functions
-once per way of observing) -> ``fit`` (Levenberg–Marquardt or optax Adam, with bounds and a
-resumable history; its options are ``options.FitOptions`` and ``options.JudgeOptions``, its JSON
-``report.fit_report``) -> ``uncertainty`` (Gauss–Newton covariance, identifiability, and the verdict
-whether a point is a fit of the data at all); ``search`` runs LM from many space-filling starts in
-one vmapped batch and reports every minimum within the noise of the best. Both run the
-``(init, update)`` optimisers of ``lm`` (Levenberg–Marquardt) and ``adam`` through the one loop of
-``loop``, recording in ``history`` (saving and resuming); ``sweep`` evaluates the loss over many
-parameter sets at once. The studies return dataclasses whose ``to_json()`` the command line
-prints: ``twin`` fits data with known parameters (``TwinResult``), ``scaling`` fits the S5 runout
-law (``LawResult``), ``bench`` times an evaluation (``BenchResult``), ``coverage`` runs twins over
-noise seeds (``CoverageResult``). ``likelihood`` goes beyond Gauss–Newton: profile likelihoods, the
-posterior of one or two keys on a grid, and predictions of held-out data with a band.
+The package reads from the ground up, one sub-package per role (docs/layout.md):
+
+- ``data``: what was measured (profiles, front histories, scaling laws), read and validated;
+- ``problem``: what a fit solves. A ``Problem`` (the scene's run, what it observes, the keys and
+  their bounds) with ``make_residuals(problem)``, the pure ``residuals(z, data)``; an
+  ``Objective`` is a problem with its data, a ``CompositeObjective`` a concatenation of them;
+- ``batch``: many runs at once (worker processes, vmapped sweeps, Dask);
+- ``inference``: what a point is worth (the verdict, Gauss–Newton intervals with their
+  round-off, sampling and grid terms, profile likelihoods, grid, NUTS and emulated posteriors);
+- ``optim``: the optimisers as ``(init, update)`` pairs, their one loop and history, ``fit``
+  and the global ``search``, and a fit's report;
+- ``design`` (what to measure), ``studies`` (twins, coverage, the runout law, cost), ``plots``
+  and ``cli`` (``python -m calibration``).
+
+This face re-exports what a user's script needs; everything else is reached by its module.
 """
 
-from .bounds import DEFAULT_BOUNDS, FIT_KEYS, Bounds
-from .data import (
-    FrontHistory,
-    Profile,
-    RunoutLaw,
-    list_datasets,
-    load_front_history,
-    load_measurements,
-    load_profile,
-    load_scaling_law,
-)
-from .fit import FitResult, fit
-from .history import read_history
-from .likelihood import GridPosterior, HeldOut, ProfileLikelihood, grid_posterior, predict_heldout, profile_likelihood
-from .objective import CompositeObjective, FrontTarget, Objective, ProfileTarget
-from .observe import ModelFunctions, Observations, model_functions
-from .options import FitOptions, JudgeOptions, OptionError
-from .protocol import ObjectiveLike, ResidualModel
-from .report import fit_report
-from .search import Minimum, SearchResult, coarse_to_fine, design_starts, search
-from .uncertainty import (
-                          GridCheck,
-                          Uncertainty,
-                          Verdict,
-                          assess_fit,
-                          gauss_newton_uncertainty,
-                          grid_shift,
-                          structural_noise,
-)
+from jaxmpm.datasets import list_datasets
+
+from .data.loaders import FrontHistory, Profile, RunoutLaw, load_front_history, load_profile, load_scaling_law
+from .data.measurements import load_measurements
+from .inference.gauss_newton import Uncertainty, gauss_newton_uncertainty
+from .inference.gridcheck import GridCheck, grid_shift
+from .inference.gridpost import GridPosterior, HeldOut, grid_posterior, predict_heldout
+from .inference.likelihood import ProfileLikelihood, profile_likelihood
+from .inference.noise import structural_noise
+from .inference.options import JudgeOptions
+from .inference.verdict import Verdict, assess_fit
+from .optim.fit import FitResult, fit
+from .optim.history import read_history
+from .optim.options import FitOptions
+from .optim.report import fit_report
+from .optim.search import Minimum, SearchResult, coarse_to_fine, design_starts, search
+from .problem.bounds import DEFAULT_BOUNDS, FIT_KEYS, Bounds
+from .problem.composite import CompositeObjective
+from .problem.objective import Objective
+from .problem.observe import Observations
+from .problem.options import OptionError
+from .problem.protocol import ObjectiveLike, ResidualModel
+from .problem.residuals import ModelFunctions, Problem, make_residuals, model_functions
+from .problem.targets import FrontTarget, ProfileTarget
 
 __all__ = [
     "DEFAULT_BOUNDS", "FIT_KEYS", "Bounds", "GridPosterior", "HeldOut", "ProfileLikelihood", "grid_posterior",
@@ -56,5 +51,5 @@ __all__ = [
     "load_measurements",
     "coarse_to_fine", "load_profile", "model_functions", "load_scaling_law", "read_history", "search",
     "grid_shift", "structural_noise", "FitOptions", "JudgeOptions", "OptionError", "fit_report",
-    "ObjectiveLike", "ResidualModel",
+    "ObjectiveLike", "ResidualModel", "Problem", "make_residuals",
 ]

@@ -43,7 +43,7 @@ def problem():
 def test_the_bounds_map_is_written_once():
     """``Bounds``' methods, the model functions' ``physical`` on arrays and the posterior's log
     Jacobian are one map: θ ↔ z round-trips, dθ/dz is the derivative, log |dθ/dz| its sum."""
-    from calibration.bounds import dphysical_dz, log_jacobian, physical, unconstrained
+    from calibration.problem.bounds import dphysical_dz, log_jacobian, physical, unconstrained
 
     b = Bounds.create(("beta", "mu1", "xi"))
     lo, hi = np.asarray(b.lower), np.asarray(b.upper)
@@ -272,8 +272,7 @@ def test_composite_with_keys_per_experiment(sharing):
 def test_composite_with_keys_per_experiment_fits_and_spreads_columns(sharing):
     """The workers' column tasks, scattered, are the traced Jacobian; a fit finds each
     experiment's β and the shared μ1."""
-    from calibration.objective import jacobians_z
-    from calibration.workers import Workers
+    from calibration.batch.workers import Workers, jacobians_z
 
     comp, _, _, mu1 = sharing
     z = np.asarray(comp.bounds.to_unconstrained(np.array([0.9 * mu1, 0.22, 0.31])))
@@ -370,7 +369,7 @@ def kill_at_rows(event, args):
     if event != "os.rename" or busy or os.path.abspath(os.fspath(args[1])) != out or not os.path.exists(out):
         return
     busy.append(True)
-    from calibration.history import read_history
+    from calibration.optim.history import read_history
 
     if read_history(out)["history"]["loss"].size >= rows:
         os.kill(os.getpid(), signal.SIGKILL)
@@ -442,7 +441,7 @@ def test_jacobian_by_columns_equals_jacfwd():
     import jax
     import jax.numpy as jnp
 
-    from calibration.objective import jacobian_by_columns
+    from calibration.problem.residuals import jacobian_by_columns
 
     def fn(x):
         y = jnp.stack([jnp.sin(x[0]) * x[1], x[0] ** 2, jnp.exp(x[1] - x[2])])

@@ -9,15 +9,20 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from calibration import cli, plots
-from calibration.__main__ import build_parser, main
-from calibration.data import check_run_status, load_data, load_profile
-from calibration.design import Candidate, DesignResult
-from calibration.options import DataOptions, FitOptions, JudgeOptions
-from calibration.problem import member_objective, objective_of
-from calibration.report import posterior_checks
-from calibration.scaling import named_law
-from calibration.sweep import SweepResult, grid_points, latin_hypercube, sweep, sweep_points
+from calibration.batch.sweep import SweepResult, grid_points, latin_hypercube, sweep, sweep_points
+from calibration.cli import args as cli
+from calibration.cli.commands import main
+from calibration.cli.parser import build_parser
+from calibration.data.loaders import load_profile
+from calibration.data.measurements import check_run_status, load_data
+from calibration.design.design import Candidate, DesignResult
+from calibration.inference.options import JudgeOptions
+from calibration.optim.options import FitOptions
+from calibration.optim.report import PosteriorOptions, posterior_checks
+from calibration.plots import fits as plots
+from calibration.problem.build import member_objective, objective_of
+from calibration.problem.options import DataOptions
+from calibration.studies.scaling import named_law
 from jaxmpm import scenes
 from jaxmpm.scenes import runout_law
 
@@ -32,7 +37,8 @@ def test_objective_of_is_the_objective_the_command_line_fits():
     profile weighed 2) is the library's from the scene, the data and ``DataOptions``."""
     args = build_parser().parse_args(["fit", "--scene", "cohesive-collapse", "--data", S4, "--fit", "beta,mu1",
                                       "--weight-profile", "2", "--weighting", "row", *TINY])
-    scene, cli_objective = cli.scene_and_objective(args, ("beta", "mu1"))
+    cli_objective = cli.setup_of(args, ("beta", "mu1")).objective()
+    scene = cli_objective.scene
     data = load_data([S4])
     assert scene.config.t_end == pytest.approx(0.5) and len(data[0]) == 1 and data[1] is None
     ours = objective_of([scenes.cohesive_collapse(dx=DX, t_end=0.5, dtype="float32")], ("beta", "mu1"), [data],
@@ -65,13 +71,13 @@ def test_load_data_refuses_a_failed_runs_file(tmp_path):
 
 
 def test_fit_from_starts_runs_one_start_a_search_or_two_stages(monkeypatch):
-    """The dispatch of ``fit``'s starts: one start is ``calibration.fit.fit`` with the history
+    """The dispatch of ``fit``'s starts: one start is ``calibration.optim.fit.fit`` with the history
     options; more are ``search`` (or ``coarse_to_fine`` with a coarse objective) with the fit's
     steps and the judging options, the best point returned with the search."""
     import importlib
 
-    fit_module = importlib.import_module("calibration.fit")  # calibration.fit is also the function
-    search_module = importlib.import_module("calibration.search")
+    fit_module = importlib.import_module("calibration.optim.fit")
+    search_module = importlib.import_module("calibration.optim.search")
     calls = []
 
     def fake_fit(objective, init, **kw):
@@ -107,13 +113,13 @@ def test_fit_from_starts_runs_one_start_a_search_or_two_stages(monkeypatch):
 
 def test_posterior_checks_say_why_they_are_skipped():
     result = SimpleNamespace(uncertainty=None, keys=("beta",))
-    assert posterior_checks(None, result).report == {}
-    skipped = posterior_checks(None, result, profiles=5)
+    assert posterior_checks(None, result, PosteriorOptions()).report == {}
+    skipped = posterior_checks(None, result, PosteriorOptions(profiles=5))
     assert skipped.report == {"profile_likelihood_skipped": "the point is not a fit of the data: no interval to "
                                                             "scan around"}
     assert skipped.profiles == [] and skipped.posterior is None
     three = SimpleNamespace(uncertainty=SimpleNamespace(withheld=False), keys=("beta", "mu1", "xi"))
-    assert posterior_checks(None, three, posterior=5).report == {
+    assert posterior_checks(None, three, PosteriorOptions(posterior=5)).report == {
         "posterior_skipped": "3 keys: the grid posterior is for one or two"}
 
 
@@ -193,7 +199,7 @@ def test_sweep_figures_draw_a_curve_or_a_landscape(tmp_path):
 def test_the_twin_landscape_and_law_figures(tmp_path):
     """The figure sets of ``twin --landscape --plot`` and ``law --plot``, from stand-in results."""
     pytest.importorskip("matplotlib")
-    from calibration.twin import TwinLandscape
+    from calibration.studies.twin import TwinLandscape
 
     keys, thetas = grid_points({"beta": (0.1, 0.3), "mu1": (0.35, 0.45)}, 3)
     swept = SweepResult(keys=keys, thetas=thetas, loss=np.linspace(1.0, 2.0, 9), status=np.zeros(9, np.int64),

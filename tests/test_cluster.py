@@ -1,4 +1,4 @@
-"""Cluster sweeps (calibration.cluster) on a local Dask cluster of two workers, one of them
+"""Cluster sweeps (calibration.batch.cluster) on a local Dask cluster of two workers, one of them
 killed in the middle of a task: every member comes back, the lost task is retried and reported,
 a task that always fails is reported with its error, never dropped."""
 
@@ -15,8 +15,8 @@ import pytest
 from cluster_toy import make_toy
 from helpers import S4_DATA, TINY_FLAGS
 
-from calibration.cluster import cluster_sweep, parse_cluster, write_cluster_sweep
-from calibration.sweep import sweep
+from calibration.batch.cluster import cluster_sweep, parse_cluster, write_cluster_sweep
+from calibration.batch.sweep import sweep
 
 
 def test_cluster_specs_are_checked_before_anything_starts():
@@ -95,7 +95,7 @@ def test_a_worker_killed_mid_sweep_loses_no_member(tmp_path):
 def test_the_sweep_command_runs_on_a_local_cluster_with_the_in_process_numbers(tmp_path, capsys):
     import json
 
-    from calibration.__main__ import main
+    from calibration.cli.commands import main
 
     common = ["sweep", "--scene", "cohesive-collapse", "--data", str(S4_DATA), "--over", "beta=0.1:0.4:4",
               *TINY_FLAGS, "--chunk", "2"]
@@ -115,9 +115,9 @@ def test_the_sweep_command_does_not_exit_0_when_a_task_was_lost(monkeypatch, cap
     with the error, and the command exits 1 (the cluster itself is replaced by a stand-in)."""
     import json
 
-    import calibration.cluster as cluster
-    from calibration.__main__ import main
-    from calibration.sweep import SweepResult
+    import calibration.batch.cluster as cluster
+    from calibration.batch.sweep import SweepResult
+    from calibration.cli.commands import main
 
     def lost_sweep(make_objective, thetas, **kw):
         n = len(thetas)

@@ -1,4 +1,4 @@
-"""calibration.coverage: the rates, their Clopper–Pearson intervals and the plumbing, on a
+"""calibration.studies.coverage: the rates, their Clopper–Pearson intervals and the plumbing, on a
 linear-Gaussian stand-in for the twin (exact answers are known there; the real study is
 `python -m calibration coverage`, docs/twin.md)."""
 
@@ -8,10 +8,11 @@ import types
 import numpy as np
 import pytest
 
-from calibration.coverage import CoverageResult, clopper_pearson, coverage
-from calibration.fit import FitResult
-from calibration.twin import TwinResult
-from calibration.uncertainty import assess_fit, gauss_newton_uncertainty
+from calibration.inference.gauss_newton import gauss_newton_uncertainty
+from calibration.inference.verdict import assess_fit
+from calibration.optim.fit import FitResult
+from calibration.studies.coverage import CoverageResult, clopper_pearson, coverage
+from calibration.studies.twin import TwinResult
 
 M, TRUTH = 60, {"a": 1.0, "b": 2.0}
 KEYS = tuple(TRUTH)
@@ -21,7 +22,7 @@ BLOCKS, ROW_SCALE = {"profile": slice(0, M)}, np.full(M, 1 / np.sqrt(M))
 
 
 def linear_twin(*, quick, noise, keys, seed, width=1.0):
-    """Least squares of a line through noisy points, returned as calibration.twin returns a twin
+    """Least squares of a line through noisy points, returned as calibration.studies.twin returns a twin
     (a TwinResult), exactly solvable. ``width`` scales the reported interval (1: honest; 0.5: too narrow)."""
     rng = np.random.default_rng(seed)
     theta_true = np.array([TRUTH[k] for k in keys])

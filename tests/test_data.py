@@ -10,18 +10,17 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import jaxmpm as jm
-from calibration import data
-from calibration.data import (
+from calibration.data.loaders import (
     FrontHistory,
     Profile,
-    dataset_path,
-    list_datasets,
     load_front_history,
     load_profile,
     load_scaling_law,
-    load_setup,
     read_table,
 )
+from calibration.data.measurements import load_setup
+from jaxmpm import datasets as data
+from jaxmpm.datasets import dataset_path, list_datasets
 
 DATA = pathlib.Path(__file__).resolve().parent.parent / "experiments_data"
 

@@ -1,4 +1,4 @@
-"""``calibration.design`` and ``python -m calibration design``: what to measure, before measuring."""
+"""``calibration.design.design`` and ``python -m calibration design``: what to measure, before measuring."""
 
 import json
 
@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 
 from calibration import Objective
-from calibration.__main__ import main
-from calibration.design import Experiment, design, expected_halfwidths
-from calibration.uncertainty import Z95
+from calibration.cli.commands import main
+from calibration.design.design import Experiment, design, expected_halfwidths
+from calibration.inference.noise import Z95
 from jaxmpm import scenes
 
 L = 0.089

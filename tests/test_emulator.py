@@ -1,4 +1,4 @@
-"""The emulated posterior (calibration.emulator): Pareto smoothing against tails whose shape is
+"""The emulated posterior (calibration.inference.emulator): Pareto smoothing against tails whose shape is
 known, the quadratic emulator on residuals that are quadratic, and the corrected posterior of a
 curved two-key target against its quadrature on a fine grid."""
 
@@ -10,17 +10,12 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from calibration import emulator as emulator_module
-from calibration.bounds import Bounds, dphysical_dz, physical
-from calibration.emulator import (
-    CorrectedQuadratic,
-    EmulatedObjective,
-    QuadraticEmulator,
-    emulated_posterior,
-    log_uniform,
-    psis,
-)
-from calibration.likelihood import weighted_quantile
+from calibration.inference import emulator as emulator_module
+from calibration.inference import surrogates
+from calibration.inference.emulator import emulated_posterior, log_uniform
+from calibration.inference.gridpost import weighted_quantile
+from calibration.inference.surrogates import CorrectedQuadratic, EmulatedObjective, QuadraticEmulator, psis
+from calibration.problem.bounds import Bounds, dphysical_dz, physical
 
 SIGMA = 0.1
 
@@ -31,16 +26,16 @@ def _banana(theta):
                       jnp.sin(2.0 * theta[1]) - 0.5])
 
 
-def _toy_jacobian(data, z, lower, upper):
+def _toy_column(data, z, tangent, lower, upper):
     import jax
 
     def r_of(z):
         return _banana(physical(z, lower, upper)) - data
 
     z = jnp.asarray(z)
-    Jz = jax.jacfwd(r_of)(z)
-    J = Jz / dphysical_dz(z, lower, upper)[None, :]
-    return np.asarray(r_of(z)), np.asarray(Jz), np.asarray(J), {"status": np.zeros((), np.int32)}
+    r, dr_z = jax.jvp(r_of, (z,), (jnp.asarray(tangent),))
+    dr = dr_z / jnp.vdot(dphysical_dz(z, lower, upper), tangent)
+    return np.asarray(r), np.asarray(dr_z), np.asarray(dr), {"status": np.zeros((), np.int32)}
 
 
 def _toy_run(data, theta):
@@ -49,7 +44,7 @@ def _toy_run(data, theta):
 
 
 class Banana:
-    """A closed-form ObjectiveLike with the work pieces ``calibration.workers`` runs."""
+    """A closed-form ObjectiveLike with the work pieces ``calibration.batch.workers`` runs."""
 
     def __init__(self, data):
         self.keys = ("k0", "k1")
@@ -63,18 +58,22 @@ class Banana:
     def residual_fn(self, theta):
         return _banana(theta) - self.data, {"status": jnp.zeros((), jnp.int32)}
 
-    def column_tasks_z(self, z):
-        bounds = np.asarray(self.bounds.lower), np.asarray(self.bounds.upper)
-        return [(_toy_jacobian, (self.data, np.asarray(z), *bounds))]
+    @property
+    def parts(self):
+        return ((self, np.arange(2), self.bounds),)
 
-    def combine_columns_z(self, results):
-        return results[0]
+    @staticmethod
+    def join(outs):
+        return outs[0]
 
-    def residual_tasks(self, thetas, seeds=None):
-        return [(_toy_run, (self.data, np.asarray(t))) for t in thetas]
+    def column_task(self, z, tangent, bounds):
+        return _toy_column, (self.data, np.asarray(z), tangent, np.asarray(bounds.lower), np.asarray(bounds.upper))
 
-    def combine_residuals(self, results, rows):
-        return list(results)
+    def residual_task(self, theta, seed=None):
+        return _toy_run, (self.data, np.asarray(theta))
+
+    def coarsened(self, ratio):
+        raise NotImplementedError("a closed form has no grid")
 
     def describe(self):
         return {"toy": "banana"}
@@ -146,7 +145,7 @@ def test_gradient_kernel_is_the_kernel_and_its_derivatives():
     rng = np.random.default_rng(1)
     k, length, h = 3, 1.3, 1e-6
     X, Y = rng.normal(size=(2, k)), rng.normal(size=(2, k))
-    K = emulator_module._gradient_kernel(X, Y, length)
+    K = surrogates._gradient_kernel(X, Y, length)
     assert K.shape == (2 * (1 + k), 2 * (1 + k))
 
     def value(x, y):
@@ -303,7 +302,7 @@ def test_emulated_posterior_refuses_bad_input_before_any_run(banana):
     objective, result, *_ = banana
     calls = []
     objective_spy = Banana(objective.data)
-    objective_spy.column_tasks_z = lambda z: calls.append(z) or []
+    objective_spy.column_task = lambda *a: calls.append(a) or []
     for kwargs, match in (({"checks": 5}, "checks must be an integer >= 30"),
                           ({"reach": -1.0}, "reach must be a positive number"),
                           ({"settle": 0.0}, "settle must be a positive number"),
@@ -341,7 +340,7 @@ def test_prior_sensitivity_moves_a_key_the_data_leave_to_the_prior():
     """Checks spread flat over a key's box (the data say nothing about it) and one the data fix:
     under a log-uniform prior the first's posterior is the prior's (its mean, (b − a) / ln(b / a),
     moves by over half an sd), the second's does not move."""
-    from calibration.emulator import EmulatedPosterior, prior_sensitivity, scale_keys
+    from calibration.inference.emulator import EmulatedPosterior, prior_sensitivity, scale_keys
 
     bounds = Bounds(("beta", "I0", "xi"), (0.0, 0.01, 10.0), (1.0, 1.0, 500.0))
     assert scale_keys(bounds) == ("I0",) and scale_keys(bounds, decades=2.5) == ()
@@ -380,11 +379,11 @@ def test_a_measured_key_enters_as_a_normal_prior(banana):
                                           ({"k0": (float("nan"), 1.0)}, "k0 must be a finite mean"),
                                           ([("k0", 1.0)], "prior must be a mapping")])
 def test_a_bad_prior_is_refused_before_any_run(banana, prior, match):
-    from calibration.mcmc import nuts_posterior
+    from calibration.inference.mcmc import nuts_posterior
 
     objective, result, *_ = banana
     spy = Banana(objective.data)
-    spy.column_tasks_z = lambda z: pytest.fail("ran the model")
+    spy.column_task = lambda *a: pytest.fail("ran the model")
     with pytest.raises(ValueError, match=match):
         emulated_posterior(spy, result, prior=prior)
     with pytest.raises(ValueError, match=match):
@@ -418,7 +417,7 @@ def test_the_grid_term_of_a_posterior_is_the_shift_of_its_mean_on_coarser_grids(
     index is Roache's with order 1 and safety factor 3, from three the order the grids show (the
     model's error is of order 2 in dx; on the crescent the mean's shifts, in its sds, show 1.5),
     and the interval with the grid term holds the data's interval and the index in quadrature."""
-    from calibration.uncertainty import three_grid_index
+    from calibration.inference.gridcheck import three_grid_index
 
     objective = GriddedBanana(banana[0].data)
     post = emulated_posterior(objective, banana[1], rounds=1, checks=400, seed=0, grid_ratio=1.5, grid_levels=levels)
@@ -456,7 +455,7 @@ def test_the_grid_term_of_a_posterior_is_the_shift_of_its_mean_on_coarser_grids(
     if not all(post.grid_converged.values()):
         assert "finer for" in out["grid_statement"] and out["adequate_dx"] == post.adequate_dx
     if levels == 2 and importlib.util.find_spec("matplotlib"):
-        from calibration.plots import plot_grid_term
+        from calibration.plots.posteriors import plot_grid_term
 
         assert plot_grid_term(post, tmp_path / "grid.png", truth={"k0": 0.5, "k1": 0.55}).stat().st_size > 0
 
@@ -466,26 +465,26 @@ def test_a_grid_term_that_cannot_be_made_is_refused_or_said(banana):
     gets its posterior and the reason the grid term is missing."""
     objective, result, *_ = banana
     spy = GriddedBanana(objective.data)
-    spy.column_tasks_z = lambda z: pytest.fail("ran the model")
+    spy.column_task = lambda *a: pytest.fail("ran the model")
     for kwargs, match in (({"grid_ratio": 1.0}, "grid_ratio must be off"), ({"grid_ratio": 1.5, "grid_levels": 3},
                                                                             "grid_levels must be 1 or 2")):
         with pytest.raises(ValueError, match=match):
             emulated_posterior(spy, result, **kwargs)
     post = emulated_posterior(objective, result, rounds=0, checks=30, draws=100, warmup=50, grid_ratio=1.5)
-    assert post.grid is None and post.grid_converged is None and "no coarsened method" in post.grid_note
+    assert post.grid is None and post.grid_converged is None and "has no coarser grid" in post.grid_note
     assert post.to_json()["grid"] == {"measured": False, "why": post.grid_note}
     assert post.grid_statement.startswith("The grid's share was not measured")
     if importlib.util.find_spec("matplotlib"):
-        from calibration.plots import plot_grid_term
+        from calibration.plots.posteriors import plot_grid_term
 
         with pytest.raises(ValueError, match="carries no grid term"):
             plot_grid_term(post, "unused.png")
 
 
 def test_fit_checks_pass_the_grid_term_to_the_emulated_posterior(banana, monkeypatch):
-    """``posterior_checks`` (what ``fit --emulated`` runs, with ``--grid-check`` and
+    """``posterior_checks`` (what ``posterior --emulated`` runs, with ``--grid-check`` and
     ``--grid-levels``) asks the emulated posterior for its grid term and reports it."""
-    from calibration.report import posterior_checks
+    from calibration.optim.report import PosteriorOptions, posterior_checks
 
     objective, result, *_ = banana
     seen = {}
@@ -495,7 +494,7 @@ def test_fit_checks_pass_the_grid_term_to_the_emulated_posterior(banana, monkeyp
         return types.SimpleNamespace(to_json=lambda: {"grid": {"ratio": kwargs["grid_ratio"]}})
 
     monkeypatch.setattr(emulator_module, "emulated_posterior", spy)
-    checks = posterior_checks(objective, result, emulated=30, grid_ratio=1.5, grid_levels=2)
+    checks = posterior_checks(objective, result, PosteriorOptions(emulated=30, grid_ratio=1.5, grid_levels=2))
     assert seen["grid_ratio"] == 1.5 and seen["grid_levels"] == 2 and seen["checks"] == 30
     assert checks.report["emulated_posterior"]["grid"] == {"ratio": 1.5}
 
@@ -504,9 +503,10 @@ def test_the_profile_and_grid_posterior_intervals_carry_the_fits_grid_term(banan
     """``posterior_checks`` adds the fit's own grid term (one Gauss–Newton step at ρ dx) to the
     profile likelihood's and the grid posterior's intervals, in quadrature on each side, inside
     the bounds; an end a profile does not reach stays open."""
-    import calibration.likelihood as likelihood_module
-    from calibration.report import posterior_checks
-    from calibration.uncertainty import GridCheck
+    import calibration.inference.gridpost as gridpost_module
+    import calibration.inference.likelihood as likelihood_module
+    from calibration.inference.gridcheck import GridCheck
+    from calibration.optim.report import PosteriorOptions, posterior_checks
 
     objective, result, *_ = banana
     keys = objective.keys
@@ -523,8 +523,8 @@ def test_the_profile_and_grid_posterior_intervals_carry_the_fits_grid_term(banan
     post = types.SimpleNamespace(keys=keys, ci95={"k0": (-0.5, 1.9), "k1": (0.3, 0.8)},
                                  mean={"k0": 0.6, "k1": 0.55}, to_json=lambda: {})
     monkeypatch.setattr(likelihood_module, "profile_likelihood", profile)
-    monkeypatch.setattr(likelihood_module, "grid_posterior", lambda *a, **kw: post)
-    report = posterior_checks(objective, result, profiles=3, posterior=3).report
+    monkeypatch.setattr(gridpost_module, "grid_posterior", lambda *a, **kw: post)
+    report = posterior_checks(objective, result, PosteriorOptions(profiles=3, posterior=3)).report
     t0, t1 = result.theta["k0"], result.theta["k1"]
     assert report["profile_likelihood"]["k0"]["ci95_profile_with_grid"] == pytest.approx(
         [t0 - np.hypot(t0 + 1.2, 0.6), None])
@@ -534,3 +534,18 @@ def test_the_profile_and_grid_posterior_intervals_carry_the_fits_grid_term(banan
     assert wide["k0"] == pytest.approx([0.6 - np.hypot(1.1, 0.6), 2.0])  # the upper bound of k0's box
     assert wide["k1"] == pytest.approx([0.55 - np.hypot(0.25, 0.12), 0.55 + np.hypot(0.25, 0.12)])
     assert "grid term" in report["posterior"]["grid_term"]
+
+
+def test_psis_is_arviz_stats_psislw_given_the_same_tail():
+    """Our Pareto smoothing is the reference's (arviz-stats' ``psislw``, a port of the R package
+    posterior) to round-off once the tails are equally long: arviz-stats floors 3√S where we take
+    the ceiling, which its ``r_eff`` can undo."""
+    array_stats = pytest.importorskip("arviz_stats.base").array_stats
+    rng = np.random.default_rng(1)
+    for S, s2 in ((200, 1.5), (1000, 1.5), (5000, 4.0)):
+        lw = 0.5 * rng.standard_normal(S) ** 2 * (1 - 1 / s2)
+        ours, k = psis(lw)
+        tail = np.ceil(min(0.2 * S, 3 * np.sqrt(S)))
+        theirs, k_ref = array_stats.psislw(-lw, r_eff=9 * S / tail**2 * (1 - 1e-12) if S > 225 else 1.0)
+        assert k == pytest.approx(float(k_ref), abs=1e-12)
+        np.testing.assert_allclose(ours, theirs - np.logaddexp.reduce(theirs), atol=1e-12)

@@ -125,7 +125,7 @@ def test_user_experiment_runs_and_fits_from_the_file_as_from_python(tmp_path, ca
     # The fit: the file names the data and what to fit; Python builds the same objective.
     path.write_text(USER_TOML + '\n[[profile]]\nfile = "deposit.csv"\n\n[fit]\nkeys = ["beta"]\n'
                     'init = { beta = 0.1 }\n')
-    from calibration.__main__ import main as calibration_main
+    from calibration.cli.commands import main as calibration_main
 
     assert calibration_main(["fit", str(path), "--json", "--no-progress", "--workers", "1", "--steps", "2",
                              "--roundoff-samples", "0", "--grid-check", "0"]) in (0, 1)
@@ -143,9 +143,9 @@ def test_user_experiment_runs_and_fits_from_the_file_as_from_python(tmp_path, ca
 def test_several_experiments_make_one_joint_objective(tmp_path):
     import argparse
 
-    from calibration.__main__ import build_parser
-    from calibration.cli import experiment_files, fit_request, scene_and_objective
-    from calibration.objective import CompositeObjective
+    from calibration.cli.args import experiments_of, fit_request, setup_of
+    from calibration.cli.parser import build_parser
+    from calibration.problem.composite import CompositeObjective
 
     for name, slope in (("a", 0), ("b", 8)):
         (tmp_path / f"{name}.toml").write_text(USER_TOML.replace("slope = 5", f"slope = {slope}")
@@ -153,10 +153,10 @@ def test_several_experiments_make_one_joint_objective(tmp_path):
         (tmp_path / f"{name}.csv").write_text("# units: m\n# time_s: 0.1\nx_m,h_m\n0,0.05\n0.05,0.04\n0.1,0\n")
     args = build_parser().parse_args(["fit", str(tmp_path / "a.toml"), str(tmp_path / "b.toml")])
     assert isinstance(args, argparse.Namespace)
-    experiments = experiment_files(args)
+    experiments = experiments_of(args)
     request = fit_request(args, experiments)
     assert request.keys == ("mu1",) and request.init == {} and request.noise is None
-    scene, objective = scene_and_objective(args, request.keys, experiments)
+    objective = setup_of(args, request.keys).objective()
     assert isinstance(objective, CompositeObjective) and len(objective.members) == 2
     assert [m.scene.info.slope_deg for m in objective.members] == [0.0, 8.0]
     coarse = objective.coarsened(1.5)  # the grid term of a joint fit coarsens every member
@@ -185,6 +185,32 @@ BAD = [
     (("slope = 5", "slope = 5\nwidth = 0.1"), ("tall.toml:", "[geometry] width: applies to dim = 3")),
     (('gate = "front"', 'gate = "front"\nfloor_friction = 0.3'), ("tall.toml:", "floor_friction: a no-slip floor")),
     (("[numerics]", "[numerics]\nppc = 2.5"), ("tall.toml:", "[numerics] ppc: must be a positive integer")),
+    # The parameter table's rules and relation, at the key's line (they were refused later, by
+    # Params.create, without the file, the line or the key).
+    (("xi = 50", "xi = 50\nnu = 0.5"), ("tall.toml:18:", "[material] nu: must be in (-1, 0.5), got 0.5")),
+    (("xi = 50", "xi = 50\nE = -1"), ("tall.toml:18:", "[material] E: must be > 0, got -1.0")),
+    (("xi = 50", "xi = 50\nmu1 = 0.6\nmu2 = 0.5"),
+     ("tall.toml:19:", "[material] mu2: must be >= mu1 (mu2 is the limiting friction), got mu1 = 0.6 and mu2 = 0.5")),
+    (("xi = 50", "xi = 50\nmu2 = 0.3"),  # below the default mu1 = tan 20.9 deg
+     ("tall.toml:18:", "[material] mu2: must be >= mu1", "mu1 = 0.38186", "(the default) and mu2 = 0.3")),
+    (("xi = 50", "xi = 50\nmu1 = 0.7"),  # above the default mu2: reported where mu2 would stand
+     ("tall.toml:14:", "[material] mu2: must be >= mu1", "mu1 = 0.7 and mu2 = 0.64", "(the default)")),
+    (("xi = 50", "xi = 50\nphi = 30"),
+     ("tall.toml:18:", "[material] phi: unknown key; [material] takes E [Pa], nu [-]")),
+    (('gate = "front"', 'gate = "front"\nfloor = "slip-stick"\nfloor_friction = -0.1'),
+     ("tall.toml:13:", "[boundaries] floor_friction: must be >= 0, got -0.1 (the floor's mu_w)")),
+    # Each choice from the list of the module that owns it: flip was accepted here and refused by Config.
+    (('t_end = "0.1 s"', 't_end = "0.1 s"\ntransfer = "flip"'),
+     ("tall.toml:23:", "[numerics] transfer: must be one of ('pic', 'apic', 'aflip'), got 'flip'")),
+    (('gate = "front"', 'gate = "front"\nfloor = "rough"'),
+     ("tall.toml:12:", "[boundaries] floor: must be one of ('no-slip', 'slip-stick', 'separable'), got 'rough'")),
+    (('t_end = "0.1 s"', 't_end = "0.1 s"\ndtype = "float16"'),
+     ("tall.toml:23:", "[numerics] dtype: must be one of ('float32', 'float64'), got 'float16'")),
+    # A measurement file that is not there (the run went on and exited 0).
+    (('t_end = "0.1 s"\n', 't_end = "0.1 s"\n\n[[profile]]\nfile = "missing.csv"\n'),
+     ("tall.toml:25:", "[[profile]] #1 file: no such file: ", "missing.csv")),
+    (('t_end = "0.1 s"\n', 't_end = "0.1 s"\n\n[front]\nfile = "gone.csv"\n'),
+     ("tall.toml:25:", "[front] file: no such file: ", "gone.csv")),
     (("[experiment]", "[experiment\n"), ("tall.toml: not valid TOML",)),
 ]
 
@@ -200,6 +226,70 @@ def test_bad_experiment_files_fail_before_compiling(change, parts, tmp_path, cap
     with pytest.raises(ExperimentError):
         Experiment.from_toml(path)
 
+
+
+def test_each_choice_is_the_list_of_the_module_that_owns_it():
+    """An experiment file accepts what the engine accepts: one list of each choice, read from
+    its owner (the file's own copy of the transfers listed a FLIP that Config refuses)."""
+    from jaxmpm import _experiment_checks as checks
+    from jaxmpm.cli import add_scene_arguments
+    from jaxmpm.config import TRANSFERS
+    from jaxmpm.precision import DTYPES
+    from jaxmpm.sampling import SAMPLINGS
+    from jaxmpm.scenes.collapse import FLOORS
+
+    assert (checks.TRANSFERS, checks.SAMPLINGS, checks.DTYPES, checks.FLOORS) == (TRANSFERS, SAMPLINGS, DTYPES, FLOORS)
+    assert checks.TRANSFERS is TRANSFERS and checks.SAMPLINGS is SAMPLINGS and checks.DTYPES is DTYPES
+    assert checks.FLOORS is FLOORS and "flip" not in TRANSFERS
+    import argparse
+
+    parser = argparse.ArgumentParser()
+    add_scene_arguments(parser)
+    choices = {a.dest: a.choices for a in parser._actions}
+    assert choices["sampling"] is SAMPLINGS and choices["dtype"] is DTYPES
+    with pytest.raises(ValueError, match=r"floor must be one of \('no-slip', 'slip-stick', 'separable'\)"):
+        collapse(**{**USER_PYTHON, "floor": "rough"})
+
+
+def test_measurement_files_are_checked_where_the_experiment_is_read(tmp_path):
+    """A file naming a measurement that is not there is refused when it is read; a run's HDF5
+    file re-made elsewhere names the file it recorded, and ``check_files=False`` gives the set-up
+    alone (all a run needs) with the recorded paths kept."""
+    import h5py
+
+    path = tmp_path / "tall.toml"
+    text = USER_TOML + '\n[[profile]]\nfile = "deposit.csv"\n'
+    path.write_text(text)
+    with pytest.raises(ExperimentError, match=r"tall.toml:25: \[\[profile\]\] #1 file: no such file: .*deposit.csv$"):
+        Experiment.from_toml(path)
+    with pytest.raises(ExperimentError, match="no such file"):
+        Experiment.from_text(text, path)
+    unchecked = Experiment.from_toml(path, check_files=False)
+    assert unchecked.profiles[0].file == tmp_path / "deposit.csv"
+    (tmp_path / "deposit.csv").write_text("# units: m\n# time_s: 0.1\nx_m,h_m\n0,0.05\n0.05,0.04\n0.1,0\n")
+    experiment = Experiment.from_toml(path)
+    assert experiment == unchecked
+    h5 = tmp_path / "run.h5"
+    with h5py.File(h5, "w") as f:  # what Scene.run_attrs records of a run
+        f.attrs["experiment_toml"] = experiment.to_toml()
+        f.attrs["experiment_path"] = str(path.resolve())
+    assert Experiment.from_h5(h5) == experiment
+    (tmp_path / "deposit.csv").unlink()  # the data moved after the run
+    with pytest.raises(ExperimentError, match=r"\[\[profile\]\] #1 file: no such file: .*deposit.csv"):
+        Experiment.from_h5(h5)
+    again = Experiment.from_h5(h5, check_files=False)
+    assert again == experiment and again.scene().config == experiment.scene().config
+
+
+def test_a_command_line_value_names_itself_not_the_file(tmp_path, capsys):
+    """A --set value that breaks a rule is the option's error (the file's own values were
+    checked when it was read), in the words of Params.create."""
+    path = tmp_path / "tall.toml"
+    path.write_text(USER_TOML)
+    code, err = _main("jaxmpm", ["run", str(path), "--set", "nu=0.7"], capsys)
+    assert code == 2 and "nu must be in (-1, 0.5), got 0.7" in err and "tall.toml" not in err
+    code, err = _main("jaxmpm", ["run", str(path), "--set", "mu2=0.2"], capsys)
+    assert code == 2 and "mu2 (the limiting friction) must be >= mu1" in err
 
 def test_bad_data_and_fit_requests(tmp_path, capsys):
     path = tmp_path / "tall.toml"

@@ -6,8 +6,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from calibration.observe import unwhiten_front, whiten_front
-from calibration.uncertainty import front_correlation
+from calibration.inference.noise import front_correlation
+from calibration.problem.observe import unwhiten_front, whiten_front
 
 
 def _ou_covariance(t, tau):

@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 
 from calibration import Objective, ProfileTarget, fit
-from calibration.uncertainty import GCI_SAFETY, GRID_ORDER, gauss_newton_uncertainty, grid_shift
+from calibration.inference.gauss_newton import gauss_newton_uncertainty
+from calibration.inference.gridcheck import GCI_SAFETY, GRID_ORDER, grid_shift
 from jaxmpm import scenes
 
 L = 0.089
@@ -178,7 +179,7 @@ def test_the_three_grid_order_does_not_depend_on_the_keys_units():
     shifts measured in each key's scale, changing a key's units (its shifts and scale together)
     leaves the order and the index in those units unchanged. Here μ2 converges with order 2 and
     ξ oscillates by about one of its sds: measured in raw units ξ alone says "oscillate"."""
-    from calibration.uncertainty import three_grid_index
+    from calibration.inference.gridcheck import three_grid_index
 
     shift1 = np.array([-0.10, -3.4])
     shift2 = shift1 + np.array([-0.225, 28.0])  # e32: mu2 1.5^2 times e21, xi the other way

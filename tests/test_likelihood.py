@@ -9,7 +9,8 @@ import pytest
 from helpers import placeholder_objective, tiny_s4
 
 from calibration import FrontTarget, Objective, ProfileTarget, fit
-from calibration.likelihood import DELTA_CHI2_95, grid_posterior, predict_heldout, profile_likelihood
+from calibration.inference.gridpost import grid_posterior, predict_heldout
+from calibration.inference.likelihood import DELTA_CHI2_95, profile_likelihood
 
 KEYS = ("beta", "mu1")
 TRUTH = np.array([0.25, 0.38])
@@ -114,7 +115,7 @@ def test_nuts_through_the_twin(twin):
     exact targets and the docs' study; a warm-up this short leaves the step size unsettled and
     divergences are possible), finite, inside the bounds, near the fit, and the posterior
     predictive of the fitted profile."""
-    from calibration.mcmc import nuts_posterior, posterior_predictive
+    from calibration.inference.mcmc import nuts_posterior, posterior_predictive
 
     _, objective, result = twin
     post = nuts_posterior(objective, result, chains=2, warmup=3, draws=4, seed=0)
@@ -137,11 +138,11 @@ def test_nuts_through_the_twin(twin):
 
 
 def test_emulated_posterior_through_the_twin_agrees_with_the_quadrature(twin):
-    """The emulated posterior (calibration.emulator) through real runs: 7 to 12 Jacobians and 60
+    """The emulated posterior (calibration.inference.emulator) through real runs: 7 to 12 Jacobians and 60
     checked runs give the corrected moments of the grid quadrature on the same target (its 15 × 15
     points: a finer answer than the emulator's Monte Carlo error), with the importance weights
     nearly equal (the emulator is close) and every check run a good one."""
-    from calibration.emulator import emulated_posterior
+    from calibration.inference.emulator import emulated_posterior
 
     _, objective, result = twin
     grid = grid_posterior(objective, result, span=5.0, n=15)

@@ -1,4 +1,4 @@
-"""The NUTS posterior (calibration.mcmc) on targets whose answer is known: a linear
+"""The NUTS posterior (calibration.inference.mcmc) on targets whose answer is known: a linear
 Gaussian model (exact mean and covariance), a posterior cut off by a bound (a truncated normal:
 the flat prior in θ sampled in logit coordinates needs the log-Jacobian right), and a tiny S4
 twin (in tests/test_likelihood.py, which fits it once for every check beyond Gauss–Newton)."""
@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from calibration.bounds import Bounds
-from calibration.mcmc import McmcPosterior, nuts_posterior
+from calibration.inference.mcmc import McmcPosterior, nuts_posterior
+from calibration.problem.bounds import Bounds
 
 
 class LinearObjective:
@@ -30,6 +30,9 @@ class LinearObjective:
 
     def residual_fn(self, theta):
         return self.A @ theta - self.y, {"status": jnp.zeros((), jnp.int32)}
+
+    def coarsened(self, ratio):
+        raise NotImplementedError("a closed form has no grid")
 
 
 def _fit_result(keys, theta, cov, sigma):
@@ -106,7 +109,7 @@ def test_log_density_gradient_matches_finite_differences():
     """The forward-mode custom VJP of χ² (k Jacobian columns, not reverse mode) against central
     differences in float64, inside the bounds and near one (where the log-Jacobian is steep),
     on a nonlinear residual; a failed run gives −∞ and a finite gradient (χ²'s part zero), never NaN."""
-    from calibration.mcmc import log_density_fn
+    from calibration.inference.nuts import log_density_fn
 
     class Curved(LinearObjective):
         def residual_fn(self, theta):
@@ -145,7 +148,7 @@ def test_one_chain_prints_no_nan():
 
 def _record(objective, result, draws, step_size=1.0):
     """A stored posterior (``to_json`` form) whose chains end at ``draws`` (chains, n, k)."""
-    from calibration.likelihood import noise_levels
+    from calibration.inference.likelihood import noise_levels
     keys = objective.keys
     by_key = {key: 0.0 for key in keys}
     chains, n = draws.shape[:2]
@@ -246,8 +249,8 @@ def test_resume_refuses_another_fit_before_sampling():
 
 def test_whitening_round_trips():
     """``whitened`` inverts the chains' map θ = physical(ẑ + L w), near the bounds too."""
-    from calibration.bounds import physical as to_physical
-    from calibration.mcmc import whitened
+    from calibration.inference.nuts import whitened
+    from calibration.problem.bounds import physical as to_physical
 
     rng = np.random.default_rng(0)
     lower, upper = np.array([0.0, 0.1]), np.array([1.0, 0.9])
@@ -297,4 +300,27 @@ def test_the_nuts_posterior_carries_its_grid_term():
         nuts_posterior(objective, result, grid_ratio=0.5)
     plain = LinearObjective(np.ones((1, 1)), np.array([0.3]), lower=(-5.0,), upper=(5.0,))
     bare = nuts_posterior(plain, result, chains=2, warmup=20, draws=20, seed=2, grid_ratio=1.5)
-    assert bare.grid is None and "no coarsened method" in bare.to_json()["grid"]["why"]
+    assert bare.grid is None and "has no coarser grid" in bare.to_json()["grid"]["why"]
+
+
+def test_the_diagnostics_read_chains_whose_answers_are_known():
+    """R̂ and the bulk and tail ESS (arviz-stats', through ``_summary``) of 4 chains × 1000 draws:
+    independent draws give R̂ ≈ 1 and ESS ≈ 4000; an AR(1) chain with φ = 0.9 keeps about
+    n (1 − φ)/(1 + φ) ≈ 210 of them; one chain shifted by a standard deviation is not mixed (R̂ >
+    1.05). One chain has no R̂; three draws a chain, no diagnostic at all."""
+    from calibration.inference.mcmc import _summary
+
+    rng = np.random.default_rng(0)
+    iid = rng.standard_normal((4, 1000))
+    ar = np.zeros((4, 1000))
+    for t, e in enumerate(rng.standard_normal((999, 4)), start=1):
+        ar[:, t] = 0.9 * ar[:, t - 1] + e
+    shifted = iid + np.array([1.0, 0.0, 0.0, 0.0])[:, None]
+    *_, rhat, bulk, tail = _summary(("iid", "ar", "shifted"), np.stack([iid, ar, shifted], axis=-1))
+    assert abs(rhat["iid"] - 1) < 0.01 and bulk["iid"] == pytest.approx(4000, rel=0.15)
+    assert tail["iid"] == pytest.approx(4000, rel=0.15)
+    assert bulk["ar"] == pytest.approx(4000 * 0.1 / 1.9, rel=0.3) and rhat["ar"] < 1.05
+    assert rhat["shifted"] > 1.05
+    one = _summary(("x",), iid[:1, :, None])
+    assert np.isnan(one[3]["x"]) and one[4]["x"] == pytest.approx(1000, rel=0.2)
+    assert all(np.isnan(d["x"]) for d in _summary(("x",), iid[:, :3, None])[3:])

@@ -1,4 +1,4 @@
-"""The model's own error in the likelihood (``calibration.likelihood.model_error``): the draw and
+"""The model's own error in the likelihood (``calibration.inference.likelihood.model_error``): the draw and
 grid terms recovered on a toy whose errors are known, bad input refused before any run, failed
 runs never taken as a zero term, and the terms of a real run (the tiny S4 collapse)."""
 
@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from helpers import placeholder_objective, tiny_s4
 
-from calibration.likelihood import ModelError, model_error
+from calibration.inference.likelihood import ModelError, model_error
 
 BLOCKS = {"profile": slice(0, 40), "front": slice(40, 240)}
 DRAW = {"profile": 0.03, "front": 0.01}  # a residual's sd over particle draws

@@ -5,16 +5,11 @@ import dataclasses
 
 import pytest
 
-from calibration.options import (
-    FLAGS,
-    DataOptions,
-    FitOptions,
-    FitRequest,
-    JudgeOptions,
-    OptionError,
-    fit_request,
-    split_fields,
-)
+from calibration.cli.args import FLAGS, as_flag
+from calibration.inference.options import JudgeOptions
+from calibration.optim.options import FitOptions, split_fields
+from calibration.optim.report import PosteriorOptions
+from calibration.problem.options import DataOptions, FitRequest, OptionError, fit_request
 
 
 @pytest.mark.parametrize("field, value, what", [
@@ -64,7 +59,7 @@ def test_judge_options_refuse_bad_values(field, value, what):
 def test_data_options_refuse_bad_values(field, value, what):
     with pytest.raises(OptionError, match=what) as info:
         DataOptions(**{field: value})
-    assert str(info.value.as_flag()).startswith(FLAGS[field] + " must be")
+    assert str(as_flag(info.value)).startswith(FLAGS[field] + " must be")
 
 
 def test_data_options_weights():
@@ -93,10 +88,11 @@ def test_differences_cover_every_field_but_steps():
 
 
 def test_one_flag_table_for_every_field():
-    names = {f.name for cls in (FitOptions, JudgeOptions, FitRequest, DataOptions) for f in dataclasses.fields(cls)}
+    names = {f.name for cls in (FitOptions, JudgeOptions, FitRequest, DataOptions, PosteriorOptions)
+             for f in dataclasses.fields(cls)}
     assert set(FLAGS) == names
-    assert str(OptionError("grid_ratio", "must be > 1, got 0.5").as_flag()) == "--grid-check must be > 1, got 0.5"
-    assert str(OptionError("xtol", "must be >= 0").as_flag()) == "xtol must be >= 0"  # no flag: the field's name
+    assert str(as_flag(OptionError("grid_ratio", "must be > 1, got 0.5"))) == "--grid-check must be > 1, got 0.5"
+    assert str(as_flag(OptionError("xtol", "must be >= 0"))) == "xtol must be >= 0"  # no flag: the field's name
 
 
 def test_split_fields():
@@ -124,4 +120,4 @@ def test_fit_request_from_the_files_and_over_them():
         fit_request([a, E(None)])
     with pytest.raises(OptionError, match="gives starting values for \\['xi'\\]") as info:
         fit_request([], keys=("beta",), init={"xi": 40.0})
-    assert str(info.value.as_flag()).startswith("--init gives starting values")
+    assert str(as_flag(info.value)).startswith("--init gives starting values")

@@ -19,16 +19,17 @@ import pytest
 from helpers import ROOT, S4_DATA, TINY_FLAGS, strict_json, tiny_s4
 
 from calibration import Bounds, fit, read_history
-from calibration.__main__ import main
-from calibration.data import load_profile
-from calibration.objective import CompositeObjective, Objective
-from calibration.sweep import SweepResult, write_sweep
+from calibration.batch.sweep import SweepResult, write_sweep
+from calibration.cli.commands import main
+from calibration.data.loaders import load_profile
+from calibration.problem.composite import CompositeObjective
+from calibration.problem.objective import Objective
 from jaxmpm import LEFT_GRID
 from jaxmpm.scenes import S4_SIDE
 
-FIT_MODULE = importlib.import_module("calibration.fit")  # calibration.fit is also the function
-SWEEP_MODULE = importlib.import_module("calibration.sweep")
-SEARCH_MODULE = importlib.import_module("calibration.search")
+FIT_MODULE = importlib.import_module("calibration.optim.fit")
+SWEEP_MODULE = importlib.import_module("calibration.batch.sweep")
+SEARCH_MODULE = importlib.import_module("calibration.optim.search")
 S4 = S4_DATA
 WPD = ROOT / "experiments_data" / "examples" / "wpd_example.csv"
 TINY = list(TINY_FLAGS)
@@ -95,7 +96,7 @@ S4_X, S4_H = load_profile(S4).x, load_profile(S4).h
 def history(tmp_path_factory):
     folder = tmp_path_factory.mktemp("fit")
     path = folder / "fit.h5"
-    plots = importlib.import_module("calibration.plots")
+    plots = importlib.import_module("calibration.plots.fits")
     with pytest.MonkeyPatch.context() as mp:
         def full_disk(*args, **kwargs):
             raise OSError(28, "No space left on device")
@@ -155,7 +156,7 @@ def test_resume_accepts_the_same_data_under_another_name(history, tmp_path):
     ("empty", "is not a readable fit history"),
     ("truncated", "is not a readable fit history"),
     ("text", "is not a readable fit history"),
-    ("foreign", "is not a fit history written by calibration.fit (no attribute 'keys_json'"),
+    ("foreign", "is not a fit history written by calibration.optim.fit (no attribute 'keys_json'"),
 ])
 def test_resume_from_a_bad_file_is_refused_clearly(history, no_work, tmp_path, case, message):
     path = tmp_path / "fit.h5"
@@ -392,7 +393,7 @@ def test_a_failed_start_names_its_status():
 
 def test_objective_refuses_a_zero_weight_and_invalid_starts():
     scene = tiny_s4(t_end=0.5)
-    from calibration.objective import ProfileTarget
+    from calibration.problem.targets import ProfileTarget
 
     target = ProfileTarget(S4_X, S4_H, 0.5, source="S4.csv")
     with pytest.raises(ValueError, match=r"weights\['profile'\] is 0"):

@@ -10,7 +10,8 @@ import numpy as np
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from calibration.data import UNITS, load_front_history, load_profile
+from calibration.data.loaders import load_front_history, load_profile
+from calibration.data.parse import UNITS
 
 HEADERS = ["# time_s: 0.5", "# units: m", "# units: mm", "# experiment: lab", "# synthetic: true",
            "# source: a paper", "# free comment", "#"]

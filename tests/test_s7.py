@@ -11,7 +11,8 @@ import pytest
 
 import jaxmpm as jm
 from calibration import Objective
-from calibration.data import dataset_path, list_datasets, load_profile
+from calibration.data.loaders import load_profile
+from jaxmpm.datasets import dataset_path, list_datasets
 from jaxmpm.scenes import S7_PARAMS, aluminium_bars, build_scene
 
 DATA_NAME = "bui2008/bui2008_final_surface"

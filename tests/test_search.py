@@ -20,13 +20,14 @@ from calibration import (
     gauss_newton_uncertainty,
     search,
 )
-from calibration.__main__ import build_parser, main
-from calibration.bounds import START_MARGIN
-from calibration.search import design_starts
-from calibration.uncertainty import structural_noise
+from calibration.cli.commands import main
+from calibration.cli.parser import build_parser
+from calibration.inference.noise import structural_noise
+from calibration.optim.search import design_starts
+from calibration.problem.bounds import START_MARGIN
 from jaxmpm import scenes
 
-SEARCH_MODULE = importlib.import_module("calibration.search")
+SEARCH_MODULE = importlib.import_module("calibration.optim.search")
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 S4 = ROOT / "experiments_data" / "synthetic" / "S4_beta0.25.csv"
 KEYS = ("beta", "mu1")
@@ -69,7 +70,7 @@ def test_the_search_finds_the_truth_of_a_twin_from_no_start(found):
 
 @pytest.mark.slow  # 14 s; the search finding a twin's truth stays in the default suite
 def test_a_batch_of_starts_takes_the_steps_of_single_fits(found, objective):
-    """The batch shares calibration.lm with fit(): each start's iterates equal a single fit's."""
+    """The batch shares calibration.optim.lm with fit(): each start's iterates equal a single fit's."""
     for i in (0, 1):
         single = fit(objective, dict(zip(KEYS, found.starts[i])), steps=4, uncertainty=False)
         batch = found.histories[i]
@@ -165,7 +166,6 @@ def test_structural_noise_sees_the_white_part_only():
     (["--search-seed", "-1"], "--search-seed must be >= 0, got -1"),
     (["--starts", "4", "--method", "adam"], "--starts 4: --method adam is a single-start optimiser"),
     (["--starts", "4", "--jacobian", "fd"], "--starts 4: --jacobian fd is not batched"),
-    (["--starts", "4", "--out", "f.h5"], "--starts 4: --out keeps the resumable history of one start"),
     (["--coarse", "0.5"], "--coarse must be a finite factor > 1 of the grid spacing, got 0.5"),
     (["--coarse", "2", "--init", "beta=0.2"], "--coarse is a stage of the global search"),
     (["--refine", "0"], "--refine must be an integer >= 1, got 0"),
@@ -186,13 +186,13 @@ def test_bad_search_options_are_refused_before_any_work(monkeypatch, tmp_path, c
 
 
 def test_the_default_is_a_search_without_init_and_one_start_with_it():
-    from calibration.cli import start_count
+    from calibration.cli.args import start_count
 
     base = ["fit", "--scene", "cohesive-collapse", "--data", str(S4), "--fit", "beta"]
     parse = build_parser().parse_args
     assert start_count(parse(base)) == SEARCH_MODULE.DEFAULT_STARTS
     assert start_count(parse([*base, "--init", "beta=0.2"])) == 1
-    assert start_count(parse([*base, "--out", "f.h5"])) == 1
+    assert start_count(parse([*base, "--out", "f.h5"])) == SEARCH_MODULE.DEFAULT_STARTS  # a search's file: its best
     assert start_count(parse([*base, "--init", "beta=0.2", "--starts", "3"])) == 3
 
 
@@ -223,7 +223,8 @@ def test_the_round_off_limit_allows_for_a_scatter_estimated_from_few_runs():
     """roundoff_limit: Hotelling's T² quantile, wider for fewer runs, χ²_n's in the limit of many,
     χ²_n's where the runs cannot estimate a full covariance; and a step drawn from the covariance
     itself, measured against an estimate from ν runs, stays below it 99 % of the time."""
-    from calibration.uncertainty import ROUNDOFF_P, chi2_quantile, roundoff_limit
+    from calibration.inference.noise import chi2_quantile
+    from calibration.inference.scatter import ROUNDOFF_P, roundoff_limit
 
     chi = np.sqrt(chi2_quantile(ROUNDOFF_P, 2))
     assert roundoff_limit(2, 6) > roundoff_limit(2, 8) > roundoff_limit(2, 100) > chi
@@ -240,7 +241,7 @@ def test_the_round_off_limit_allows_for_a_scatter_estimated_from_few_runs():
 
 def _float32_twin(objective):
     """S4 at L/4 in float32 with twin data at TRUTH, and the run's round-off scatter there."""
-    from calibration.uncertainty import model_scatter
+    from calibration.inference.scatter import model_scatter
 
     scene = scenes.cohesive_collapse(dx=scenes.S4_SIDE / 4, t_end=0.1, dtype="float32")
     xs = objective.profiles[0].x
@@ -264,7 +265,7 @@ def test_the_runs_round_off_is_measured_refuses_a_far_point_and_widens_the_inter
     own scatter; a point 10 % away, whose Gauss–Newton step dwarfs it, is not a verified minimum,
     and the interval adds the numerical covariance to the statistical one. In float64 (the
     module's objective) the same scatter is a million times smaller."""
-    from calibration.uncertainty import model_scatter
+    from calibration.inference.scatter import model_scatter
 
     i = found.best_start
     scatter64 = model_scatter(objective, found.finals[i], found.residuals[i], found.best.jacobian, samples=4)
@@ -306,7 +307,7 @@ def test_the_particle_draw_s_share_of_the_interval(found, objective):
     """Scene.resampled redraws the body with another seed (same count, other positions; the own seed
     gives the same state); sampling_scatter turns the redrawn runs' spread into a covariance of θ
     that the interval adds; a lattice has no seed to redraw."""
-    from calibration.uncertainty import sampling_scatter
+    from calibration.inference.scatter import sampling_scatter
 
     scene = objective.scene
     again, other = scene.resampled(scene.info.seed), scene.resampled(scene.info.seed + 1)

@@ -20,8 +20,9 @@ import pytest
 from helpers import tiny_s4
 
 import jaxmpm
-from calibration.objective import FrontTarget, Objective, ProfileTarget
-from calibration.sweep import SweepResult, grid_points, latin_hypercube, sweep
+from calibration.batch.sweep import SweepResult, grid_points, latin_hypercube, sweep
+from calibration.problem.objective import Objective
+from calibration.problem.targets import FrontTarget, ProfileTarget
 
 RTOL = 1e-12
 #: (beta, E): member 1 runs out of its step budget (E = 1e8 needs 10x more steps than the
@@ -196,7 +197,7 @@ jax.config.update("jax_enable_x64", True)
 jax.config.update("jax_numpy_dtype_promotion", "strict")
 sys.path.insert(0, {tests!r})
 from test_sweep import THETAS, make_objective
-from calibration.sweep import sweep
+from calibration.batch.sweep import sweep
 result = sweep(make_objective(), THETAS, validate=False)  # auto: shard over all devices, chunk from memory analysis
 print(json.dumps({{"n_devices_seen": len(jax.devices()), **result.to_json()}}))
 """

@@ -1,4 +1,4 @@
-"""Worker processes (calibration.workers): the runs and the Jacobian columns (slow) they compute
+"""Worker processes (calibration.batch.workers): the runs and the Jacobian columns (slow) they compute
 are the calling process's, bit for bit, whatever the number of workers; a fit and a search that
 spread their runs over two workers follow the single-process path to round-off (slow); bad input
 and failing tasks are reported."""
@@ -7,10 +7,10 @@ import numpy as np
 import pytest
 from helpers import model_data, tiny_s4
 
-from calibration.fit import fit
-from calibration.objective import Objective, jacobians_z, residuals_at
-from calibration.search import search
-from calibration.workers import Workers, as_workers
+from calibration.batch.workers import Workers, as_workers, jacobians_z, residuals_at
+from calibration.optim.fit import fit
+from calibration.optim.search import search
+from calibration.problem.objective import Objective
 from jaxmpm.scenes import S4_SIDE
 
 KEYS = ("beta", "mu1")

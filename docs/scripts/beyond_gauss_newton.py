@@ -21,9 +21,10 @@ import time
 import numpy as np
 
 from calibration import FrontTarget, Objective, ProfileTarget, fit, load_profile
-from calibration.likelihood import grid_posterior, predict_heldout, profile_likelihood
-from calibration.plots import plot_heldout, plot_profile_likelihoods
-from calibration.twin import FRONT_TIMES
+from calibration.inference.gridpost import grid_posterior, predict_heldout
+from calibration.inference.likelihood import profile_likelihood
+from calibration.plots.posteriors import plot_heldout, plot_profile_likelihoods
+from calibration.studies.twin import FRONT_TIMES
 from jaxmpm.scenes import S4_SIDE, aluminium_bars, cohesive_collapse
 
 ROOT = pathlib.Path(__file__).resolve().parents[2]

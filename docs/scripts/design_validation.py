@@ -23,9 +23,9 @@ import time
 import numpy as np
 
 from calibration import FrontTarget, Objective, ProfileTarget, fit
-from calibration.design import design
-from calibration.uncertainty import Z95
-from calibration.workers import Workers
+from calibration.batch.workers import Workers
+from calibration.design.design import design
+from calibration.inference.noise import Z95
 from jaxmpm.scenes import S4_SIDE, cohesive_collapse
 
 ROOT = pathlib.Path(__file__).resolve().parents[2]

@@ -1,4 +1,4 @@
-"""The emulated posterior (``calibration.emulator``) against the model's own: the S4 twin's
+"""The emulated posterior (``calibration.inference.emulator``) against the model's own: the S4 twin's
 (β, μ1) at dx = L/6, where NUTS on the model (docs/results/nuts_s4.json, 7,490 Jacobians) and the
 grid quadrature are stored, and the five keys of the three filmed collapses (docs/five_keys/).
 
@@ -12,7 +12,7 @@ grid quadrature are stored, and the five keys of the three filmed collapses (doc
 
 Writes docs/results/emulated_{s4,five}.json and docs/figures/emulated_{s4,five}.png (``--coarsen R``:
 ``five_coarse{R}``; ``--model-error``: ``five_model_error``, the likelihood's σ by block the data's 2 %
-and the model's own error there, ``calibration.likelihood.model_error``, in quadrature).
+and the model's own error there, ``calibration.inference.likelihood.model_error``, in quadrature).
 """
 
 import argparse
@@ -25,9 +25,9 @@ sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent))
 from beyond_gauss_newton import S4_KEYS, S4_TRUTH, s4_twin  # noqa: E402  (this folder)
 
 from calibration import fit  # noqa: E402
-from calibration.emulator import emulated_posterior  # noqa: E402
-from calibration.likelihood import model_error  # noqa: E402
-from calibration.workers import Workers  # noqa: E402
+from calibration.batch.workers import Workers  # noqa: E402
+from calibration.inference.emulator import emulated_posterior  # noqa: E402
+from calibration.inference.likelihood import model_error  # noqa: E402
 
 ROOT = pathlib.Path(__file__).resolve().parents[2]
 RESULTS, FIGURES = ROOT / "docs" / "results", ROOT / "docs" / "figures"
@@ -63,8 +63,9 @@ def five(workers, args):
     import numpy as np
 
     from calibration import CompositeObjective, Objective
-    from calibration.emulator import log_uniform, psis
-    from calibration.likelihood import weighted_quantile
+    from calibration.inference.emulator import log_uniform
+    from calibration.inference.gridpost import weighted_quantile
+    from calibration.inference.surrogates import psis
     from jaxmpm import Experiment
 
     objective = CompositeObjective([Objective.from_experiment(Experiment.from_toml(f), FIVE) for f in FIVE_FILES])
@@ -109,7 +110,7 @@ def five(workers, args):
 
 
 def error(workers, args):
-    """The model error of the five-key objective (``calibration.likelihood.model_error``) at the
+    """The model error of the five-key objective (``calibration.inference.likelihood.model_error``) at the
     posterior's centre, against what it is meant to hold: the residuals at the truth, where the
     twin's data (L/18, another draw, 2 % noise) and the L/12 model differ by noise, draw and grid."""
     import numpy as np
@@ -183,14 +184,14 @@ def linear(workers, args):
     import numpy as np
 
     from calibration import CompositeObjective, Objective
-    from calibration.mcmc import _row_weights
-    from calibration.uncertainty import coarse_residuals
+    from calibration.inference.nuts import row_weights
+    from calibration.inference.scatter import coarse_residuals
     from jaxmpm import Experiment
 
     fine = json.loads((RESULTS / "emulated_five_model_error_corrected_i0_measured.json").read_text())
     coarse = json.loads((RESULTS / "emulated_five_coarse1.5_model_error_corrected_i0_measured.json").read_text())
     objective = CompositeObjective([Objective.from_experiment(Experiment.from_toml(f), FIVE) for f in FIVE_FILES])
-    weights = _row_weights(objective, fine["noise"])
+    weights = row_weights(objective, fine["noise"])
     precision = np.zeros((len(FIVE), len(FIVE)))
     precision[FIVE.index("I0"), FIVE.index("I0")] = fine["prior"]["I0"][1] ** -2
     grid = json.loads((RESULTS / "emulated_five_model_error_corrected_i0_measured_grid.json").read_text())
@@ -223,8 +224,8 @@ def regrid(workers, args):
     import types
     from typing import Any
 
-    from calibration.gridterm import GridTerm, with_grid_term
-    from calibration.plots import plot_grid_term
+    from calibration.inference.gridterm import GridTerm, with_grid_term
+    from calibration.plots.posteriors import plot_grid_term
 
     @dataclasses.dataclass(frozen=True)
     class Stored(GridTerm):
@@ -294,9 +295,9 @@ def main():
     parser.add_argument("--coarsen", type=float, default=1.0, help="five: a grid this many times coarser")
     parser.add_argument("--grid-levels", type=int, default=0, choices=(0, 1, 2),
                         help="five: the posterior's grid term, the same posterior at 1.5 x dx (1) and 2.25 x dx (2) "
-                             "(calibration.emulator.emulated_posterior's grid_ratio; default 0: not measured)")
+                             "(emulated_posterior's grid_ratio; default 0: not measured)")
     parser.add_argument("--emulator", default="quadratic", choices=("quadratic", "corrected"),
-                        help="the emulator (calibration.emulator.EMULATORS)")
+                        help="the emulator (calibration.inference.surrogates.EMULATORS)")
     parser.add_argument("--model-error", action="store_true",
                         help="five: the model's own error (particle draws, grid) beside the data's noise")
     args = parser.parse_args()
@@ -316,7 +317,7 @@ def main():
     name += "" if args.emulator == "quadratic" else f"_{args.emulator}"
     name += f"_{args.tag}" if args.tag else ""
     (RESULTS / f"emulated_{name}.json").write_text(json.dumps(out, indent=1))
-    from calibration.plots import plot_emulated
+    from calibration.plots.posteriors import plot_emulated
 
     reference = None
     if args.which == "s4":
@@ -328,7 +329,7 @@ def main():
         print(f"{k}: emulated+IS {post.mean[k]:.5g} ± {post.sd[k]:.3g} {post.ci95[k]}; chains R-hat "
               f"{post.emulated.rhat[k]:.4f} ESS {post.emulated.ess_bulk[k]:.0f}")
     if post.grid is not None:
-        from calibration.plots import plot_grid_term
+        from calibration.plots.posteriors import plot_grid_term
 
         plot_grid_term(post, FIGURES / f"emulated_{name}_grid_term.png", truth=out["truth"], title=out["case"])
         print(post.grid_statement)

@@ -30,9 +30,9 @@ import numpy as np
 from beyond_gauss_newton import S4_KEYS, S4_TRUTH, s4_twin  # the same twin (this folder)
 
 from calibration import Objective, ProfileTarget, fit, load_profile
-from calibration.likelihood import grid_posterior
-from calibration.mcmc import McmcPosterior, nuts_posterior, posterior_predictive
-from calibration.plots import plot_nuts, plot_posterior_predictive
+from calibration.inference.gridpost import grid_posterior
+from calibration.inference.mcmc import McmcPosterior, nuts_posterior, posterior_predictive
+from calibration.plots.posteriors import plot_nuts, plot_posterior_predictive
 from jaxmpm.scenes import aluminium_bars
 
 ROOT = pathlib.Path(__file__).resolve().parents[2]

@@ -38,7 +38,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from calibration.observe import Observations, model_functions
+from calibration.problem.observe import Observations
+from calibration.problem.residuals import model_functions
 from jaxmpm.observables import deposit_profile, particle_volumes
 from jaxmpm.rollout import make_rollout
 from jaxmpm.scenes import S4_SIDE, cohesive_collapse

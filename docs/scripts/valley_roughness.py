@@ -24,7 +24,7 @@ import numpy as np
 from scipy.signal import savgol_filter
 
 import calibration as cal
-from calibration.objective import CompositeObjective
+from calibration.problem.composite import CompositeObjective
 from jaxmpm.scenes import S4_SIDE, build_scene
 
 ROOT = pathlib.Path(__file__).resolve().parents[2]

@@ -4,7 +4,7 @@
 
 S4 (the cohesive column, L = H = 89 mm) at L/``cells``, at β = 0.25 and the scene's μ1, μ2, I0, ξ,
 with two more experiments on the same material: a column twice as tall (aspect ratio 2) and the
-same column on a 10° slope. For every candidate set of observations (``calibration.design``) the
+same column on a 10° slope. For every candidate set of observations (``calibration.design.design``) the
 expected 95 % half-width of β, μ1, μ2, I0 and ξ at ``--noise`` (a fraction of the profile's peak,
 of the column length for the front, of the top's height), with the grid's share (1.5 dx). Writes
 docs/results/what_collapses_tell.json and docs/figures/what_collapses_tell.png (the data's share
@@ -17,9 +17,9 @@ import pathlib
 
 import numpy as np
 
-from calibration.design import design
-from calibration.plots import plot_design
-from calibration.workers import Workers
+from calibration.batch.workers import Workers
+from calibration.design.design import design
+from calibration.plots.fits import plot_design
 from jaxmpm.scenes import S4_SIDE, cohesive_collapse
 
 ROOT = pathlib.Path(__file__).resolve().parents[2]

@@ -16,8 +16,9 @@ import time
 
 import numpy as np
 
-from calibration.objective import Objective, ProfileTarget, jacobians_z
-from calibration.workers import Workers
+from calibration.batch.workers import Workers, jacobians_z
+from calibration.problem.objective import Objective
+from calibration.problem.targets import ProfileTarget
 from jaxmpm import scenes
 
 KEYS = ("beta", "mu1")

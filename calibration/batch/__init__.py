@@ -1,0 +1,1 @@
+"""Many independent runs at once: worker processes, vmapped sweeps, Dask clusters."""

@@ -1,0 +1,347 @@
+"""Sweeps beyond one machine, through Dask distributed (the optional ``cluster`` extra).
+
+The first level of parallelism stays ``calibration.batch.sweep``: one vmapped (or sharded) chunk of
+members per compiled call. This module adds the second: the chunks are Dask tasks, run by the
+workers of a cluster, and merged into one ``SweepResult``.
+
+- ``cluster="local:N"`` starts a ``distributed.LocalCluster`` of N single-threaded worker
+  processes on this machine (and closes it at the end); ``"tcp://HOST:PORT"`` connects to a
+  running scheduler (started by ``dask scheduler`` / ``dask worker``, or by ``dask-jobqueue``
+  on SLURM or PBS); a ``distributed.Client`` is used as it is.
+- The objective travels as a recipe, ``make_objective``: a picklable callable of no arguments
+  that builds it (a module-level function or a ``functools.partial`` of one). Each worker builds
+  it once per sweep and compiles once per chunk shape; every task has the same number of rows
+  (the last is padded with copies of its first member, dropped on merge).
+- A task that raises, or whose worker dies, is resubmitted up to ``retries`` times and every
+  attempt's error is kept (``ClusterSweepResult.tasks``). On a local cluster the scheduler's own
+  silent retries are switched off (``distributed.scheduler.allowed-failures = 0``) so that a lost
+  worker is seen and reported here; a remote scheduler keeps its own setting, and its retries
+  come on top. A chunk that fails every attempt is not dropped: its members are in ``failed``
+  with the error, loss NaN. Members that ran but failed in the engine (status bits) are in
+  ``failed`` too, with the engine's reasons, as in ``sweep``.
+- ``write_cluster_sweep`` writes one HDF5 file atomically: the sweep's datasets plus ``task``,
+  the task that made each member, and the attribute ``tasks_json`` (worker, attempts, errors).
+
+The numbers equal ``sweep(objective, thetas, mode="vmap", chunk=chunk)``'s: the same compiled
+batch shape on the same backend (tested).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import os
+import sys
+import time
+import uuid
+from collections.abc import Callable, Mapping
+from typing import Any
+
+import numpy as np
+
+from jaxmpm import describe_status
+
+from ..problem.protocol import ResidualModel
+from .sweep import SweepResult, _check_thetas, _jsonable, member_losses, sweep, write_sweep
+
+__all__ = ["parse_cluster", "ClusterSweepResult", "write_cluster_sweep", "cluster_sweep"]
+
+
+#: Tasks per worker when no chunk is given: enough that a lost worker costs a fraction of the sweep.
+TASKS_PER_WORKER = 4
+
+
+def parse_cluster(spec) -> tuple[str, Any]:
+    """``("local", N)``, ``("address", "tcp://...")`` or ``("client", client)``; a ValueError naming
+    ``cluster`` for anything else (checked before any worker starts)."""
+    if spec is not None and type(spec).__name__ == "Client" and hasattr(spec, "submit"):
+        return "client", spec
+    if not isinstance(spec, str):
+        raise ValueError(f"cluster must be 'local:N', a scheduler address 'tcp://HOST:PORT' or a "
+                         f"distributed.Client, got {spec!r}")
+    if spec.startswith("local:"):
+        count = spec[len("local:"):]
+        if not count.isdigit() or int(count) < 1:
+            raise ValueError(f"cluster {spec!r}: N in 'local:N' must be an integer >= 1")
+        return "local", int(count)
+    if "://" in spec and spec.split("://", 1)[1]:
+        return "address", spec
+    raise ValueError(f"cluster must be 'local:N' or a scheduler address such as 'tcp://HOST:PORT', got {spec!r}")
+
+
+# ---- the worker side ----------------------------------------------------------------------------
+#: Objectives built on this worker process, by sweep token (one sweep at a time holds one entry).
+_WORKER_OBJECTIVES: dict[str, Any] = {}
+
+
+def _run_task(token: str, make_objective: Callable[[], Any], rows: np.ndarray, x64: bool) -> dict[str, Any]:
+    """One chunk on a worker: build the objective once for this sweep, evaluate ``rows``."""
+    import jax
+
+    from jaxmpm.precision import enable_x64
+
+    if x64:
+        enable_x64(True)  # a worker process: its parent's precision, once, before anything is traced
+    objective = _WORKER_OBJECTIVES.get(token)
+    if objective is None:
+        _WORKER_OBJECTIVES.clear()  # an earlier sweep's objective and its executables
+        objective = _WORKER_OBJECTIVES[token] = make_objective()
+    result = sweep(objective, rows, mode="vmap", chunk=rows.shape[0], validate=False)
+    try:
+        from distributed import get_worker
+
+        worker = get_worker().address
+    except (ImportError, ValueError):  # called outside a worker (tests of this function)
+        worker = "local"
+    return {"residuals": result.residuals, "status": result.status,
+            "predictions": jax.tree.map(np.asarray, result.predictions), "worker": worker, "pid": os.getpid(),
+            "wall_s": result.wall_s, "compile_s": result.compile_s}
+
+
+# ---- the result ---------------------------------------------------------------------------------
+@dataclasses.dataclass(frozen=True)
+class ClusterSweepResult:
+    """A sweep run as Dask tasks. ``sweep`` holds the merged members in input order (mode
+    "cluster", ``n_devices`` the workers); ``task[i]`` is the task that made member i; ``tasks``
+    one dict per task: ``index``, ``members`` [start, stop), ``attempts``, ``worker``, ``pid``,
+    ``wall_s``, ``errors`` (one line per failed attempt) and ``lost`` (every attempt failed)."""
+
+    sweep: SweepResult
+    task: np.ndarray
+    tasks: tuple[dict[str, Any], ...]
+    cluster: str
+
+    @property
+    def n_members(self) -> int:
+        return self.sweep.n
+
+    @property
+    def failed(self) -> list[dict[str, Any]]:
+        """Every member without a result: index, params, task and why (the engine's status
+        reasons, a non-finite loss, or the errors of a chunk that failed every attempt)."""
+        out = []
+        for i in self.sweep.failed:
+            t = self.tasks[int(self.task[i])]
+            s = int(self.sweep.status[i])
+            if t["lost"]:
+                why = f"task {t['index']} failed {t['attempts']} attempts: " + " | ".join(t["errors"])
+            elif s:
+                why = "; ".join(describe_status(s))
+            else:
+                why = "non-finite loss (no status bit set)"
+            out.append({"index": int(i), "params": self.sweep.params(int(i)), "task": t["index"], "status": s,
+                        "why": why})
+        return out
+
+    @property
+    def retried(self) -> list[dict[str, Any]]:
+        """The tasks that needed more than one attempt (a lost worker, an exception)."""
+        return [t for t in self.tasks if t["attempts"] > 1]
+
+    def to_json(self) -> dict[str, Any]:
+        out = self.sweep.to_json()
+        out.pop("failures", None)
+        out.update({"n_members": self.n_members, "failed": self.failed, "cluster": self.cluster,
+                    "n_tasks": len(self.tasks), "retried": self.retried, "task": self.task})
+        return _jsonable(out)
+
+
+def write_cluster_sweep(path, result: ClusterSweepResult, objective=None) -> None:
+    """The sweep's HDF5 file (``write_sweep``) plus ``task`` (the task of each member) and the
+    attributes ``tasks_json`` and ``cluster``; written atomically."""
+    import json
+
+    def extra(f):
+        f.create_dataset("task", data=np.asarray(result.task))
+        f.attrs["tasks_json"] = json.dumps(_jsonable(list(result.tasks)))
+        f.attrs["cluster"] = result.cluster
+
+    write_sweep(path, result.sweep, objective, extra=extra)
+
+
+# ---- the client side ----------------------------------------------------------------------------
+def _connect(kind: str, value):
+    """(client, close) for a parsed cluster spec."""
+    import dask
+    from distributed import Client, LocalCluster
+
+    if kind == "client":
+        return value, lambda: None
+    if kind == "local":
+        # The scheduler runs in this process: with no silent retries a lost worker surfaces here.
+        with dask.config.set({"distributed.scheduler.allowed-failures": 0}):
+            cluster = LocalCluster(n_workers=value, threads_per_worker=1, processes=True, dashboard_address=None)
+        client = Client(cluster)
+
+        def close():
+            client.close()
+            cluster.close()
+
+        return client, close
+    client = Client(value)
+    return client, client.close
+
+
+def _bar(total: int, show: bool):
+    if not show:
+        return None
+    try:
+        from tqdm import tqdm
+    except ImportError:  # the optional 'progress' extra
+        return None
+    return tqdm(total=total, unit="member", desc="sweep", file=sys.stderr)
+
+
+def cluster_sweep(make_objective: Callable[[], ResidualModel], thetas, *, cluster="local:2", chunk: int | None = None,
+                  retries: int = 2, x64: bool | None = None, progress: bool = False,
+                  objective: ResidualModel | None = None) -> ClusterSweepResult:
+    """Evaluate the objective that ``make_objective()`` builds at every row of ``thetas`` as Dask
+    tasks of ``chunk`` members each (default: about ``TASKS_PER_WORKER`` tasks per worker).
+
+    ``make_objective`` must be picklable (a module-level function or a ``functools.partial`` of
+    one); it is also called here once, to check ``thetas`` with the objective's parameter rules
+    before anything runs (pass the already built ``objective`` to skip that). ``retries``: extra
+    attempts of a failed task. ``x64``: run the workers in float64 (default: as this process).
+    ``progress``: a tqdm bar counting members (the ``progress`` extra)."""
+    kind, value = _check_cluster_args(make_objective, cluster, retries, chunk)
+    from jaxmpm.precision import x64_enabled
+
+    objective = make_objective() if objective is None else objective
+    keys, thetas = _check_thetas(objective, thetas)
+    objective.check_thetas(thetas, "thetas")
+    x64 = x64_enabled() if x64 is None else bool(x64)
+    dtype = np.float64 if x64 else np.float32
+    n_members = thetas.shape[0]
+
+    clock = time.perf_counter()
+    client, close = _connect(kind, value)
+    try:
+        n_workers = max(1, len(client.scheduler_info().get("workers", {})))
+        size = chunk or max(1, math.ceil(n_members / (TASKS_PER_WORKER * n_workers)))
+        starts = list(range(0, n_members, size))
+        token = uuid.uuid4().hex
+
+        def submit(t, attempt):
+            return client.submit(_run_task, token, make_objective, _task_rows(thetas, starts[t], size, dtype), x64,
+                                 pure=False, key=f"jaxmpm-sweep-{token[:8]}-task{t}-attempt{attempt}")
+
+        tasks = [{"index": t, "members": [s, min(s + size, n_members)], "attempts": 0, "worker": None,
+                  "pid": None, "wall_s": None, "errors": [], "lost": False} for t, s in enumerate(starts)]
+        outputs = _run_tasks(submit, tasks, retries, n_members, progress)
+    finally:
+        close()
+    return ClusterSweepResult(sweep=_merge(keys, thetas, starts, size, outputs, n_workers, clock),
+                              task=np.repeat(np.arange(len(starts)), [t["members"][1] - t["members"][0]
+                                                                      for t in tasks]),
+                              tasks=tuple(tasks), cluster=cluster if isinstance(cluster, str) else kind)
+
+
+def _check_cluster_args(make_objective, cluster, retries, chunk) -> tuple[str, Any]:
+    """``cluster_sweep``'s arguments checked before any worker starts (and Dask distributed there):
+    the parsed ``cluster`` (``parse_cluster``)."""
+    if not callable(make_objective):
+        raise ValueError(f"make_objective must be a callable that builds the objective, got {make_objective!r}")
+    kind, value = parse_cluster(cluster)
+    if isinstance(retries, bool) or not isinstance(retries, int) or retries < 0:
+        raise ValueError(f"retries must be an integer >= 0, got {retries!r}")
+    if chunk is not None and (isinstance(chunk, bool) or not isinstance(chunk, int) or chunk < 1):
+        raise ValueError(f"chunk must be an integer >= 1, got {chunk!r}")
+    try:
+        import distributed  # noqa: F401
+    except ImportError:
+        raise ImportError("cluster sweeps need Dask distributed: pip install 'jaxmpm[cluster]'") from None
+    return kind, value
+
+
+def _task_rows(thetas: np.ndarray, start: int, size: int, dtype) -> np.ndarray:
+    """The ``size`` members of the task from ``start``, in ``dtype`` (the last task's padded with
+    copies of its first member)."""
+    rows = thetas[start:start + size]
+    if rows.shape[0] < size:  # same shape for every task: one compilation per worker
+        rows = np.concatenate([rows, np.repeat(rows[:1], size - rows.shape[0], axis=0)])
+    return np.asarray(rows, dtype)
+
+
+def _run_tasks(submit: Callable, tasks: list[dict[str, Any]], retries: int, n_members: int,
+               progress: bool) -> dict[int, dict]:
+    """Every task submitted (``submit(t, attempt)``) and gathered as it completes, a failed one
+    submitted again while it has ``retries`` left; ``tasks`` records in place each one's attempts,
+    errors, worker and whether it was lost, and a bar (``progress``) counts the members done.
+    Returns the outputs by task."""
+    from distributed import as_completed
+
+    outputs: dict[int, dict] = {}
+    pending = {}
+    for t in range(len(tasks)):
+        pending[submit(t, 0)] = t
+    bar = _bar(n_members, progress)
+    completed = as_completed(list(pending))
+    try:
+        for future in completed:
+            t = pending.pop(future)
+            tasks[t]["attempts"] += 1
+            try:
+                out = future.result()
+            except Exception as error:  # noqa: BLE001 (a task's exception or a lost worker: reported)
+                tasks[t]["errors"].append(_short(f"{type(error).__name__}: {error}"))
+                if tasks[t]["attempts"] <= retries:
+                    again = submit(t, tasks[t]["attempts"])
+                    pending[again] = t
+                    completed.add(again)
+                else:
+                    tasks[t]["lost"] = True
+                    if bar is not None:
+                        bar.update(tasks[t]["members"][1] - tasks[t]["members"][0])
+                continue
+            finally:
+                future.release()
+            outputs[t] = out
+            tasks[t].update(worker=out["worker"], pid=out["pid"], wall_s=out["wall_s"])
+            if bar is not None:
+                bar.update(tasks[t]["members"][1] - tasks[t]["members"][0])
+    finally:
+        if bar is not None:
+            bar.close()
+    return outputs
+
+
+def _short(text: str, head: int = 200, tail: int = 300) -> str:
+    """An error line for the report: its start and its end (where a traceback names the cause)."""
+    text = text.replace("\\n", "\n")
+    return text if len(text) <= head + tail else f"{text[:head]} … {text[-tail:]}"
+
+
+def _merge(keys, thetas, starts, size, outputs: Mapping[int, dict], n_workers: int, clock: float) -> SweepResult:
+    """One SweepResult in input order; a lost task's members get NaN residuals and predictions."""
+    import jax
+
+    n_members = thetas.shape[0]
+    template = next(iter(outputs.values()), None)
+    m = template["residuals"].shape[1] if template is not None else 0
+    residuals = np.full((n_members, m), np.nan)
+    status = np.zeros(n_members, np.int64)
+    predictions = None
+    if template is not None:
+        predictions = jax.tree.map(
+            lambda a: np.full((n_members,) + a.shape[1:], np.nan if np.issubdtype(a.dtype, np.floating) else 0,
+                              a.dtype), template["predictions"])
+    for t, start in enumerate(starts):
+        stop = min(start + size, n_members)
+        out = outputs.get(t)
+        if out is None:
+            continue
+        n = stop - start
+        residuals[start:stop] = out["residuals"][:n]
+        status[start:stop] = out["status"][:n]
+        predictions = jax.tree.map(lambda full, part, a=start, b=stop, k=n: _put(full, part[:k], a, b),
+                                   predictions, out["predictions"])
+    loss, failed = member_losses(residuals, status)
+    compile_s = max((o["compile_s"] for o in outputs.values()), default=0.0)
+    return SweepResult(keys=keys, thetas=thetas, loss=loss, status=status, residuals=residuals,
+                       predictions=predictions, failed=failed, mode="cluster", chunk=size,
+                       n_devices=n_workers, wall_s=time.perf_counter() - clock, compile_s=compile_s)
+
+
+def _put(full: np.ndarray, part: np.ndarray, start: int, stop: int) -> np.ndarray:
+    full[start:stop] = part
+    return full

@@ -1,0 +1,201 @@
+"""Every core busy: independent model runs on one single-threaded XLA process per core.
+
+A calibration's cost is model runs that do not depend on each other: the columns of a
+forward-mode Jacobian, the starts of a search, the perturbed runs of the round-off check, the
+members of a sampling-seed ensemble. On the CPU one XLA process using two threads does about a
+third of the work of two single-threaded processes side by side (docs/performance.md): the
+step is a chain of small kernels, and XLA splits each one between its threads. ``Workers(n)``
+holds ``n`` such processes (the standard library's ``ProcessPoolExecutor``, started with
+``spawn``; each pins itself to one core where the system allows and runs XLA on one thread)
+and maps picklable tasks over them.
+
+A task is a module-level function and its arguments: the static description of a problem's run
+(``jaxmpm.Config``, ``calibration.problem.observe.Observations``, the fitted keys) and numpy arrays
+(``calibration.problem.residuals.column_pass`` and ``run_pass``, made by each part of an objective;
+this module splits an objective's work into them and joins the results). Each worker builds and
+compiles the model functions of a description once and keeps them
+(``calibration.problem.residuals.model_functions``' cache), so a fit compiles once per worker. A task
+computes exactly what the same function computes in the calling process: the results do not
+depend on the number of workers or on which worker ran which task (tested bit for bit).
+
+``Workers(1)`` runs the tasks in the calling process, one after the other: the same numbers.
+"""
+
+from __future__ import annotations
+
+import concurrent.futures
+import contextlib
+import multiprocessing
+import os
+from collections.abc import Callable, Iterable, Sequence
+from typing import Any
+
+import jax
+import numpy as np
+
+from jaxmpm.threads import use_one_thread
+
+__all__ = ["available_cores", "Workers", "as_workers", "using", "run_tasks", "jacobians_z", "residuals_at"]
+
+
+def available_cores() -> int:
+    """The cores this process may run on (its affinity mask where the system has one)."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:  # pragma: no cover (macOS, Windows)
+        return max(1, os.cpu_count() or 1)
+
+
+def _init_worker(x64: bool, counter, cores: Sequence[int]) -> None:
+    use_one_thread()
+    with counter.get_lock():
+        index = counter.value
+        counter.value += 1
+    if cores:
+        try:
+            os.sched_setaffinity(0, {cores[index % len(cores)]})
+        except (AttributeError, OSError):  # pragma: no cover (no affinity on this system)
+            pass
+    from jaxmpm.precision import enable_x64
+
+    enable_x64(x64)  # a fresh process: its parent's precision, once, before anything is traced
+
+
+class Workers:
+    """``n`` worker processes (started on first use), or the calling process when ``n`` is 1.
+
+    ``map(fn, tasks)`` returns ``[fn(*task) for task in tasks]``, computed in parallel; an
+    exception in a task is raised in the caller. Use as a context manager, or ``close()``."""
+
+    def __init__(self, n: int):
+        if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 1:
+            raise ValueError(f"workers must be an integer >= 1, got {n!r}")
+        self.n = int(n)
+        self._pool: concurrent.futures.ProcessPoolExecutor | None = None
+
+    @property
+    def parallel(self) -> bool:
+        return self.n > 1
+
+    def _executor(self) -> concurrent.futures.ProcessPoolExecutor:
+        if self._pool is None:
+            from jaxmpm.precision import x64_enabled
+
+            context = multiprocessing.get_context("spawn")
+            try:
+                cores = sorted(os.sched_getaffinity(0))
+            except AttributeError:  # pragma: no cover
+                cores = []
+            self._pool = concurrent.futures.ProcessPoolExecutor(
+                max_workers=self.n, mp_context=context, initializer=_init_worker,
+                initargs=(x64_enabled(), context.Value("i", 0), cores))
+        return self._pool
+
+    def map(self, fn: Callable, tasks: Iterable[tuple]) -> list[Any]:
+        tasks = list(tasks)
+        if not self.parallel:
+            return [fn(*task) for task in tasks]
+        futures = [self._executor().submit(fn, *task) for task in tasks]
+        return [f.result() for f in futures]
+
+    def close(self) -> None:
+        if self._pool is not None:
+            self._pool.shutdown(cancel_futures=True)
+            self._pool = None
+
+    def __enter__(self) -> Workers:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def __repr__(self) -> str:
+        return f"Workers({self.n})"
+
+
+def as_workers(workers) -> Workers:
+    """``workers`` as a ``Workers``: None or 1 the calling process, an integer that many
+    processes, a ``Workers`` itself."""
+    if workers is None:
+        return Workers(1)
+    if isinstance(workers, Workers):
+        return workers
+    return Workers(workers)
+
+
+@contextlib.contextmanager
+def using(workers):
+    """``as_workers(workers)`` for a block, closed at its end if it was made here (a ``Workers``
+    passed in stays open for its owner)."""
+    pool = as_workers(workers)
+    try:
+        yield pool
+    finally:
+        if pool is not workers:
+            pool.close()
+
+
+def run_tasks(workers, tasks) -> list:
+    """The results of ``(fn, args)`` tasks, computed by ``workers`` (``calibration.batch.workers``)."""
+
+    return as_workers(workers).map(_call, tasks)
+
+
+def _call(fn, args):
+    return fn(*args)
+
+
+def column_tasks(objective, z) -> list[tuple]:
+    """The forward-mode passes of dr/dz at z (the objective's bounds), one per key of each of its
+    parts (``objective.parts``, each making its own tasks), as tasks ``(fn, args)``;
+    ``combine_columns`` assembles them."""
+    return [part.column_task(np.asarray(z)[..., index], tangent, bounds) for part, index, bounds in objective.parts
+            for tangent in np.eye(len(part.keys), dtype=part.dtype)]
+
+
+def combine_columns(objective, results) -> tuple:
+    """(r, dr/dz, dr/dθ, prediction) of ``objective`` from the results of ``column_tasks`` (each
+    part's residuals and prediction from its first pass: every pass computes the same primal)."""
+    outs, start = [], 0
+    for part, _, _ in objective.parts:
+        cols = results[start:start + len(part.keys)]
+        start += len(part.keys)
+        outs.append((cols[0][0], np.stack([c[1] for c in cols], axis=-1), np.stack([c[2] for c in cols], axis=-1),
+                     cols[0][3]))
+    return objective.join(outs)
+
+
+def residual_tasks(objective, thetas, seeds=None) -> list[tuple]:
+    """Runs at the rows of ``thetas`` (each part with its scene's particles, or drawn with the
+    matching entry of ``seeds``) as tasks, part after part: (r, prediction) each."""
+    thetas = np.atleast_2d(np.asarray(thetas, float))
+    return [part.residual_task(theta, None if seeds is None else seeds[i]) for part, index, _ in objective.parts
+            for i, theta in enumerate(thetas[:, index])]
+
+
+def combine_residuals(objective, results, rows: int) -> list[tuple]:
+    """Per row, the (r, prediction) of ``objective`` from the results of ``residual_tasks``."""
+    parts = range(len(objective.parts))
+    return [objective.join([results[j * rows + i] for j in parts]) for i in range(rows)]
+
+
+def jacobians_z(objective, Z, workers) -> tuple:
+    """(r (k, m), dr/dz (k, m, n), dr/dθ (k, m, n), predictions stacked over k) at the rows of
+    ``Z`` (k, n): every forward-mode pass of every row, spread over ``workers``."""
+    Z = np.atleast_2d(np.asarray(Z))
+    per_row = [column_tasks(objective, z) for z in Z]
+    results = run_tasks(workers, [t for tasks in per_row for t in tasks])
+    rows, start = [], 0
+    for tasks in per_row:
+        rows.append(combine_columns(objective, results[start:start + len(tasks)]))
+        start += len(tasks)
+    r, Jz, J, preds = zip(*rows)
+    return np.stack(r), np.stack(Jz), np.stack(J), jax.tree.map(lambda *a: np.stack(a), *preds)
+
+
+def residuals_at(objective, thetas, workers, seeds=None) -> list[tuple]:
+    """[(r, prediction)] at the rows of ``thetas`` (with the particles drawn with ``seeds``,
+    row by row, if given), the runs spread over ``workers``."""
+    thetas = np.atleast_2d(np.asarray(thetas, float))
+    results = run_tasks(workers, residual_tasks(objective, thetas, seeds))
+    return combine_residuals(objective, results, thetas.shape[0])

@@ -1,0 +1,256 @@
+"""The commands of ``python -m calibration``: each parses its flags into the library's objects
+(``calibration.cli.args``), makes its library call and prints the result.
+
+    python -m calibration fit --scene cohesive-collapse --data deposit.csv --fit beta,mu1 --out fit.h5 --json
+    python -m calibration posterior fit.h5 --profiles 9 --nuts 200 --plot figs --json
+    python -m calibration sweep --scene cohesive-collapse --data deposit.csv --over beta=0.05:0.5:8 \
+        --over mu1=0.3:0.5:8 --plot figs
+    python -m calibration twin --quick --noise 0.02 --json
+
+Without --init, ``fit`` is a global search: Levenberg–Marquardt from --starts K (default 8)
+space-filling starts in one vmapped batch (``calibration.optim.search``); its JSON lists every
+distinct minimum, the start the best came from, and the verdict
+(``calibration.inference.verdict.assess_fit``): a point that is not a verified minimum, sits at a
+bound or leaves a misfit well above the noise is "not a fit of the data" and gets no interval.
+With --init (or --resume, --method adam, --jacobian fd) one start runs. ``--out`` keeps the fit
+in a file (its history, its setup and its end point); ``posterior`` reads that file, builds the
+objective again and runs the checks beyond Gauss–Newton around its point.
+
+Invalid input exits with status 2 and a message naming the argument and what was wrong, before
+anything compiles: options, data (against the scene too), every swept member, and every output
+path (--out, --plot). An existing --out is never replaced without --overwrite; --resume
+continues only a history made for the same problem. --json output is valid JSON: a non-finite
+number is printed as null and its path listed under "nonfinite".
+"""
+
+from __future__ import annotations
+
+import json
+import pathlib
+
+from jaxmpm.cli import print_json
+from jaxmpm.precision import use_dtype
+from jaxmpm.scenes.collapse import S4_SIDE
+from jaxmpm.threads import apply_threads
+
+from ..batch.workers import Workers
+from ..plots.fits import fit_figures, law_figures, sweep_figures, twin_landscape_figure
+from ..plots.posteriors import likelihood_figures
+from .args import (
+    coarse_setup,
+    design_noise,
+    experiments_of,
+    finish,
+    fit_fields,
+    fit_meta,
+    fit_options,
+    fit_request,
+    guard,
+    parse_floats,
+    parse_keys,
+    parse_over,
+    parse_pairs,
+    parse_variants,
+    posterior_options,
+    setup_of,
+    start_count,
+    worker_count,
+)
+from .checks import check_args
+from .parser import build_parser
+
+__all__ = ["main"]
+
+
+def _fit(args) -> int:
+    from ..optim.report import fit_report
+    from ..optim.search import fit_from_starts
+
+    experiments = experiments_of(args)
+    request = fit_request(args, experiments)
+    starts = start_count(args, request.init)
+    setup = setup_of(args, request.keys)
+    objective = setup.objective()
+    init = objective.expand(request.init)  # a plain key's start for each experiment's own value
+    options, judge = fit_options(args, request.noise)
+    coarse = coarse_setup(setup, args.coarse).objective() if starts > 1 and args.coarse is not None else None
+    with Workers(worker_count(args)) as workers:
+        result, found = fit_from_starts(objective, init, starts=starts, options=options, judge=judge, coarse=coarse,
+                                        refine=args.refine, seed=args.search_seed, out=args.out, resume=args.resume,
+                                        overwrite=args.overwrite, progress=not args.no_progress,
+                                        meta=fit_meta(args, setup), workers=workers)
+    out = {**fit_report(objective, result, found), **fit_fields(args, setup, init, found)}
+    errors: dict[str, str] = {}
+    if args.plot:
+        out["figures"] = guard(errors, "--plot", lambda: fit_figures(args.plot, objective, result))
+    return finish(out, args, errors)
+
+
+def _posterior(args) -> int:
+    from ..inference.nuts import gaussian_prior
+    from ..optim.record import read_record
+    from ..optim.report import posterior_checks
+    from ..problem.build import FitSetup
+
+    options = posterior_options(args)
+    record = read_record(args.fit_file)
+    setup = record.header.get("meta", {}).get("setup")
+    if setup is None:
+        raise ValueError(f"{args.fit_file}: records no setup to build its objective from (written by a library "
+                         "call without one, or an older calibration): fit it with python -m calibration fit --out")
+    setup = FitSetup.from_json(setup)
+    try:
+        gaussian_prior(record.keys, options.prior)
+    except ValueError as err:
+        raise ValueError(f"--{err}") from None
+    use_dtype(setup.dtype)
+    objective = setup.objective()
+    if record.header.get("fingerprint") not in (None, json.loads(json.dumps(objective.fingerprint()))):
+        raise ValueError(f"{args.fit_file}: its objective, built again from the files it names, differs from the "
+                         "one it fitted (a data file or the scene changed since the fit)")
+    with Workers(worker_count(args)) as workers:
+        checks = posterior_checks(objective, record, options, noise=args.noise, workers=workers,
+                                  progress=not args.json)
+    out = {"fit": str(args.fit_file), "keys": list(record.keys), "params": record.theta, **checks.report}
+    errors: dict[str, str] = {}
+    if args.plot and checks.profiles:
+        out["figures"] = guard(errors, "--plot", lambda: likelihood_figures(args.plot, checks.profiles,
+                                                                             posterior=checks.posterior))
+    return finish(out, args, errors)
+
+
+def _sweep(args) -> int:
+    from ..batch.sweep import sweep, sweep_points, write_sweep
+
+    keys, thetas = sweep_points(parse_over(args.over, lhs=args.lhs is not None), args.lhs, seed=args.lhs_seed)
+    setup = setup_of(args, keys)
+    objective = setup.objective()
+    objective.check_thetas(thetas, "--over")  # every member, before anything compiles
+    if args.cluster is not None:
+        from ..batch.cluster import cluster_sweep, write_cluster_sweep
+
+        clustered = cluster_sweep(setup.objective, thetas, cluster=args.cluster, chunk=args.chunk,
+                                  retries=args.retries, progress=not args.no_progress, objective=objective)
+        result, out = clustered.sweep, clustered.to_json()
+        lost = any(t["lost"] for t in clustered.tasks)
+        write = lambda: write_cluster_sweep(args.out, clustered, objective) or True  # noqa: E731
+    else:
+        result = sweep(objective, thetas, chunk=args.chunk, mode=args.mode, progress=not args.no_progress)
+        out, lost = {**result.to_json(), "n_members": result.n}, False
+        write = lambda: write_sweep(args.out, result, objective) or True  # noqa: E731
+    out.pop("residuals", None)  # per-member residual vectors go to --out, not to the terminal
+    out["scene"] = setup.experiments[0].name
+    errors: dict[str, str] = {}
+    if args.out and guard(errors, "--out", write):
+        out["out"] = str(args.out)
+    if args.plot:
+        out["figures"] = guard(errors, "--plot", lambda: sweep_figures(args.plot, result, keys))
+    code = finish(out, args, errors)
+    # A task that failed every attempt left members without a result: the sweep did not run
+    # in full (its members are in "failed" with the errors), so it does not exit 0.
+    return 1 if lost else code
+
+
+def _twin(args) -> int:
+    from ..studies.twin import twin, twin_landscape
+
+    use_dtype(args.dtype)
+    result = twin(quick=args.quick, noise=args.noise, keys=parse_keys(args.fit), method=args.method,
+                  steps=args.steps, seed=args.noise_seed, dx=args.dx, ppc=args.ppc, t_end=args.t_end,
+                  values=parse_pairs(args.set, "--set"), dtype=args.dtype or "float32", out=args.out,
+                  resume=args.resume, overwrite=args.overwrite, progress=not args.no_progress,
+                  reference_noise=args.reference_noise, threshold=args.threshold,
+                  roundoff_samples=args.roundoff_samples)
+    out = result.to_json()
+    errors: dict[str, str] = {}
+    if args.plot:
+        out["figures"] = guard(errors, "--plot", lambda: fit_figures(args.plot, result.objective, result.fit,
+                                                                         prefix="twin", truth=result.truth))
+    if args.landscape:
+        landscape = twin_landscape(result, args.landscape, progress=not args.no_progress)
+        out["landscape"] = landscape.to_json()
+        if args.plot:
+            out["landscape"]["figure"] = str(twin_landscape_figure(args.plot, landscape))
+    return finish(out, args, errors)
+
+
+def _coverage(args) -> int:
+    from ..studies.coverage import coverage
+
+    result = coverage(args.seeds, noise=args.noise, keys=parse_keys(args.fit), quick=args.quick,
+                      progress=not args.no_progress, dx=args.dx, values=parse_pairs(args.set, "--set"),
+                      steps=args.steps)
+    out = result.to_json()
+    errors: dict[str, str] = {}
+    if args.plot:
+        from ..plots.fits import plot_coverage
+
+        out["figures"] = guard(errors, "--plot", lambda: [str(plot_coverage(
+            result, pathlib.Path(args.plot) / "coverage.png"))])
+    return finish(out, args, errors)
+
+
+def _design(args) -> int:
+    from jaxmpm.cli import scene_dtype, scene_from_args
+
+    from ..design.design import design
+
+    use_dtype(scene_dtype(args))
+    keys, variants = parse_keys(args.fit), parse_variants(args.variant)
+    times = parse_floats(args.times, "--times") if args.times else None
+    scene = scene_from_args(args)
+    with Workers(worker_count(args)) as workers:
+        result = design(scene, keys, parse_pairs(args.at, "--at"), noise=design_noise(args),
+                        tolerance=args.tolerance, times=times, variants=variants, sampling_seeds=args.sampling_seeds,
+                        grid_ratio=args.grid_check or None, workers=workers)
+    out = result.to_json()
+    errors: dict[str, str] = {}
+    if args.plot:
+        from ..plots.fits import plot_design
+
+        out["figure"] = guard(errors, "--plot", lambda: str(plot_design(result, args.plot)))
+    if not args.json:
+        print("\n".join(result.lines()))
+        return 1 if errors else 0
+    return finish(out, args, errors)
+
+
+def _law(args) -> int:
+    from ..studies.scaling import fit_runout_law, named_law
+
+    law, label = named_law(args.law, sand=args.sand)
+    result = fit_runout_law(parse_floats(args.train, "--train"), parse_floats(args.test, "--test"),
+                            parse_keys(args.fit), law=law, label=label, dx=args.dx, ppc=args.ppc,
+                            values=parse_pairs(args.set, "--set"), steps=args.steps, out=args.out,
+                            overwrite=args.overwrite, progress=not args.no_progress, jacobian=args.jacobian,
+                            fd_step=args.fd_step)
+    out = result.to_json()
+    errors: dict[str, str] = {}
+    if args.plot:
+        out["figures"] = guard(errors, "--plot", lambda: law_figures(args.plot, result, law))
+    return finish(out, args, errors)
+
+
+def _bench(args) -> int:
+    from ..studies.bench import bench
+
+    use_dtype(args.dtype)
+    kw = {"dx": S4_SIDE / 8, "t_end": 0.2} if args.quick else {"dx": args.dx}
+    values = {k: float(v) for k, v in parse_pairs(args.set, "--set").items()}
+    result = bench(parse_keys(args.fit), repeat=args.repeat, dtype=args.dtype, values=values, **kw)
+    return 1 if print_json(result.to_json(), args.json) else 0
+
+
+COMMANDS = {"fit": _fit, "posterior": _posterior, "sweep": _sweep, "twin": _twin, "bench": _bench, "law": _law,
+            "coverage": _coverage, "design": _design}
+
+
+def main(argv=None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        apply_threads(args.threads)
+        check_args(args)
+        return COMMANDS[args.command](args)
+    except ValueError as err:
+        parser.exit(2, f"python -m calibration {args.command}: error: {err}\n")

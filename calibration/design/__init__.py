@@ -1,0 +1,1 @@
+"""What to measure before measuring: expected intervals of candidate experiments."""

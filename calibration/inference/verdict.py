@@ -1,0 +1,151 @@
+"""Whether a point is a fit of the data (``assess_fit``), and a fit's end point judged: verdict and
+interval together (``judge_point``).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Mapping
+from typing import Any
+
+import numpy as np
+
+from ..problem.protocol import ObjectiveLike
+from .gauss_newton import gauss_newton_uncertainty
+from .gridcheck import GRID_DRAWS, check_grid_options, grid_shift
+from .noise import ABOVE_NOISE_P, NOISE_FLOOR, block_noise, chi2_quantile
+from .scatter import ROUNDOFF_SAMPLES, ModelScatter, model_scatter, roundoff_limit, sampling_scatter
+
+__all__ = ["Verdict", "assess_fit", "judge_point"]
+
+
+@dataclasses.dataclass(frozen=True)
+class Verdict:
+    """Whether a point is a fit of the data, and if not, why (see the module docstring)."""
+
+    is_fit: bool
+    reasons: tuple[str, ...]
+    verified: bool  # the optimiser met one of its convergence tests
+    at_bound: tuple[str, ...]
+    noise: dict[str, float | None]  # σ by block (None: not estimable)
+    noise_source: str
+    chi2: dict[str, float]  # by block with a noise level
+    chi2_limit: dict[str, float]
+    statement: str
+    convergence: str = ""  # how the minimum was verified (the optimiser's test, or the run's round-off)
+    scatter: ModelScatter | None = None
+
+    def to_dict(self) -> dict[str, Any]:
+        out = {"is_fit": self.is_fit, "verdict": "a fit of the data" if self.is_fit else "not a fit of the data",
+               "reasons": list(self.reasons), "verified_minimum": self.verified, "at_bound": list(self.at_bound),
+               "noise": self.noise, "noise_source": self.noise_source, "chi2": self.chi2,
+               "chi2_limit": self.chi2_limit, "statement": self.statement}
+        if self.convergence:
+            out["convergence"] = self.convergence
+        return out
+
+
+def assess_fit(r, row_scale, blocks: Mapping[str, slice], theta, *, converged: bool, message: str = "",
+               bounds=None, noise: Mapping[str, float] | float | None = None, J=None,
+               scatter: ModelScatter | None = None) -> Verdict:
+    """Judge the point θ with residuals ``r`` (the objective's weighted ones): a verified
+    minimum (``converged``, ``message`` the optimiser's), off the bounds, with a misfit within
+    the noise in every block (the given ``noise``, or the residuals' structural noise).
+
+    With the run's ``scatter`` (``model_scatter``) and the Jacobian ``J``: a point where the
+    optimiser stopped without converging still counts as a verified minimum when its remaining
+    Gauss–Newton step lies within the scatter (the run cannot resolve a better point), and each
+    block's noise for the χ² test is sqrt(σ² + σ_num²)."""
+    theta = np.asarray(theta, float)
+    e = np.asarray(r, float) / np.asarray(row_scale, float)
+    m, n = e.size, theta.size
+    reasons = []
+    convergence = message if converged else ""
+    if not converged and scatter is not None and J is not None:
+        distance = scatter.gauss_newton_distance(J, r)
+        limit_d = roundoff_limit(n, scatter.samples)
+        if distance <= limit_d:
+            converged = True
+            convergence = (f"converged within the run's round-off: the remaining Gauss–Newton step is {distance:.2g} "
+                           f"standard deviations of the scatter {scatter.samples} perturbed runs show (limit "
+                           f"{limit_d:.2g}); the optimiser had {message or 'stopped'}")
+        else:
+            message = (f"{message or 'the optimiser did not converge'}; the remaining Gauss–Newton step is "
+                       f"{distance:.2g} standard deviations of the run's round-off scatter, beyond {limit_d:.2g}")
+    if not converged:
+        reasons.append(f"not a verified minimum ({message or 'the optimiser did not converge'})")
+    at_bound = tuple(bounds.near_bound(theta)) if bounds is not None else ()
+    if at_bound:
+        reasons.append(f"{', '.join(at_bound)} at a bound (the misfit falls towards or beyond the physical range)")
+    sigma, counts, source = block_noise(r, row_scale, blocks, noise)
+    if scatter is not None:
+        sigma = {name: None if v is None else math.hypot(v, scatter.noise.get(name, 0.0)) for name, v in sigma.items()}
+        source += ", with the run's round-off scatter added in quadrature"
+    chi2, limit, unknown = {}, {}, []
+    for name, sl in blocks.items():
+        if sigma[name] is None:
+            unknown.append(f"{name} ({sl.stop - sl.start} residuals: too few to estimate its noise)")
+            continue
+        mb = sl.stop - sl.start
+        chi2[name] = float(np.sum(e[sl] ** 2)) / max(sigma[name], NOISE_FLOOR) ** 2
+        inflate = 1.0 if counts[name] == 0 else 1.0 + 3.0 * 4.0 / math.sqrt(counts[name])
+        limit[name] = chi2_quantile(ABOVE_NOISE_P, max(mb - n * mb / m, 1.0)) * inflate
+        if chi2[name] > limit[name]:
+            rms = math.sqrt(float(np.mean(e[sl] ** 2)))
+            reasons.append(f"{name} misfit well above the noise (rms {rms:.3g} against σ {sigma[name]:.3g} "
+                           f"{'given' if source == 'given' else 'estimated'}; χ² {chi2[name]:.3g} > {limit[name]:.3g})")
+    is_fit = not reasons
+    if is_fit:
+        statement = "A fit of the data: a verified minimum, off the bounds, with a misfit within the noise."
+    else:
+        statement = ("Not a fit of the data: " + "; ".join(reasons) + ". No Gauss–Newton interval is given: it "
+                     "describes the curvature at a minimum of the data's misfit, which this point is not.")
+    if unknown:
+        statement += " The noise test left out " + ", ".join(unknown) + "."
+    return Verdict(is_fit, tuple(reasons), bool(converged), at_bound, sigma, source, chi2, limit, statement,
+                   convergence, scatter)
+
+
+def judge_point(objective: ObjectiveLike, r, J, theta, *, converged: bool, message: str,
+                noise: Mapping[str, float] | float | None = None, uncertainty: bool = True,
+                roundoff_samples: int = ROUNDOFF_SAMPLES, sampling_seeds: int = 0, reference_noise: float = 0.01,
+                threshold: float = 0.1, grid_ratio: float | None = None, grid_draws: int = GRID_DRAWS,
+                grid_levels: int = 1, workers=None):
+    """The verdict on a fit's end point and, when ``uncertainty``, its Gauss–Newton uncertainty
+    (intervals withheld unless the verdict is a fit): what ``fit`` and ``search`` report for
+    their best point. ``roundoff_samples`` perturbed runs measure the run's own scatter there
+    (``model_scatter``; 0: not measured, the verdict and interval then assume a smooth run);
+    ``sampling_seeds`` other draws of the particles measure the sampling's share of the interval
+    (``sampling_scatter``; 0, the default: not measured); ``grid_ratio`` rebuilds the objective at
+    that multiple of its dx for the grid's share (``grid_shift``, ``grid_draws`` draws there; None,
+    the default: not measured). All go to ``workers`` (a ``calibration.batch.workers.Workers``) when
+    given. Returns ``(verdict, uncertainty or None)``."""
+    check_grid_options(grid_ratio, grid_draws, grid_levels)
+    J = np.asarray(J, float)
+    scatter = None
+    if roundoff_samples and np.all(np.isfinite(J)):
+        scatter = model_scatter(objective, theta, r, J, samples=roundoff_samples, workers=workers)
+    verdict = assess_fit(r, objective.row_scale, objective.blocks, theta, converged=converged, message=message,
+                         bounds=objective.bounds, noise=noise, J=J if scatter is not None else None,
+                         scatter=scatter)
+    unc = None
+    if uncertainty:
+        sampling = None
+        if sampling_seeds and np.all(np.isfinite(J)):
+            sampling = sampling_scatter(objective, theta, r, J, seeds=sampling_seeds, workers=workers)
+        grid, grid_note = None, ""
+        if grid_ratio is not None and np.all(np.isfinite(J)):
+            try:
+                grid = grid_shift(objective, theta, J, ratio=grid_ratio, draws=grid_draws, levels=grid_levels,
+                                  workers=workers)
+            except ValueError as error:
+                grid_note = str(error)
+            else:
+                if grid is None:
+                    grid_note = f"no run at {grid_ratio:g} × dx ran without status bits"
+        unc = gauss_newton_uncertainty(J, r, objective.keys, theta, objective.blocks, objective.row_scale,
+                                       noise=noise, bounds=objective.bounds, verdict=verdict, scatter=scatter,
+                                       sampling=sampling, grid=grid, grid_note=grid_note,
+                                       reference_noise=reference_noise, threshold=threshold)
+    return verdict, unc

@@ -1,0 +1,1 @@
+"""The optimisers as ``(init, update)`` pairs, their one loop and history, one fit, and the global search."""

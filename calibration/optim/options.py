@@ -1,0 +1,88 @@
+"""How a fit runs (``FitOptions``), validated once; what its history file records and a resume must
+repeat (every field but ``steps``, ``FitOptions.differences``).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Mapping
+from typing import Any
+
+from ..inference.options import JudgeOptions
+from ..problem.options import _is_int, _is_number, _require
+
+__all__ = ["METHODS", "GRAD_MODES", "FitOptions", "cli_steps"]
+
+
+METHODS = ("lm", "adam")
+
+
+GRAD_MODES = ("fwd", "rev")
+
+
+@dataclasses.dataclass(frozen=True)
+class FitOptions:
+    """How a fit runs. ``method``: "lm" (Levenberg–Marquardt) or "adam"; ``steps``: the most
+    iterations (model evaluations), counted over resumes; ``learning_rate``, ``clip``,
+    ``grad_mode`` ("fwd" or "rev"): Adam's; LM stops when the decrease its linearised model
+    promises is below ``stat_tol`` × n σ², when an accepted step lowers the loss by less than
+    ``ftol`` or moves θ by less than ``xtol`` (relative), or after ``max_rejections`` rejected
+    steps in a row (``calibration.optim.fit.fit`` says more)."""
+
+    method: str = "lm"
+    steps: int = 30
+    learning_rate: float = 0.05
+    clip: float = 1.0
+    grad_mode: str = "fwd"
+    xtol: float = 1e-6
+    ftol: float = 1e-7
+    stat_tol: float = 0.1
+    max_rejections: int = 6
+
+    def __post_init__(self):
+        _require(self.method in METHODS, "method", f"one of {METHODS}", self.method)
+        _require(_is_int(self.steps) and self.steps >= 1, "steps", "a positive integer", self.steps)
+        _require(_is_number(self.learning_rate) and self.learning_rate > 0, "learning_rate", "a finite number > 0",
+                 self.learning_rate)
+        _require(_is_number(self.clip) and self.clip > 0, "clip", "a finite number > 0", self.clip)
+        _require(self.grad_mode in GRAD_MODES, "grad_mode", f"one of {GRAD_MODES}", self.grad_mode)
+        for name in ("xtol", "ftol", "stat_tol"):
+            value = getattr(self, name)
+            _require(_is_number(value) and value >= 0, name, "a finite number >= 0", value)
+        _require(_is_int(self.max_rejections) and self.max_rejections >= 1, "max_rejections", "an integer >= 1",
+                 self.max_rejections)
+
+    def to_json(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+    def differences(self, saved: Mapping[str, Any]) -> list[str]:
+        """The fields (``steps`` apart) whose value differs from ``saved`` (a history file's
+        record, ``to_json``), as "field: now … , the file's …"; a field the file does not record
+        counts as different."""
+        out = []
+        for field in dataclasses.fields(self):
+            if field.name == "steps":
+                continue
+            now = getattr(self, field.name)
+            if field.name not in saved:
+                out.append(f"{field.name}: {now!r} now, not recorded in the file")
+            elif saved[field.name] != now:
+                out.append(f"{field.name}: {now!r} now, {saved[field.name]!r} in the file")
+        return out
+
+
+def cli_steps(method: str, steps: int | None) -> int:
+    """The command line's iteration budget: ``steps``, or 25 for LM and 150 for Adam."""
+    return steps if steps is not None else (25 if method == "lm" else 150)
+
+
+def split_fields(fields: Mapping[str, Any]) -> tuple[dict[str, Any], dict[str, Any]]:
+    """``fields`` (keyword arguments of ``fit``) divided into ``FitOptions``' and
+    ``JudgeOptions``'; any other name is a ``TypeError``, as for a function's arguments."""
+    run_names = {f.name for f in dataclasses.fields(FitOptions)}
+    judge_names = {f.name for f in dataclasses.fields(JudgeOptions)}
+    unknown = sorted(set(fields) - run_names - judge_names)
+    if unknown:
+        raise TypeError(f"unexpected keyword arguments {unknown}")
+    return ({k: v for k, v in fields.items() if k in run_names},
+            {k: v for k, v in fields.items() if k in judge_names})

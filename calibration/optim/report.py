@@ -1,0 +1,225 @@
+"""What a fit reports: its JSON, built from the result and the objective it fitted, and the
+checks beyond Gauss–Newton run on its point.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Mapping
+from typing import Any
+
+import numpy as np
+
+from ..inference.gridcheck import check_grid_options
+from ..problem.options import OptionError, _is_int, _require
+from ..problem.protocol import ObjectiveLike
+
+__all__ = ["fit_report", "PosteriorChecks", "PosteriorOptions", "posterior_checks"]
+
+
+def fit_report(objective: ObjectiveLike, result, search=None) -> dict[str, Any]:
+    """The JSON of a fit (``FitResult``) or of a search (``SearchResult``, whose best point is
+    ``result``): the result's own fields, the residuals in metres (RMS of the profiles and of
+    every block), the front residuals' correlation where a front history was fitted, the notes on
+    the bounds and a warning for any key that ended at a bound. What ``python -m calibration fit``
+    prints, less the command's own fields (scene, files, outputs)."""
+    out = search.to_json() if search is not None else result.to_json()
+    metres = objective.in_metres(result.residuals)
+    profile = [v for name, v in metres.items() if "profile" in name]
+    out["residual_rms_m"] = float(np.sqrt(np.mean(np.concatenate(profile) ** 2))) if profile else None
+    out["residual_rms_m_by_block"] = {name: float(np.sqrt(np.mean(v ** 2))) for name, v in metres.items()}
+    if "front" in metres and metres["front"].size >= 3:
+        from ..inference.noise import front_correlation
+
+        out["front_residual_correlation"] = {
+            **front_correlation(objective.observations.front_times, metres["front"]),
+            "assumed_correlation_time_s": objective.front.correlation_time}
+    if objective.bound_notes:
+        out["bound_notes"] = list(objective.bound_notes)
+    near = objective.bounds.near_bound([result.theta[k] for k in result.keys])
+    if near:
+        out["warning"] = f"{near} ended at a bound: the data push them outside the physical range"
+    return out
+
+
+@dataclasses.dataclass(frozen=True)
+class PosteriorOptions:
+    """Which checks beyond Gauss–Newton to run on a fit's point (each 0: off), validated once:
+    ``profiles`` points per key of the profile likelihood (>= 3), ``posterior`` points per key of
+    the grid posterior of one or two keys (>= 3), ``nuts`` draws per chain of the NUTS posterior
+    (>= 4) on ``chains`` chains, ``emulated`` model runs checking the emulated posterior (>= 30;
+    it compares ``chains`` >= 2 chains) with its ``emulator`` (``EMULATORS``); ``model_error``:
+    the model's own error in every check's likelihood from that many particle draws and the grid
+    term's coarse runs at the point (0 or >= 2; ``calibration.inference.likelihood.model_error``,
+    on the grid ``grid_ratio`` times coarser, 1.5 where that is off); ``prior``: {key:
+    (mean, sd)}, keys measured elsewhere, a normal prior of the NUTS and emulated posteriors;
+    ``grid_ratio`` (None: off) and ``grid_levels``: those posteriors' grid term."""
+
+    profiles: int = 0
+    posterior: int = 0
+    nuts: int = 0
+    chains: int = 4
+    emulated: int = 0
+    emulator: str = "corrected"
+    model_error: int = 0
+    prior: Mapping[str, tuple[float, float]] | None = None
+    grid_ratio: float | None = None
+    grid_levels: int = 1
+
+    def __post_init__(self):
+        from ..inference.surrogates import EMULATORS
+
+        for name, least, what in (("profiles", 3, ""), ("posterior", 3, ""), ("nuts", 4, " draws per chain"),
+                                  ("emulated", 30, " checked draws"), ("model_error", 2, " particle draws")):
+            value = getattr(self, name)
+            _require(_is_int(value) and (value == 0 or value >= least), name, f"0 (off) or >= {least}{what}", value)
+        _require(_is_int(self.chains) and self.chains >= 1, "chains", ">= 1", self.chains)
+        if self.emulated:
+            _require(self.chains >= 2, "chains", ">= 2 with emulated (R-hat compares chains)", self.chains)
+        _require(self.emulator in EMULATORS, "emulator", f"one of {tuple(EMULATORS)}", self.emulator)
+        if self.prior and not (self.nuts or self.emulated):
+            raise OptionError("prior", "enters the posteriors of nuts and emulated (not the fit): ask for one of them")
+        check_grid_options(self.grid_ratio, 1, self.grid_levels)
+
+    @property
+    def any(self) -> bool:
+        """Whether any check is asked for."""
+        return bool(self.profiles or self.posterior or self.nuts or self.emulated)
+
+
+@dataclasses.dataclass(frozen=True)
+class PosteriorChecks:
+    """The checks beyond Gauss–Newton on a fit's point: ``report``, the JSON blocks they add
+    to the fit's ("profile_likelihood", "posterior", "nuts", or why one was skipped);
+    ``profiles``, the ``ProfileLikelihood`` of every key scanned; ``posterior``, the
+    ``GridPosterior`` (None where not computed)."""
+
+    report: dict[str, Any] = dataclasses.field(default_factory=dict)
+    profiles: list = dataclasses.field(default_factory=list)
+    posterior: Any = None
+
+
+def posterior_checks(objective, result, options: PosteriorOptions, *, noise=None, workers=None,
+                     progress: bool = False) -> PosteriorChecks:
+    """The checks of ``options`` around ``result``, a fit of ``objective`` (``noise``: the data's
+    known noise, None: the fit's, given or estimated). The profile likelihoods, the grid posterior
+    and NUTS need the point's interval: without one they are skipped, with the reason in the
+    report; the grid posterior also for more than two keys. The emulated posterior needs no
+    interval, so it runs where the verdict refuses one too, centred on the point. The model's own
+    error at the point (``options.model_error``) is added in quadrature to the noise of every
+    check's likelihood (reported as "model_error" and "posterior_noise"; where it cannot be
+    measured, "model_error_skipped" says why). The emulated posterior carries its ``prior_sensitivity`` where a key's
+    box spans decades. The profile likelihood's and the grid posterior's intervals get the fit's
+    own grid term where it carries one (``ci95_profile_with_grid``, ``ci95_with_grid``). What
+    ``python -m calibration posterior`` runs."""
+    if not options.any:
+        return PosteriorChecks()
+    report: dict[str, Any] = {}
+    if options.prior:
+        report["prior"] = {k: list(map(float, v)) for k, v in options.prior.items()}
+    unc = result.uncertainty
+    fitted = getattr(unc, "noise", None)  # the fit's noise by block (estimated or given)
+    sigma = noise if noise is not None else (dict(fitted) if fitted else None)
+    error = _model_error(objective, result, options, workers) if options.model_error else None
+    if isinstance(error, str):
+        report["model_error_skipped"] = error
+    elif error is not None:
+        if sigma is None:
+            report["model_error_skipped"] = "no noise level of the data to add it to: give --noise"
+        else:
+            sigma = noise = error.noise(sigma)
+            report.update(model_error=error.to_dict(), posterior_noise=noise)
+    if options.emulated:
+        report.update(_emulated(objective, result, options, sigma, workers, progress))
+    if not (options.profiles or options.posterior or options.nuts):
+        return PosteriorChecks(report)
+    if unc is None or unc.withheld:
+        return PosteriorChecks({**report, "profile_likelihood_skipped": "the point is not a fit of the data: no "
+                                                                        "interval to scan around"})
+    return _around_the_interval(objective, result, options, noise, report, progress)
+
+
+def _model_error(objective, result, options: PosteriorOptions, workers):
+    """The model's own error at the point (``ModelError``), or why it cannot be measured."""
+    from ..inference.gridcheck import GRID_RATIO
+    from ..inference.likelihood import model_error
+
+    try:
+        return model_error(objective, result.theta, draws=options.model_error,
+                           ratio=options.grid_ratio or GRID_RATIO, workers=workers)
+    except ValueError as err:
+        return str(err)
+
+
+def _emulated(objective, result, options: PosteriorOptions, sigma, workers, progress: bool) -> dict[str, Any]:
+    """The emulated posterior's block of the report, or why it was skipped."""
+    from ..inference.emulator import emulated_posterior, prior_sensitivity, scale_keys
+
+    lower, upper = objective.bounds.lower, objective.bounds.upper
+    at_bound = [k for k, lo, hi in zip(objective.keys, lower, upper) if not lo < result.theta[k] < hi]
+    if at_bound:
+        return {"emulated_posterior_skipped": f"{at_bound} at a bound: the chains' coordinates end there"}
+    if sigma is None:
+        return {"emulated_posterior_skipped": "no noise level: give --noise"}
+    unc = result.uncertainty  # a fit whitens by its interval; a point without one, by the Laplace covariance there
+    interval = unc is not None and not unc.withheld
+    found = emulated_posterior(objective, result if interval else dict(result.theta), noise=sigma,
+                               checks=options.emulated, chains=options.chains, emulator=options.emulator,
+                               prior=options.prior, grid_ratio=options.grid_ratio, grid_levels=options.grid_levels,
+                               workers=workers, progress=progress)
+    block = found.to_json()
+    scale = scale_keys(objective.bounds)
+    if scale:  # a key whose box spans decades: how much of its interval is the prior's
+        block["prior_sensitivity"] = prior_sensitivity(found, scale)
+    return {"emulated_posterior": block}
+
+
+def _around_the_interval(objective, result, options: PosteriorOptions, noise, report, progress) -> PosteriorChecks:
+    """NUTS, the profile likelihoods and the grid posterior around a point with an interval."""
+    from ..inference.gridpost import grid_posterior
+    from ..inference.likelihood import profile_likelihood
+
+    if options.nuts:
+        from ..inference.mcmc import nuts_posterior
+
+        found = nuts_posterior(objective, result, chains=options.chains, warmup=max(20, options.nuts // 2),
+                               draws=options.nuts, noise=noise, prior=options.prior, grid_ratio=options.grid_ratio,
+                               grid_levels=options.grid_levels, progress=progress)
+        report["nuts"] = {k: v for k, v in found.to_json().items() if k != "draws"}
+    scans = ([profile_likelihood(objective, result, k, n=options.profiles, noise=noise) for k in result.keys]
+             if options.profiles else [])
+    if scans:
+        report["profile_likelihood"] = {p.key: p.to_json() for p in scans}
+    grid = None
+    if options.posterior:
+        if len(result.keys) > 2:
+            report["posterior_skipped"] = f"{len(result.keys)} keys: the grid posterior is for one or two"
+        else:
+            grid = grid_posterior(objective, result, n=options.posterior, noise=noise)
+            report["posterior"] = grid.to_json()
+    _add_fit_grid_term(report, objective, result, scans, grid)
+    return PosteriorChecks(report, scans, grid)
+
+
+def _add_fit_grid_term(report: dict[str, Any], objective, result, scans, grid) -> None:
+    """The fit's grid term (``Uncertainty.grid``: one Gauss–Newton step at ρ dx) on the profile
+    intervals and the grid posterior's, as ``ci95_profile_with_grid`` and ``ci95_with_grid``:
+    its 95 % half-width in quadrature on each side (``calibration.inference.gridterm.widened``)."""
+    from ..inference.gridterm import widened
+
+    term = getattr(result.uncertainty, "grid", None)
+    if term is None or not (scans or grid is not None):
+        return
+    keys = tuple(result.keys)
+    bounds = dict(zip(objective.keys, zip(objective.bounds.lower, objective.bounds.upper)))
+    half = dict(zip(keys, map(float, term.halfwidth)))
+    note = ("the fit's grid term (grid.halfwidth95, one Gauss-Newton step at "
+            f"{term.ratio:.3g} x dx) added in quadrature to each side")
+    for scan in scans:
+        block = report["profile_likelihood"][scan.key]
+        block["ci95_profile_with_grid"] = list(widened(*scan.ci95, scan.theta_hat, half[scan.key], *bounds[scan.key]))
+        block["grid_term"] = note
+    if grid is not None:
+        report["posterior"]["ci95_with_grid"] = {k: list(widened(*grid.ci95[k], grid.mean[k], half[k], *bounds[k]))
+                                                 for k in grid.keys}
+        report["posterior"]["grid_term"] = note

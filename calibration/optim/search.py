@@ -1,0 +1,426 @@
+"""Global search: multi-start Levenberg–Marquardt with every start in one vmapped batch.
+
+``search(objective, starts=8)`` draws k starts from a space-filling design over the bounded box
+(scrambled Sobol points, seeded, or scipy's Latin hypercube; rows that break the engine's rules,
+e.g. μ1 > μ2, are skipped), and runs LM from all of them at once, in the unconstrained variables
+z of ``calibration.problem.bounds``: one ``jit(vmap(...))`` call per iteration evaluates the residuals
+and their forward-mode Jacobian dr/dz of every active start (the bounds map is inside the traced
+function, so autodiff applies its chain rule). The optimiser is ``calibration.optim.lm``'s
+``levenberg_marquardt`` and the loop ``calibration.optim.loop.run``, the same as the single-start
+``fit`` uses, here on a batch of k starts with a ``calibration.optim.history.History`` of k rows and
+no file; a start that has stopped is frozen and leaves the batch, which shrinks to the next
+power of two that holds the active starts (at most log2 k + 1 compilations).
+
+The endpoints are then clustered: two are the same minimum when their values differ by at most
+``cluster_tol`` of the bound range in every parameter. Every distinct minimum is reported, with
+Δχ² against the best (σ given, or estimated from the best point's residual structure, see
+``calibration.inference.noise.structural_noise``), and called *within the noise of the best* when
+Δχ² is below the 95 % quantile of χ² with n (the number of fitted parameters) degrees of freedom.
+Several minima within the noise mean the data do not pick one: the answer is that set. The best
+point is judged by ``calibration.inference.verdict.assess_fit`` and gets a Gauss–Newton interval only
+when it is a fit of the data.
+
+scipy (the ``sampling`` extra) provides the designs.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import sys
+import time
+from collections.abc import Mapping
+from typing import Any
+
+import jax
+import numpy as np
+
+from ..batch.workers import using
+from ..inference.gridcheck import GRID_DRAWS
+from ..inference.noise import block_noise, chi2_of, chi2_quantile
+from ..inference.options import JudgeOptions
+from ..inference.scatter import ROUNDOFF_SAMPLES
+from ..inference.verdict import judge_point
+from ..problem.protocol import ObjectiveLike
+from .evaluate import BatchEvaluator
+from .fit import FitResult, save_start, start_theta
+from .history import History, check_out
+from .lm import LMOptions, levenberg_marquardt
+from .loop import run
+from .options import FitOptions
+
+__all__ = [
+    "DESIGNS", "DEFAULT_STARTS", "WITHIN_NOISE_P", "COARSE_OPTIONS", "design_starts", "Minimum", "SearchResult",
+    "search", "coarse_to_fine", "fit_from_starts",
+]
+
+
+DESIGNS = ("sobol", "lhs")
+
+
+#: Starts of a search when none are asked for (the command line's default without --init).
+DEFAULT_STARTS = 8
+
+
+#: A minimum is within the noise of the best when its Δχ² is below this quantile of χ²_n.
+WITHIN_NOISE_P = 0.95
+
+
+#: The coarse stage of ``coarse_to_fine``: a few iterations, stopped at 0.1 % steps or 0.01 % gains.
+COARSE_OPTIONS = {"steps": 12, "xtol": 1e-3, "ftol": 1e-4}
+
+
+#: Starts are drawn this fraction of the range inside the bounds (the sigmoid's flat tails).
+DESIGN_MARGIN = 0.02
+
+
+def _qmc():
+    try:
+        from scipy.stats import qmc
+    except ImportError as err:  # pragma: no cover (jax depends on scipy)
+        raise ImportError("calibration.optim.search draws its starts with scipy.stats.qmc: "
+                          "pip install 'jaxmpm[sampling]'") from err
+    return qmc
+
+
+def _check_int(name: str, value, low: int) -> int:
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)) or value < low:
+        raise ValueError(f"{name} must be an integer >= {low}, got {value!r}")
+    return int(value)
+
+
+def design_starts(objective: ObjectiveLike, k: int, *, seed: int = 0, design: str = "sobol") -> np.ndarray:
+    """``k`` physical starts (k, n) in the objective's bounds, ``DESIGN_MARGIN`` inside them,
+    space-filling (scrambled Sobol or Latin hypercube, seeded), every one a valid parameter set
+    of the engine (``objective.check_thetas``): invalid rows are skipped and more are drawn."""
+    k = _check_int("starts", k, 1)
+    seed = _check_int("seed", seed, 0)
+    if design not in DESIGNS:
+        raise ValueError(f"design must be one of {DESIGNS}, got {design!r}")
+    qmc = _qmc()
+    bounds = objective.bounds
+    lo, hi = np.asarray(bounds.lower), np.asarray(bounds.upper)
+    draw = max(2, 1 << (4 * k - 1).bit_length())  # a power of two, >= 4k: room for invalid rows
+    for _ in range(4):
+        if design == "sobol":
+            u = qmc.Sobol(bounds.n, scramble=True, seed=seed).random_base2(int(math.log2(draw)))
+        else:
+            u = qmc.LatinHypercube(bounds.n, seed=seed).random(draw)
+        thetas = lo + (hi - lo) * (DESIGN_MARGIN + (1 - 2 * DESIGN_MARGIN) * u)
+        valid = []
+        for theta in thetas:
+            try:
+                objective.check_thetas(theta, "start")
+            except ValueError:
+                continue
+            valid.append(theta)
+            if len(valid) == k:
+                return np.asarray(valid)
+        draw *= 4
+    raise ValueError(f"starts: fewer than {k} of {draw // 4} design points in the bounds are valid parameter sets "
+                     "(the fixed parameters leave little room: narrow the bounds or fit fewer keys)")
+
+
+@dataclasses.dataclass(frozen=True)
+class Minimum:
+    """One distinct endpoint of the search (a cluster of starts)."""
+
+    theta: dict[str, float]
+    loss: float
+    delta_chi2: float  # against the best minimum
+    within_noise: bool  # Δχ² below the χ²_n quantile WITHIN_NOISE_P
+    starts: tuple[int, ...]  # the starts that ended here, best first
+    verified: bool  # the best of them met an LM convergence test
+    at_bound: tuple[str, ...]
+    message: str
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"params": self.theta, "loss": self.loss, "delta_chi2": self.delta_chi2,
+                "within_noise_of_best": self.within_noise, "starts": list(self.starts),
+                "verified_minimum": self.verified, "at_bound": list(self.at_bound), "message": self.message}
+
+
+@dataclasses.dataclass
+class SearchResult:
+    keys: tuple[str, ...]
+    starts: np.ndarray  # (k, n) physical starts
+    design: str
+    seed: int
+    minima: list[Minimum]  # by loss, best first
+    best: FitResult  # the best start's fit (history, residuals, Jacobian, verdict, uncertainty)
+    best_start: int
+    finals: np.ndarray  # (k, n) every start's endpoint
+    losses: np.ndarray  # (k,) their losses (NaN: the start failed)
+    residuals: np.ndarray  # (k, m) their residuals
+    histories: list[dict[str, np.ndarray]]  # every start's, in the fields of FitResult.history
+    messages: list[str]
+    delta_chi2_limit: float
+    iterations: int  # batched iterations (model evaluations per active start)
+    evaluations: int  # single-run evaluations (batch members, padding included)
+    wall_s: float
+    compile_s: float
+    start_note: str = ""
+    coarse: SearchResult | None = None  # the coarse stage of coarse_to_fine, if there was one
+
+    @property
+    def within_noise(self) -> list[Minimum]:
+        return [m for m in self.minima if m.within_noise]
+
+    def to_json(self) -> dict[str, Any]:
+        out = self.best.to_json()
+        out["method"] = "lm-search"
+        out["search"] = {
+            "starts": len(self.starts), "design": self.design, "seed": self.seed, "best_start": self.best_start,
+            "start_used": dict(zip(self.keys, self.starts[self.best_start].tolist())),
+            "iterations": self.iterations, "evaluations": self.evaluations, "wall_s": round(self.wall_s, 3),
+            "compile_s": round(self.compile_s, 3), "delta_chi2_limit": self.delta_chi2_limit,
+            "minima": [m.to_dict() for m in self.minima],
+            "n_within_noise": len(self.within_noise),
+            "failed_starts": [i for i, v in enumerate(self.losses) if not np.isfinite(v)],
+        }
+        if self.start_note:
+            out["search"]["start_note"] = self.start_note
+        if self.coarse is not None:
+            c = self.coarse
+            out["search"]["coarse"] = {
+                "starts": len(c.starts), "iterations": c.iterations, "evaluations": c.evaluations,
+                "wall_s": round(c.wall_s, 3), "compile_s": round(c.compile_s, 3),
+                "minima": [m.to_dict() for m in c.minima],
+                "refined_from": [dict(zip(self.keys, t.tolist())) for t in self.starts]}
+        if len(self.within_noise) > 1:
+            out["search"]["statement"] = (
+                f"{len(self.within_noise)} distinct minima lie within the noise of the best (Δχ² < "
+                f"{self.delta_chi2_limit:.3g}): the data do not tell them apart; the answer is the set, and an "
+                "interval at the best alone understates what is unknown.")
+        return out
+
+
+def _starts(objective: ObjectiveLike, starts, init, seed: int, design: str) -> tuple[np.ndarray, str]:
+    """The search's physical starts (k, n): ``starts`` design points (an int) or the given rows,
+    checked; ``init`` (one more start, first) and its note."""
+    keys, bounds = objective.keys, objective.bounds
+    if isinstance(starts, (int, np.integer)) and not isinstance(starts, (bool, np.bool_)):
+        k_design = _check_int("starts", starts, 1) - (1 if init else 0)
+        thetas = design_starts(objective, k_design, seed=seed, design=design) if k_design else np.zeros((0, len(keys)))
+    else:
+        thetas = np.asarray(starts, float)
+        if thetas.ndim != 2 or thetas.shape[1] != len(keys) or thetas.shape[0] < 1:
+            raise ValueError(f"starts must be an integer or an array (k, {len(keys)}), got shape {thetas.shape}")
+        for i, theta in enumerate(thetas):
+            bounds.check(theta, f"starts[{i}]")
+        objective.check_thetas(thetas, "starts")
+    if not init:
+        return thetas, ""
+    theta0, start_note = start_theta(objective, init)
+    return np.concatenate([theta0[None], thetas]), start_note
+
+
+def _minima(objective: ObjectiveLike, cur, messages, order, i_best: int, noise, cluster_tol: float):
+    """The distinct minima among the starts' end points ``cur`` (closer than ``cluster_tol`` of
+    every bound range: one minimum), best first, each with its Δχ² against the best and whether it
+    lies within the noise; and that limit."""
+    bounds, keys = objective.bounds, objective.keys
+    sigma, _, _ = block_noise(cur.residuals[i_best], objective.row_scale, objective.blocks, noise)
+    chi2 = {int(i): chi2_of(cur.residuals[i], objective.row_scale, objective.blocks, sigma) for i in order}
+    limit = chi2_quantile(WITHIN_NOISE_P, len(keys))
+    span = np.asarray(bounds.upper) - np.asarray(bounds.lower)
+    clusters: list[list[int]] = []
+    for i in order:
+        for members in clusters:
+            if np.max(np.abs(cur.theta[i] - cur.theta[members[0]]) / span) <= cluster_tol:
+                members.append(int(i))
+                break
+        else:
+            clusters.append([int(i)])
+    minima = []
+    for members in clusters:
+        i = members[0]
+        delta_chi2 = chi2[i] - chi2[i_best]
+        minima.append(Minimum(theta=dict(zip(keys, map(float, cur.theta[i]))), loss=float(cur.loss[i]),
+                              delta_chi2=float(delta_chi2), within_noise=bool(delta_chi2 <= limit),
+                              starts=tuple(members), verified=messages[i].startswith("converged"),
+                              at_bound=tuple(bounds.near_bound(cur.theta[i])), message=messages[i]))
+    return minima, limit
+
+
+def _run_starts(objective: ObjectiveLike, thetas, evaluate, steps: int, lm_options: LMOptions, progress: bool,
+                clock0: float):
+    """LM from every row of ``thetas`` at once through ``calibration.optim.loop.run``: the final
+    state and the history of k rows."""
+    k = len(thetas)
+    optimiser = levenberg_marquardt(lm_options)
+
+    def check_start(evaluation):
+        if not np.any((evaluation.status == 0) & np.isfinite(evaluation.loss)):
+            raise ValueError(f"search: the runs at all {k} starts fail (statuses "
+                             f"{sorted(set(evaluation.status.tolist()))})")
+
+    def report(state, rows):
+        if progress and history.iterations > 1:  # from the first step on (not the runs at the starts)
+            print(f"search: iteration {history.iterations}/{steps}, {len(rows)} active of {k}, best loss "
+                  f"{np.nanmin(state.current.loss):.3e}", file=sys.stderr, flush=True)
+
+    history = History(k, t0=clock0)
+    Z = np.stack([objective.bounds.to_unconstrained(t) for t in thetas])
+    state = run(optimiser, optimiser.init(Z), evaluate, history, steps=steps, check_start=check_start, report=report)
+    return state, history
+
+
+def search(objective: ObjectiveLike, starts: int | np.ndarray = DEFAULT_STARTS, *, seed: int = 0, design: str = "sobol",
+           init: Mapping[str, float] | None = None, steps: int = 30, xtol: float = 1e-6, ftol: float = 1e-7,
+           stat_tol: float = 0.1, max_rejections: int = 6, cluster_tol: float = 0.01,
+           noise: Mapping[str, float] | float | None = None, uncertainty: bool = True, shrink: bool = True,
+           roundoff_samples: int = ROUNDOFF_SAMPLES, sampling_seeds: int = 0, reference_noise: float = 0.01,
+           threshold: float = 0.1, grid_ratio: float | None = None, grid_draws: int = GRID_DRAWS,
+           grid_levels: int = 1,
+           progress: bool = False, workers=None) -> SearchResult:
+    """Multi-start LM from ``starts`` design points (an int k) or from given physical starts
+    ((k, n) array). ``init`` (physical values by key, as for ``fit``): one more start, placed
+    first. ``steps``: the maximum number of model evaluations per start, as in ``fit``.
+    ``cluster_tol``: endpoints closer than this fraction of every bound range are one minimum.
+    ``noise``: the known noise per block (None: estimated from the best point's residual
+    structure). ``shrink``: evaluate only the active starts (padded to a power of two).
+    ``roundoff_samples``, ``sampling_seeds``, ``reference_noise``, ``threshold``, ``grid_ratio``,
+    ``grid_draws``, ``grid_levels``: for the best point's verdict and uncertainty, as in ``fit``.
+    ``workers`` (an integer or a ``calibration.batch.workers.Workers``): with more than one, every
+    iteration's forward-mode passes (each active start's, one per key) run in that many
+    single-threaded processes instead of one vmapped batch, and so do the verdict's extra runs."""
+    judge = JudgeOptions(noise=noise, uncertainty=uncertainty, roundoff_samples=roundoff_samples,  # validated once,
+                         sampling_seeds=sampling_seeds, reference_noise=reference_noise, threshold=threshold,
+                         grid_ratio=grid_ratio, grid_draws=grid_draws, grid_levels=grid_levels)  # as for fit
+    with using(workers) as workers:
+        clock0 = time.perf_counter()
+        steps = _check_int("steps", steps, 1)
+        FitOptions(steps=int(steps), xtol=xtol, ftol=ftol, stat_tol=stat_tol, max_rejections=max_rejections)
+        if not (math.isfinite(cluster_tol) and 0 < cluster_tol < 1):
+            raise ValueError(f"cluster_tol must be in (0, 1), got {cluster_tol!r}")
+        if objective.jacobian != "ad":
+            raise ValueError("search uses forward-mode Jacobians: the objective's jacobian='fd' is not supported "
+                             "(a single-start fit is)")
+        keys = objective.keys
+        thetas, start_note = _starts(objective, starts, init, seed, design)
+        evaluate = BatchEvaluator(objective, len(thetas), shrink, workers)
+        lm_options = LMOptions(xtol=xtol, ftol=ftol, stat_tol=stat_tol, max_rejections=max_rejections)
+        state, history = _run_starts(objective, thetas, evaluate, steps, lm_options, progress, clock0)
+        cur, messages = state.current, list(state.message)
+        valid = np.flatnonzero(np.isfinite(cur.loss))
+        order = valid[np.argsort(cur.loss[valid], kind="stable")]
+        i_best = int(order[0])
+        converged = messages[i_best].startswith("converged")
+        theta_b, r_b, J_b = cur.theta[i_best], cur.residuals[i_best], cur.jacobian[i_best]
+        judged = dataclasses.replace(judge, uncertainty=uncertainty and bool(np.all(np.isfinite(J_b))),
+                                     roundoff_samples=roundoff_samples if uncertainty else 0,
+                                     grid_ratio=grid_ratio if uncertainty else None)
+        verdict, unc = judge_point(objective, r_b, J_b, theta_b, converged=converged, message=messages[i_best],
+                                   workers=workers, **judged.kwargs())
+        wall = time.perf_counter() - clock0
+        histories = [history.arrays(i) for i in range(len(thetas))]
+        best = FitResult(keys=keys, theta=dict(zip(keys, map(float, theta_b))), loss=float(cur.loss[i_best]),
+                         iterations=len(histories[i_best]["loss"]), wall_s=wall, method="lm", converged=converged,
+                         message=messages[i_best], history=histories[i_best], residuals=r_b, jacobian=J_b,
+                         prediction=jax.tree.map(lambda a: a[i_best], cur.prediction), uncertainty=unc,
+                         start=dict(zip(keys, map(float, thetas[i_best]))),
+                         start_note=start_note if i_best == 0 and init else "", verdict=verdict)
+        minima, limit = _minima(objective, cur, messages, order, i_best, noise, cluster_tol)
+        return SearchResult(keys=keys, starts=thetas, design=design, seed=int(seed), minima=minima, best=best,
+                            best_start=i_best, finals=cur.theta.copy(), losses=cur.loss.copy(),
+                            residuals=cur.residuals.copy(), histories=histories, messages=messages,
+                            delta_chi2_limit=limit, iterations=history.iterations, evaluations=evaluate.evaluations,
+                            wall_s=wall, compile_s=evaluate.compile_s, start_note=start_note)
+
+
+def coarse_to_fine(objective: ObjectiveLike, coarse: ObjectiveLike, starts: int | np.ndarray = DEFAULT_STARTS, *,
+                   refine: int = 2, seed: int = 0,
+                   design: str = "sobol", init: Mapping[str, float] | None = None,
+                   coarse_options: Mapping[str, Any] | None = None, progress: bool = False, workers=None,
+                   **options) -> SearchResult:
+    """A global search in two stages: ``search`` on ``coarse`` (the same keys, bounds and data
+    on a cheaper resolution) finds the basins; the best ``refine`` distinct minima it reports
+    (by loss; every one within the noise of its best is kept if there are more; endpoints that break
+    a rule of the engine, such as μ1 > μ2, are replaced by the last valid point on the line from
+    their start) are then refined by a batched ``search`` on ``objective`` from those points.
+    ``options`` (steps, noise, ...) go to the fine stage; ``coarse_options`` override
+    ``COARSE_OPTIONS`` for the coarse one, whose
+    loose tolerances stop it once it knows the basin (its own model error, not the data's noise,
+    limits how well it can place a minimum). The result is the fine stage's, with the coarse one
+    as ``.coarse``.
+
+    The coarse stage only places the starts of the fine one, so nothing it gets wrong by its
+    resolution survives into the answer, except a basin it never found: the fine stage sees
+    only the basins the coarse one reached."""
+    refine = _check_int("refine", refine, 1)
+    if tuple(coarse.keys) != tuple(objective.keys):
+        raise ValueError(f"coarse: fits {tuple(coarse.keys)}, the objective {tuple(objective.keys)}; they must agree")
+    b_c, b_f = coarse.bounds, objective.bounds
+    if not (np.allclose(b_c.lower, b_f.lower) and np.allclose(b_c.upper, b_f.upper)):
+        raise ValueError("coarse: its bounds differ from the objective's; the two stages must search the same box")
+    opts = {**COARSE_OPTIONS, **dict(coarse_options or {})}
+    with using(workers) as workers:  # one pool for both stages
+        first = search(coarse, starts, seed=seed, design=design, init=init, uncertainty=False,
+                       noise=options.get("noise"), progress=progress, workers=workers, **opts)
+        def valid(theta):  # an LM endpoint may break a rule of the engine's (μ1 > μ2): not a start
+            try:
+                objective.check_thetas(theta[None], "coarse minimum")
+            except ValueError:
+                return False
+            return True
+
+        def placed(m):
+            """The minimum, moved inside the bounds; if it breaks an engine rule, the last valid point
+            on the straight line from its (valid) start to it (bisection)."""
+            theta = b_f.move_inside([m.theta[k] for k in objective.keys])[0]
+            if valid(theta):
+                return theta, False
+            start = first.starts[m.starts[0]]
+            lo, hi = 0.0, 1.0
+            for _ in range(30):
+                mid = 0.5 * (lo + hi)
+                lo, hi = (mid, hi) if valid(start + mid * (theta - start)) else (lo, mid)
+            return start + lo * (theta - start), True
+
+        usable = [(m, *placed(m)) for m in first.minima]
+        within = [(t, moved) for m, t, moved in usable if m.within_noise]
+        chosen = within if len(within) > refine else [(t, moved) for _, t, moved in usable[:refine]]
+        thetas = np.stack([t for t, _ in chosen])
+        moved = sum(1 for _, mv in chosen if mv)
+        if progress:
+            print(f"coarse_to_fine: refining {len(thetas)} of {len(first.minima)} coarse minima", file=sys.stderr,
+                  flush=True)
+        result = search(objective, thetas, seed=seed, design=design, progress=progress, workers=workers, **options)
+        result.coarse = first
+        if moved:
+            note = (f"{moved} coarse minimum(s) broke a rule of the engine's (such as mu1 <= mu2) and were "
+                    "refined from the last valid point on the line from their start")
+            result.start_note = f"{result.start_note}; {note}" if result.start_note else note
+        result.wall_s += first.wall_s
+        return result
+
+
+def fit_from_starts(objective, init: Mapping[str, float] | None = None, *, starts: int = 1,
+                    options: FitOptions | None = None, judge: JudgeOptions | None = None, coarse=None, refine: int = 2,
+                    seed: int = 0, out=None, resume: bool = False, overwrite: bool = False, progress: bool = False,
+                    meta: Mapping[str, Any] | None = None, workers=None) -> tuple[FitResult, SearchResult | None]:
+    """The judged fit of ``objective`` from ``starts`` starts: one start (``calibration.optim.fit.fit``
+    from ``init``, with its history ``out``, ``resume``, ``overwrite`` and ``meta``), else the
+    global search (``search``, ``init`` one more start, ``seed`` its design's), in two stages
+    (``coarse_to_fine``, refining ``refine`` minima) when ``coarse`` (the objective on a coarser
+    grid) is given. ``options`` (``FitOptions``; the search takes its ``steps``) and ``judge``
+    (``JudgeOptions``) as for ``fit``. Returns the best point and the search (None for one
+    start): what ``calibration.optim.report.fit_report`` reports. A search's ``out`` is its best
+    start's file (``save_start``: its history and record, a resume goes on from it as one start)."""
+    options, judge = options or FitOptions(), judge or JudgeOptions()
+    if _check_int("starts", starts, 1) == 1:
+        from .fit import fit  # looked up at the call: the fit that runs is the module's
+
+        return fit(objective, init, options=options, judge=judge, out=out, resume=resume, overwrite=overwrite,
+                   progress=progress, meta=meta, workers=workers), None
+    if resume:
+        raise ValueError("resume continues one start's history: a search (starts > 1) cannot resume")
+    path = check_out(out, resume=False, overwrite=overwrite)
+    common = dict(seed=seed, init=init or None, steps=options.steps, progress=progress, workers=workers,
+                  **judge.kwargs())
+    found = (coarse_to_fine(objective, coarse, starts, refine=refine, **common) if coarse is not None
+             else search(objective, starts, **common))
+    if path is not None:
+        save_start(path, objective, found.best, options, judge, meta)
+    return found.best, found

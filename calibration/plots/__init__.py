@@ -1,0 +1,1 @@
+"""Figures (matplotlib, the ``plot`` extra)."""

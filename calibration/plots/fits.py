@@ -1,0 +1,314 @@
+"""Figures of fits, sweeps and studies: profiles against data, histories, landscapes, the runout law,
+coverage and designs. matplotlib is imported only when a figure is drawn (the ``plot`` extra).
+"""
+
+from __future__ import annotations
+
+import pathlib
+
+import numpy as np
+
+from ..problem.protocol import ObjectiveLike
+
+__all__ = [
+    "plot_fit", "plot_history", "plot_landscape", "plot_loss_curve", "plot_runout_law", "plot_coverage",
+    "fit_figures", "sweep_figures", "twin_landscape_figure", "law_figures",
+]
+
+
+def _plt():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def _save(plt, fig, path, dpi: int) -> pathlib.Path:
+    """Lay out, write and close ``fig``; the written path."""
+    fig.tight_layout()
+    path = pathlib.Path(path)
+    fig.savefig(path, dpi=dpi)
+    plt.close(fig)
+    return path
+
+
+def plot_fit(objective: ObjectiveLike, result, path, *, initial_prediction=None, truth_label: str = "data",
+             title: str | None = None):
+    """Modelled against measured profiles (one panel per profile time) and the front history."""
+    plt = _plt()
+    members = [part for part, _, _ in objective.parts]
+    preds = result.prediction.get("members", [result.prediction]) if isinstance(result.prediction, dict) else [
+        result.prediction]
+    inits = None
+    if initial_prediction is not None:
+        inits = initial_prediction.get("members", [initial_prediction])
+    panels = []
+    for i, (obj, pred) in enumerate(zip(members, preds)):
+        offset, obs, h_all = 0, obj.observations, np.asarray(obj.data["h"], float)
+        for x, t in zip(obs.profile_x, obs.profile_times):
+            sl = slice(offset, offset + x.size)
+            offset += x.size
+            init = None if inits is None else np.asarray(inits[i]["h"])[sl]
+            panels.append(("profile", i, x, h_all[sl], np.asarray(pred["h"])[sl], init, t))
+        if obs.front_times is not None:
+            init = None if inits is None else np.asarray(inits[i]["front"])
+            panels.append(("front", i, obs.front_times, np.asarray(obj.data["front"], float),
+                           np.asarray(pred["front"]), init, None))
+    n = len(panels)
+    cols = min(n, 4)
+    rows = -(-n // cols)
+    fig, axes = plt.subplots(rows, cols, figsize=(3.6 * cols, 2.9 * rows), squeeze=False)
+    for ax, (kind, i, x, data, model, init, t) in zip(axes.flat, panels):
+        scale = 100.0  # cm
+        if kind == "profile":
+            ax.plot(x * scale, data * scale, "o", ms=3, color="0.3", label=truth_label)
+            if init is not None:
+                ax.plot(x * scale, init * scale, ":", color="tab:gray", label="start")
+            ax.plot(x * scale, model * scale, "-", color="tab:red", label="fit")
+            ax.set_xlabel("x (cm)")
+            ax.set_ylabel("h (cm)")
+            ax.set_title(f"profile at t = {t:.3g} s" + (f" [{i}]" if len(members) > 1 else ""), fontsize=9)
+        else:
+            ax.plot(x, data * scale, "o", ms=3, color="0.3", label=truth_label)
+            if init is not None:
+                ax.plot(x, init * scale, ":", color="tab:gray", label="start")
+            ax.plot(x, model * scale, "-", color="tab:red", label="fit")
+            ax.set_xlabel("t (s)")
+            ax.set_ylabel("front x_f (cm)")
+            ax.set_title("front position" + (f" [{i}]" if len(members) > 1 else ""), fontsize=9)
+        ax.grid(alpha=0.3)
+    for ax in list(axes.flat)[n:]:
+        ax.axis("off")
+    axes.flat[0].legend(fontsize=8)
+    params = ", ".join(f"{k} = {v:.4g}" for k, v in result.theta.items())
+    fig.suptitle(title or f"fit: {params}", fontsize=10)
+    return _save(plt, fig, path, dpi=110)
+
+
+def plot_history(history, keys, path, *, truth=None, title: str | None = None):
+    """Loss (log scale) and each parameter against iteration; rejected LM trials hollow."""
+    plt = _plt()
+    loss = np.asarray(history["loss"])
+    theta = np.asarray(history["theta"])
+    accepted = np.asarray(history["accepted"], bool)
+    it = np.arange(loss.size)
+    n = len(keys)
+    fig, axes = plt.subplots(1, n + 1, figsize=(3.2 * (n + 1), 2.8))
+    ax = axes[0]
+    ax.semilogy(it[accepted], loss[accepted], "o-", ms=3, color="tab:blue", label="accepted")
+    if (~accepted).any():
+        ax.semilogy(it[~accepted], loss[~accepted], "o", ms=4, mfc="none", color="tab:gray", label="rejected")
+        ax.legend(fontsize=8)
+    ax.set_xlabel("iteration")
+    ax.set_ylabel("loss")
+    ax.grid(alpha=0.3)
+    for j, key in enumerate(keys):
+        ax = axes[j + 1]
+        ax.plot(it[accepted], theta[accepted, j], "o-", ms=3, color="tab:red")
+        if truth is not None and key in truth:
+            ax.axhline(truth[key], color="k", ls="--", lw=1, label="true")
+            ax.legend(fontsize=8)
+        ax.set_xlabel("iteration")
+        ax.set_title(key, fontsize=10)
+        ax.grid(alpha=0.3)
+    if title:
+        fig.suptitle(title, fontsize=10)
+    return _save(plt, fig, path, dpi=110)
+
+
+def plot_landscape(xs, ys, loss, key_x, key_y, path, *, marks=None, failed=None, title: str | None = None):
+    """log10 loss over a grid of two parameters (``loss[j, i]`` at ``(xs[i], ys[j])``, as
+    ``SweepResult.landscape`` returns it); ``marks``: {label: (x, y)} points to draw;
+    ``failed``: (x, y) arrays of members whose runs failed (drawn as crosses)."""
+    plt = _plt()
+    fig, ax = plt.subplots(figsize=(5.0, 4.0))
+    z = np.log10(np.asarray(loss, float))
+    cs = ax.contourf(xs, ys, z, levels=20, cmap="viridis")
+    fig.colorbar(cs, ax=ax, label="log10 loss")
+    styles = ({"marker": "*", "color": "r", "ms": 12}, {"marker": "^", "color": "w", "ms": 9},
+              {"marker": "o", "color": "w", "mfc": "none", "ms": 14, "mew": 2}, {"marker": "s", "color": "m", "ms": 8})
+    items = list(zip((marks or {}).items(), styles))
+    for (label, (mx, my)), style in reversed(items):  # the first mark (the truth) on top
+        ax.plot(mx, my, ls="none", label=label, mec=style.pop("mec", "k") if "mfc" not in style else style["color"],
+                **style)
+    if items:
+        handles, labels = ax.get_legend_handles_labels()
+        order = [labels.index(label) for (label, _), _ in items]
+        ax.legend([handles[i] for i in order], [labels[i] for i in order], fontsize=8)
+    if failed is not None and len(failed[0]):
+        ax.plot(failed[0], failed[1], "kx", ms=6, label="failed run")
+    if failed is not None and len(failed[0]) and not items:
+        ax.legend(fontsize=8)
+    ax.set_xlabel(key_x)
+    ax.set_ylabel(key_y)
+    ax.set_title(title or f"loss landscape over ({key_x}, {key_y})", fontsize=10)
+    return _save(plt, fig, path, dpi=110)
+
+
+def plot_loss_curve(xs, loss, key, path, *, best=None, title: str | None = None):
+    """The loss of a sweep over one key (log scale); NaN (failed members) drawn as crosses on the
+    axis; ``best``: the key's value at the lowest loss."""
+    plt = _plt()
+    xs, loss = np.asarray(xs, float), np.asarray(loss, float)
+    order = np.argsort(xs)
+    xs, loss = xs[order], loss[order]
+    fig, ax = plt.subplots(figsize=(5.0, 3.6))
+    ok = np.isfinite(loss) & (loss > 0)
+    ax.semilogy(xs[ok], loss[ok], "o-", ms=4)
+    if np.any(~np.isfinite(loss)):
+        floor = float(np.min(loss[ok])) if ok.any() else 1.0
+        ax.plot(xs[~np.isfinite(loss)], np.full(int((~np.isfinite(loss)).sum()), floor), "kx", ms=7, label="failed run")
+        ax.legend(fontsize=8)
+    if best is not None:
+        ax.axvline(best, color="r", lw=1, ls="--")
+    ax.set_xlabel(key)
+    ax.set_ylabel("loss")
+    ax.set_title(title or f"loss over {key}", fontsize=10)
+    return _save(plt, fig, path, dpi=110)
+
+
+def plot_runout_law(cases, path, *, law, title: str | None = None):
+    """Normalised runout ΔL/L0 against aspect ratio: the law, the model before and after the fit;
+    filled markers for the aspect ratios used in the fit, hollow for the predicted ones."""
+    plt = _plt()
+    fig, ax = plt.subplots(figsize=(5.0, 3.8))
+    a = np.array([c["a"] for c in cases])
+    grid = np.geomspace(a.min() * 0.8, a.max() * 1.2, 200)
+    try:
+        ax.loglog(grid, law(grid), "k-", lw=1, label="scaling law (secondary)")
+    except ValueError:  # a tabulated law: only its points
+        order = np.argsort(a)
+        ax.loglog(a[order], np.array([c["law"] for c in cases])[order], "k+--", lw=1, label="scaling law (table)")
+    used = np.array([c["used_in_fit"] for c in cases])
+    start = np.array([c["model_start"] for c in cases])
+    fitted = np.array([c["model_fit"] for c in cases])
+    ax.loglog(a, start, "s", color="tab:gray", mfc="none", label="model, start")
+    ax.loglog(a[used], fitted[used], "o", color="tab:red", label="model, fitted (used in fit)")
+    if (~used).any():
+        ax.loglog(a[~used], fitted[~used], "o", color="tab:red", mfc="none", ms=8, label="model, fitted (predicted)")
+    ax.set_xlabel("aspect ratio a = H0/L0")
+    ax.set_ylabel("ΔL/L0")
+    ax.grid(alpha=0.3, which="both")
+    ax.legend(fontsize=8)
+    ax.set_title(title or "runout against aspect ratio", fontsize=10)
+    return _save(plt, fig, path, dpi=110)
+
+
+def plot_coverage(result, path, *, title: str | None = None):
+    """Every seed's fitted value and 95 % interval (estimated noise; the given-noise interval
+    faint behind it) against the truth, one panel per key, misses in red."""
+    plt = _plt()
+    keys = result.keys
+    fig, axes = plt.subplots(1, len(keys), figsize=(4.2 * len(keys), 0.22 * len(result.rows) + 1.8), squeeze=False)
+    for ax, k in zip(axes[0], keys):
+        truth = result.truth[k]
+        for i, row in enumerate(result.rows):
+            value = row.theta[k]
+            if row.ci95_given is not None:
+                lo, hi = row.ci95_given[k]
+                ax.plot([lo, hi], [i, i], color="0.75", lw=5, solid_capstyle="butt")
+            if row.ci95 is None:
+                ax.plot(value, i, "x", color="tab:orange")
+                continue
+            lo, hi = row.ci95[k]
+            color = "tab:blue" if lo <= truth <= hi else "tab:red"
+            ax.plot([lo, hi], [i, i], color=color, lw=1.8)
+            ax.plot(value, i, "o", color=color, ms=3.5)
+        ax.axvline(truth, color="k", lw=1, ls="--")
+        rate = result.rate(k)
+        ax.set_title(f"{k}: {rate['hits']}/{rate['of']} intervals hold the truth", fontsize=10)
+        ax.set_xlabel(k)
+        ax.set_yticks(range(len(result.rows)))
+        ax.set_yticklabels([str(r.seed) for r in result.rows], fontsize=7)
+    axes[0][0].set_ylabel("noise seed")
+    fig.suptitle(title or f"95 % intervals over {len(result.rows)} seeds, {100 * result.noise:.3g} % noise "
+                 "(grey: true noise given; x: not a fit, no interval)", fontsize=10)
+    return _save(plt, fig, path, dpi=120)
+
+
+def plot_design(result, path, *, title: str | None = None, data_only: bool = False):
+    """The expected 95 % ellipses of the first two keys for the candidate sets of
+    ``calibration.design.design`` (at most eight: the narrowest of each cost, then the recommended one),
+    centred on θ, with the tolerance as a dotted box. ``data_only``: the data's share alone
+    (without the particle draw's and the grid's)."""
+    plt = _plt()
+    keys, theta = result.keys, result.theta
+    fig, ax = plt.subplots(figsize=(6.4, 5.2))
+    def widest(c):  # the candidate's largest relative half-width, of what is drawn
+        return float(np.max((c.halfwidth_data if data_only else c.halfwidth) / np.maximum(np.abs(theta), 1e-12)))
+
+    chosen = [min((c for c in result.candidates if c.cost == cost), key=widest)
+              for cost in sorted({c.cost for c in result.candidates})]
+    if result.recommended is not None and result.recommended not in chosen:
+        chosen.append(result.recommended)
+    t = np.linspace(0.0, 2.0 * np.pi, 200)
+    circle = np.stack([np.cos(t), np.sin(t)])
+    radius = np.sqrt(5.991)  # the 95 % quantile of chi-square with two degrees of freedom
+    for i, c in enumerate(chosen[:8]):
+        cov = (c.cov_data if data_only else c.cov)[:2, :2]
+        evals, evecs = np.linalg.eigh(cov)
+        xy = (evecs * np.sqrt(np.maximum(evals, 0.0))) @ circle * radius + theta[:2, None]
+        style = "-" if c is result.recommended else "--"
+        ax.plot(xy[0], xy[1], style, color=f"C{i}", lw=2 if c is result.recommended else 1.2,
+                label=f"{c.name} (cost {c.cost:g})" + (": recommended" if c is result.recommended else ""))
+    tol = result.tolerance * np.abs(theta[:2])
+    ax.plot(theta[0] + tol[0] * np.array([-1, 1, 1, -1, -1]), theta[1] + tol[1] * np.array([-1, -1, 1, 1, -1]),
+            ":", color="k", lw=1, label=f"±{100 * result.tolerance:g} %")
+    ax.plot(theta[0], theta[1], "k+", ms=10)
+    ax.set(xlabel=keys[0], ylabel=keys[1] if len(keys) > 1 else "",
+           title=title or f"expected 95 % regions of ({keys[0]}, {keys[1]}) before measuring")
+    ax.legend(fontsize=7, loc="best")
+    return _save(plt, fig, path, 120)
+
+
+# ---- the figure sets of the command line's studies ----------------------------------------------
+def _folder(directory) -> pathlib.Path:
+    d = pathlib.Path(directory)
+    d.mkdir(parents=True, exist_ok=True)
+    return d
+
+
+def fit_figures(directory, objective, result, *, prefix: str = "fit", truth=None, initial=None) -> list[str]:
+    """A fit's figures in ``directory`` (made if missing): ``PREFIX_profiles.png`` (``plot_fit``)
+    and ``PREFIX_history.png`` (``plot_history``, ``truth`` drawn where given); their paths."""
+    d = _folder(directory)
+    figs = [plot_fit(objective, result, d / f"{prefix}_profiles.png", initial_prediction=initial),
+            plot_history(result.history, result.keys, d / f"{prefix}_history.png", truth=truth)]
+    return [str(f) for f in figs]
+
+
+def sweep_figures(directory, result, keys) -> list[str]:
+    """A sweep's figure in ``directory`` (made if missing): ``loss.png``, the loss over one swept
+    key, or ``landscape.png``, the landscape over the first two (a grid), with the lowest member
+    and the failed ones marked; its path in a list."""
+    d = _folder(directory)
+    best = result.best() if result.ok.any() else None
+    if len(keys) == 1:
+        return [str(plot_loss_curve(result.thetas[:, 0], result.loss, keys[0], d / "loss.png",
+                                    best=best[keys[0]] if best else None))]
+    xs, ys, loss = result.landscape(keys[0], keys[1])
+    failed = list(result.failed)
+    fx = np.asarray(result.thetas)[failed, 0] if failed else np.zeros(0)
+    fy = np.asarray(result.thetas)[failed, 1] if failed else np.zeros(0)
+    marks = {"lowest": (best[keys[0]], best[keys[1]])} if best else None
+    return [str(plot_landscape(xs, ys, loss, keys[0], keys[1], d / "landscape.png", marks=marks, failed=(fx, fy)))]
+
+
+def twin_landscape_figure(directory, landscape) -> pathlib.Path:
+    """A twin's loss landscape (``calibration.studies.twin.TwinLandscape``) as ``twin_landscape.png`` in
+    ``directory``, the truth, the start and the fit marked; its path."""
+    kx, ky = landscape.keys
+    xs, ys, loss = landscape.grid()
+    return plot_landscape(xs, ys, loss, kx, ky, pathlib.Path(directory) / "twin_landscape.png",
+                          marks=landscape.marks, title=f"twin loss over ({kx}, {ky}), others at truth")
+
+
+def law_figures(directory, result, law) -> list[str]:
+    """A runout-law fit's figures (``calibration.studies.scaling.LawResult``) in ``directory`` (made if
+    missing): ``law_runout.png`` (``plot_runout_law`` against ``law``) and ``law_history.png``;
+    their paths."""
+    d = _folder(directory)
+    return [str(plot_runout_law(result.to_json()["cases"], d / "law_runout.png", law=law, title=result.law)),
+            str(plot_history(result.fit.history, result.fit.keys, d / "law_history.png"))]

@@ -1,0 +1,118 @@
+"""A fit's objective built from where its data come from: a scene with measured profiles and a
+front history, or experiment files (``jaxmpm.Experiment``) with theirs; several make one joint
+objective. What ``python -m calibration fit`` and ``sweep`` fit.
+
+``FitSetup`` is that description as data: the experiments (a named scene with the command line's
+data files is one too), the keys, how the data are read and weighed, and which keys the
+experiments share. ``setup.objective()`` builds the objective; ``to_json`` and ``from_json``
+record it in a fit's file, so that the same objective is built again by a later command
+(``python -m calibration posterior``) or on another machine (a cluster's workers).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import pathlib
+from collections.abc import Sequence
+from typing import Any
+
+from jaxmpm import Experiment
+
+from ..data.measurements import check_run_status, load_measurements
+from .composite import CompositeObjective
+from .objective import Objective
+from .options import DataOptions
+from .targets import FrontTarget
+
+__all__ = ["FitSetup", "member_objective", "objective_of"]
+
+
+def member_objective(source, keys: Sequence[str], profiles=(), front=None,
+                     options: DataOptions | None = None) -> Objective:
+    """The objective of one ``source`` fitting ``keys`` to ``profiles`` and ``front`` (a
+    ``FrontHistory``, a ``FrontTarget`` or None). ``source`` is a scene, whose blocks weigh
+    ``options``' weights (1 where None), or a ``jaxmpm.Experiment``, whose [fit] table's
+    weights and front correlation time ``options`` override where given
+    (``Objective.from_experiment``)."""
+    options = options or DataOptions()
+    common = dict(front_threshold=options.front_threshold, jacobian=options.jacobian, weighting=options.weighting)
+    if isinstance(source, Experiment):
+        return Objective.from_experiment(source, keys, profile=list(profiles) or None, front=front,
+                                         weights=options.weights(None),
+                                         front_correlation_time=options.front_correlation_time, **common)
+    if front is not None and options.front_correlation_time is not None:
+        front = dataclasses.replace(FrontTarget.of(front), correlation_time=options.front_correlation_time)
+    return Objective(source, keys, profile=list(profiles) or None, front=front, weights=options.weights(), **common)
+
+
+def objective_of(sources: Sequence, keys: Sequence[str], data: Sequence[tuple], options: DataOptions | None = None,
+                 *, shared: Sequence[str] | None = None, labels: Sequence[str] | None = None):
+    """The objective fitting ``keys`` to ``data`` (one ``(profiles, front)`` pair per source)
+    of ``sources`` (scenes or experiments, ``member_objective``). One source: its ``Objective``;
+    several: one ``CompositeObjective`` whose members fit the same keys, or with ``shared`` those
+    shared and the others per source, named ``key@label`` (``labels``, one per source)."""
+    if len(sources) != len(data):
+        raise ValueError(f"data: one (profiles, front) pair per source, got {len(data)} for {len(sources)}")
+    members = [member_objective(source, keys, profiles, front, options)
+               for source, (profiles, front) in zip(sources, data)]
+    if len(members) == 1:
+        return members[0]
+    if shared is None:
+        return CompositeObjective(members)
+    return CompositeObjective.sharing(members, tuple(shared), labels)
+
+
+@dataclasses.dataclass(frozen=True)
+class FitSetup:
+    """What a fit's objective is built from (see the module's text). ``experiments``: one or more
+    ``jaxmpm.Experiment`` with their measurements ([[profile]], [front]); ``keys``: the fitted
+    keys; ``options``: how the data are read and weighed; ``shared`` and ``labels``: with several
+    experiments, the keys they share and the names of each one's own (``objective_of``);
+    ``sort``, ``clip_noise``: how the measurement files are read (``load_profile``); ``dtype``:
+    the float type the runs compute in (the caller enables it: ``jaxmpm.precision.use_dtype``)."""
+
+    experiments: tuple[Experiment, ...]
+    keys: tuple[str, ...]
+    options: DataOptions = DataOptions()
+    shared: tuple[str, ...] | None = None
+    labels: tuple[str, ...] | None = None
+    sort: bool = False
+    clip_noise: bool = False
+    dtype: str = "float32"
+
+    def measurements(self) -> list[tuple]:
+        """Each experiment's (profiles, front history or None), read and checked: an experiment
+        must list one measurement at least, and no file may come from a run that failed."""
+        data = []
+        for e in self.experiments:
+            profiles, front = load_measurements(e, sort=self.sort, clip_noise=self.clip_noise)
+            if not profiles and front is None:
+                raise ValueError(f"{e.path or e.name}: lists no measurement ([[profile]] or [front])")
+            check_run_status([*profiles, front])
+            data.append((profiles, front))
+        return data
+
+    def objective(self):
+        """The objective (``objective_of``) of the experiments against their measurements."""
+        return objective_of(self.experiments, self.keys, self.measurements(), self.options, shared=self.shared,
+                            labels=self.labels)
+
+    def to_json(self) -> dict[str, Any]:
+        """The setup as JSON: each experiment as its file's text (``Experiment.to_toml``) and where
+        that file was (its measurement files are found from there)."""
+        return {"experiments": [{"toml": e.to_toml(), "path": None if e.path is None else str(e.path)}
+                                for e in self.experiments],
+                "keys": list(self.keys), "options": dataclasses.asdict(self.options),
+                "shared": None if self.shared is None else list(self.shared),
+                "labels": None if self.labels is None else list(self.labels),
+                "sort": self.sort, "clip_noise": self.clip_noise, "dtype": self.dtype}
+
+    @classmethod
+    def from_json(cls, record: dict[str, Any]) -> FitSetup:
+        """The setup ``to_json`` recorded (its measurement files must still be where they were)."""
+        experiments = tuple(Experiment.from_text(e["toml"], None if e["path"] is None else pathlib.Path(e["path"]))
+                            for e in record["experiments"])
+        tuple_or_none = lambda v: None if v is None else tuple(v)  # noqa: E731
+        return cls(experiments, tuple(record["keys"]), DataOptions(**record["options"]),
+                   tuple_or_none(record["shared"]), tuple_or_none(record["labels"]), bool(record["sort"]),
+                   bool(record["clip_noise"]), str(record["dtype"]))

@@ -1,0 +1,228 @@
+"""The twin experiment: fit data that the model itself made, with known parameters.
+
+A synthetic S4 cohesive collapse is run with the true parameters (β = 0.25, μ1 = tan 20.9°,
+ξ = 50, the rest of docs/scenes.md S4). Its deposit profiles at 0.1, 0.2 and 0.5 s (50 points from
+the back wall to 1.3× the final front) and its front position at 10 times become the data,
+optionally with Gaussian noise: σ = ``noise`` × the profile's peak height on every profile
+point, and σ = ``noise`` × the column length on every front position. The fit starts from a
+perturbed point (β × 0.6, μ1 × 1.2, ξ × 0.6) and must find the truth again; the uncertainty
+analysis at the optimum says which parameters the data constrain, and whether the 95 %
+intervals contain the true values. With noise, ``delta_chi2_truth`` is the likelihood-ratio
+distance of the truth from the fit (no linearisation) and ``truth_in_joint_95`` compares it with
+the 95 % quantile of χ² with n degrees of freedom.
+
+``quick=True`` uses a coarse grid (dx = L/8, 576 particles); the default dx = L/16 (2,304
+particles) is the project's default S4 resolution.
+
+``twin(...)`` returns a ``TwinResult`` (the ``FitResult``, the ``Objective`` and the comparison
+with the truth; ``to_json()`` is what ``python -m calibration twin --json`` prints);
+``twin_landscape(result, n)`` sweeps its loss on an n × n grid over the first two keys
+(``--landscape N``) and returns a ``TwinLandscape``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from collections.abc import Mapping, Sequence
+from typing import Any
+
+import numpy as np
+
+from jaxmpm.scenes import build_scene
+from jaxmpm.scenes.collapse import S4_SIDE
+
+from ..batch.sweep import SweepResult, grid_points, sweep
+from ..inference.scatter import ROUNDOFF_SAMPLES
+from ..optim.fit import FitResult, fit
+from ..problem.objective import Objective
+from ..problem.targets import FrontTarget, ProfileTarget
+
+__all__ = [
+    "TWIN_START_FACTORS", "TWIN_TRUTH", "PROFILE_TIMES", "FRONT_TIMES", "TwinResult", "twin", "TwinLandscape",
+    "twin_landscape",
+]
+
+
+#: Perturbation of the start, by key (multiplies the true value).
+TWIN_START_FACTORS = {"beta": 0.6, "mu1": 1.2, "mu2": 0.9, "I0": 1.5, "xi": 0.6}
+
+
+#: True values that differ from the S4 scene defaults (β = 0.25: the cohesive case).
+TWIN_TRUTH = {"beta": 0.25}
+
+
+PROFILE_TIMES = (0.1, 0.2, 0.5)
+
+
+FRONT_TIMES = tuple(np.round(np.linspace(0.05, 0.5, 10), 6))
+
+
+#: 95 % quantiles of χ² with n degrees of freedom (n fitted parameters).
+CHI2_95 = {1: 3.841, 2: 5.991, 3: 7.815, 4: 9.488, 5: 11.070}
+
+
+def twin_data(scene, keys, truth: np.ndarray, noise: float = 0.0, seed: int = 0, n_points: int = 50):
+    """Synthetic profiles and front history from ``scene`` at ``truth``, with noise."""
+    times = np.asarray(FRONT_TIMES)
+    # First pass: where is the final front? (The data cover the deposit plus a margin.)
+    probe = Objective(scene, keys, front=FrontTarget(times, np.ones_like(times)), check_data=False)  # placeholder
+    _, pred = probe.residuals(truth)
+    if int(pred["status"]):
+        raise ValueError(f"the twin's true run fails (status {int(pred['status'])})")
+    x_end = 1.3 * float(np.asarray(pred["front"])[-1])
+    xs = np.linspace(0.0, x_end, n_points)
+    gen = Objective(scene, keys, profile=[ProfileTarget(xs, np.ones_like(xs), t) for t in PROFILE_TIMES],
+                    front=FrontTarget(times, np.ones_like(times)), check_data=False)  # placeholder data
+    _, pred = gen.residuals(truth)
+    h = np.asarray(pred["h"], float).reshape(len(PROFILE_TIMES), n_points)
+    front = np.asarray(pred["front"], float)
+    rng = np.random.default_rng(seed)
+    if noise > 0:
+        h = h + noise * h.max(axis=1, keepdims=True) * rng.standard_normal(h.shape)
+        front = front + noise * float(scene.info.length) * rng.standard_normal(front.shape)
+    profiles = [ProfileTarget(xs, h[i], t) for i, t in enumerate(PROFILE_TIMES)]
+    return profiles, FrontTarget(times, front)
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class TwinResult:
+    """A twin experiment: the fit (``FitResult``) and the objective it fitted, against the truth.
+
+    ``rel_error`` is fit / truth − 1 by key; ``in_ci95`` whether each 95 % interval holds the truth
+    (None: the verdict withheld the interval); ``delta_chi2_truth`` the likelihood-ratio distance
+    of the truth from the fit (None without noise). ``wall_s`` covers the data and the fit."""
+
+    fit: FitResult
+    objective: Objective
+    keys: tuple[str, ...]
+    truth: dict[str, float]
+    start: dict[str, float]
+    rel_error: dict[str, float]
+    in_ci95: dict[str, bool] | None
+    delta_chi2_truth: float | None
+    noise: float
+    seed: int
+    dx: float
+    n_particles: int
+    wall_s: float
+
+    @property
+    def truth_in_joint_95(self) -> bool | None:
+        """Δχ² of the truth against χ²_n(0.95), n fitted parameters (None without noise)."""
+        if self.delta_chi2_truth is None:
+            return None
+        return bool(self.delta_chi2_truth <= CHI2_95[len(self.keys)])
+
+    @property
+    def ci95(self) -> dict[str, list[float]] | None:
+        """The 95 % intervals by key (None: withheld, or no uncertainty analysis)."""
+        unc = self.fit.uncertainty
+        if unc is None or unc.withheld:
+            return None
+        return {k: [float(lo), float(hi)] for k, (lo, hi) in zip(self.keys, unc.ci95)}
+
+    def to_json(self) -> dict[str, Any]:
+        """The fit's JSON plus ``true``, the twin's ``start``, ``rel_error``, ``in_ci95``, with noise
+        ``delta_chi2_truth`` and ``truth_in_joint_95``, and the run's ``noise``, ``seed``, ``dx`` and
+        ``n_particles``: what ``python -m calibration twin --json`` prints."""
+        out = self.fit.to_json()
+        out["wall_s"] = round(self.wall_s, 3)
+        out["true"] = dict(self.truth)
+        out["start"] = dict(self.start)
+        out["rel_error"] = dict(self.rel_error)
+        out["in_ci95"] = None if self.in_ci95 is None else dict(self.in_ci95)
+        if self.delta_chi2_truth is not None:
+            out["delta_chi2_truth"] = self.delta_chi2_truth
+            out["truth_in_joint_95"] = self.truth_in_joint_95
+        out["noise"] = self.noise
+        out["seed"] = self.seed
+        out["dx"] = self.dx
+        out["n_particles"] = self.n_particles
+        return out
+
+
+def twin(*, quick: bool = False, noise: float = 0.0, keys: Sequence[str] = ("beta", "mu1", "xi"),
+         method: str = "lm", steps: int | None = None, seed: int = 0, dx: float | None = None, ppc: float | None = None,
+         t_end: float | None = None, values: Mapping[str, float] | None = None, dtype=None, out=None,
+         resume: bool = False, overwrite: bool = False, progress: bool = False, reference_noise: float = 0.01,
+         threshold: float = 0.1, roundoff_samples: int = ROUNDOFF_SAMPLES) -> TwinResult:
+    """Run the twin experiment: make the data at the truth, fit them from the perturbed start.
+    ``values`` are true scene parameters over ``TWIN_TRUTH``; ``out``/``resume``/``overwrite``
+    keep the fit's history (``calibration.optim.fit``)."""
+    if not (np.isfinite(noise) and 0 <= noise < 1):
+        raise ValueError(f"noise must be in [0, 1), got {noise!r}")
+    keys = tuple(keys)
+    values = {**TWIN_TRUTH, **dict(values or {})}
+    if dx is None:
+        dx = S4_SIDE / (8 if quick else 16)
+    if t_end is not None and t_end < max(PROFILE_TIMES):
+        raise ValueError(f"t_end must be >= {max(PROFILE_TIMES)} s (the last profile), got {t_end}")
+    scene = build_scene("cohesive-collapse", dx=dx, ppc=ppc, t_end=t_end, dtype=dtype, values=values)
+    truth = np.array([float(getattr(scene.params, k)) for k in keys])
+    start = {k: float(v) * TWIN_START_FACTORS.get(k, 0.8) for k, v in zip(keys, truth)}
+    t0 = time.perf_counter()
+    profiles, front = twin_data(scene, keys, truth, noise=noise, seed=seed)
+    objective = Objective(scene, keys, profile=profiles, front=front)
+    # Identifiability at the stated reference noise (or the twin's own noise when larger).
+    steps = (25 if method == "lm" else 150) if steps is None else steps
+    result = fit(objective, start, method=method, steps=steps, out=out,
+                 resume=resume, overwrite=overwrite, progress=progress, noise=None,
+                 reference_noise=max(reference_noise, noise), threshold=threshold, roundoff_samples=roundoff_samples,
+                 meta={"twin": True, "noise": noise, "seed": seed, "true": dict(zip(keys, truth.tolist()))})
+    wall_s = time.perf_counter() - t0
+    unc = result.uncertainty
+    # No interval (None) when the verdict says the fit is not a fit of the data.
+    in_ci95 = (None if unc.withheld else
+               {k: bool(lo <= v <= hi) for k, v, (lo, hi) in zip(keys, truth, unc.ci95)})
+    delta = None
+    if noise > 0:
+        # The likelihood-ratio view, which does not linearise: Δχ² of the truth against the fit,
+        # with each block's residuals divided by its estimated noise, against χ²_n(0.95).
+        r_true, _ = objective.residuals(truth)
+
+        def chi2(r):
+            e = np.asarray(r, float) / objective.row_scale
+            return sum(float(np.sum(e[sl] ** 2)) / unc.noise[name] ** 2 for name, sl in objective.blocks.items())
+
+        delta = chi2(r_true) - chi2(result.residuals)
+    return TwinResult(fit=result, objective=objective, keys=keys, truth=dict(zip(keys, truth.tolist())), start=start,
+                      rel_error={k: result.theta[k] / v - 1.0 for k, v in zip(keys, truth)}, in_ci95=in_ci95,
+                      delta_chi2_truth=delta, noise=noise, seed=seed, dx=dx, n_particles=int(scene.state.x.shape[0]),
+                      wall_s=wall_s)
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class TwinLandscape:
+    """The twin's loss swept over its first two keys (±40 % around the truth, the others at their
+    true values): the sweep itself, and the truth, start and fit to mark on a figure."""
+
+    keys: tuple[str, str]
+    sweep: SweepResult
+    marks: dict[str, tuple[float, float]]  # "true", "start", "fit": (x, y)
+
+    def grid(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """x values, y values and the loss on the grid (``SweepResult.landscape``)."""
+        return self.sweep.landscape(*self.keys)
+
+    def to_json(self) -> dict[str, Any]:
+        return {"keys": list(self.keys), "n": int(self.sweep.n), "failed": len(self.sweep.failed),
+                "wall_s": self.sweep.wall_s, "mode": self.sweep.mode}
+
+
+def twin_landscape(result: TwinResult, n: int, *, progress: bool = False) -> TwinLandscape:
+    """Sweep ``result``'s loss on an ``n`` × ``n`` grid over its first two keys."""
+    keys = result.keys
+    if len(keys) < 2:
+        raise ValueError(f"a twin landscape needs at least two fitted keys, got {list(keys)}")
+    kx, ky = keys[:2]
+    truth = result.truth
+    ranges = {k: (0.6 * truth[k], 1.4 * truth[k]) for k in (kx, ky)}
+    _, grid = grid_points(ranges, n, keys=(kx, ky))
+    thetas = np.tile([truth[k] for k in keys], (grid.shape[0], 1))
+    thetas[:, :2] = grid
+    swept = sweep(result.objective, thetas, progress=progress)
+    theta = result.fit.theta
+    marks = {"true": (truth[kx], truth[ky]), "start": (result.start[kx], result.start[ky]),
+             "fit": (theta[kx], theta[ky])}
+    return TwinLandscape((kx, ky), swept, marks)
