@@ -218,3 +218,42 @@ def test_the_twin_landscape_and_law_figures(tmp_path):
     figures = plots.law_figures(tmp_path / "law", result, law=lambda a: 2.0 * np.sqrt(a))
     assert [pathlib.Path(f).name for f in figures] == ["law_runout.png", "law_history.png"]
     assert all(pathlib.Path(f).stat().st_size > 5_000 for f in figures)
+
+
+def test_a_search_keeps_its_best_start_and_its_interval_for_posterior(tmp_path):
+    """``save_start`` writes a search's best start as a finished fit's file and ``read_record``
+    gives back what the posterior checks read: the point, the residuals there and the interval
+    (noise, covariance, standard errors, 95 % intervals, grid term); the file resumes as one LM
+    start from that point."""
+    from calibration import Bounds, FitOptions, JudgeOptions
+    from calibration.inference.gauss_newton import gauss_newton_uncertainty
+    from calibration.inference.gridcheck import GridCheck
+    from calibration.optim.fit import FitResult, save_start
+    from calibration.optim.history import read_history
+    from calibration.optim.record import read_record
+
+    keys, bounds = ("beta", "mu1"), Bounds(("beta", "mu1"), (0.0, 0.05), (1.0, 2.0))
+    objective = SimpleNamespace(keys=keys, bounds=bounds, fingerprint=lambda: {"toy": 1}, describe=lambda: {})
+    rng = np.random.default_rng(0)
+    J, r = rng.standard_normal((20, 2)), 0.01 * rng.standard_normal(20)
+    grid = GridCheck(0.01, 0.015, 2, np.array([0.01, -0.02]), np.array([0.06, 0.12]), 1.0)
+    unc = gauss_newton_uncertainty(J, r, keys, np.array([0.3, 0.4]), blocks={"profile": slice(0, 20)},
+                                   row_scale=np.ones(20), bounds=bounds, grid=grid)
+    history = {"theta": np.array([[0.2, 0.5], [0.3, 0.4]]), "z": np.zeros((2, 2)), "loss": np.array([1.0, 0.5]),
+               "grad_norm": np.ones(2), "status": np.zeros(2, int), "accepted": np.array([True, True]),
+               "lam": np.array([1e-3, 3e-4]), "wall_s": np.array([1.0, 2.0])}
+    result = FitResult(keys, {"beta": 0.3, "mu1": 0.4}, 0.5, 2, 2.0, "lm", True, "converged: toy", history, r, J, {},
+                       uncertainty=unc)
+    path = tmp_path / "search.h5"
+    save_start(path, objective, result, FitOptions(), JudgeOptions(), {"setup": {"toy": True}})
+    record = read_record(path)
+    assert record.keys == keys and record.theta == {"beta": 0.3, "mu1": 0.4}
+    np.testing.assert_array_equal(record.residuals, r)
+    for name in ("cov", "stderr", "ci95"):
+        np.testing.assert_allclose(getattr(record.uncertainty, name), getattr(unc, name), rtol=1e-15)
+    assert record.uncertainty.noise == unc.noise and not record.uncertainty.withheld
+    np.testing.assert_array_equal(record.uncertainty.grid.halfwidth, grid.halfwidth)
+    assert record.header["meta"]["setup"] == {"toy": True} and record.report["params"] == result.theta
+    saved = read_history(path)
+    assert bool(saved["resume"]["done"]) and saved["resume"]["lam"] == pytest.approx(3e-4)
+    np.testing.assert_allclose(bounds.to_physical(saved["resume"]["z"]), [0.3, 0.4], rtol=1e-12)

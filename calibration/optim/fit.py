@@ -231,14 +231,13 @@ def file_header(objective, options: FitOptions, judge: JudgeOptions, meta) -> di
 def save_start(path, objective, result: FitResult, options: FitOptions, judge: JudgeOptions, meta) -> None:
     """Write ``result``, the best start of a search, as a finished single-start fit's file: its
     history, LM's state at its point (a resume goes on from there as one start) and its record."""
-    history = History(path=path, header=file_header(objective, options, judge, meta), snapshot=_snapshot)
     hist = result.history
+    z = objective.bounds.to_unconstrained(np.array([result.theta[k] for k in result.keys]))
+    history = History(path=path, header=file_header(objective, options, judge, meta),
+                      snapshot=lambda state: {"z": z, "lam": float(hist["lam"][-1])})
     history._starts = [{k: list(v) for k, v in hist.items()}]
     history.iterations = len(hist["loss"])
-    z = objective.bounds.to_unconstrained(np.array([result.theta[k] for k in result.keys]))
-    state = types.SimpleNamespace(z=z[None], lam=np.asarray(hist["lam"][-1:], float), done=np.array([True]),
-                                  message=np.array([result.message], object))
-    history._save(state)
+    history._save(types.SimpleNamespace(done=np.array([True]), message=np.array([result.message], object)))
     write_record(path, result)
 
 

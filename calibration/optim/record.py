@@ -28,12 +28,13 @@ __all__ = ["FitRecord", "RecordedUncertainty", "read_record", "write_record"]
 @dataclasses.dataclass(frozen=True)
 class RecordedUncertainty:
     """The part of a fit's ``Uncertainty`` its record keeps: the ``noise`` by block, the
-    covariance ``cov`` and ``stderr`` (None: withheld, the point is not a fit of the data) and
-    the ``grid`` term (a ``GridCheck``, None where not measured)."""
+    covariance ``cov``, ``stderr`` and 95 % intervals ``ci95`` (n, 2) (None: withheld, the point is
+    not a fit of the data) and the ``grid`` term (a ``GridCheck``, None where not measured)."""
 
     noise: dict[str, float]
     cov: np.ndarray | None
     stderr: np.ndarray | None
+    ci95: np.ndarray | None = None
     grid: GridCheck | None = None
 
     @property
@@ -66,8 +67,7 @@ def write_record(path, result) -> None:
     unc = result.uncertainty
     record = {"keys": list(result.keys), "theta": result.theta, "report": result.to_json(), "uncertainty": None}
     if unc is not None:
-        record["uncertainty"] = {"noise": unc.noise, "cov": None if unc.cov is None else np.asarray(unc.cov).tolist(),
-                                 "stderr": None if unc.stderr is None else np.asarray(unc.stderr).tolist()}
+        record["uncertainty"] = {name: _jsonable(getattr(unc, name)) for name in ("noise", "cov", "stderr", "ci95")}
         if unc.grid is not None:
             record["uncertainty"]["grid"] = {f.name: _jsonable(getattr(unc.grid, f.name))
                                              for f in dataclasses.fields(unc.grid)}
@@ -106,7 +106,8 @@ def read_record(path) -> FitRecord:
         grid = unc.get("grid")
         if grid is not None:
             grid = GridCheck(**{k: _array(v) if isinstance(v, list) else v for k, v in grid.items()})
-        unc = RecordedUncertainty(dict(unc["noise"]), _array(unc["cov"]), _array(unc["stderr"]), grid)
+        unc = RecordedUncertainty(dict(unc["noise"]), _array(unc["cov"]), _array(unc["stderr"]),
+                                  _array(unc.get("ci95")), grid)
     header = {k.removesuffix("_json"): v for k, v in attrs.items() if k != "record_json"}
     return FitRecord(tuple(record["keys"]), {k: float(v) for k, v in record["theta"].items()}, residuals, unc,
                      record["report"], header)

@@ -4,11 +4,9 @@ emulated posteriors, their grid terms and posterior predictions.
 
 from __future__ import annotations
 
-import pathlib
-
 import numpy as np
 
-from .fits import _plt, _save
+from .fits import _folder, _plt, _save
 
 __all__ = [
     "plot_profile_likelihoods", "plot_heldout", "plot_nuts", "plot_emulated", "plot_grid_term",
@@ -283,5 +281,4 @@ def plot_posterior_predictive(predictive, path, *, title: str | None = None, spl
 def likelihood_figures(directory, profiles, *, posterior=None) -> list[str]:
     """A fit's profile likelihoods (and its grid posterior, where given) as
     ``fit_likelihood.png`` in ``directory`` (``plot_profile_likelihoods``); its path in a list."""
-    return [str(plot_profile_likelihoods(profiles, pathlib.Path(directory) / "fit_likelihood.png",
-                                         posterior=posterior))]
+    return [str(plot_profile_likelihoods(profiles, _folder(directory) / "fit_likelihood.png", posterior=posterior))]
