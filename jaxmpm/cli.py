@@ -156,11 +156,11 @@ def _scene_argument(text: str) -> str:
 
 
 def add_threads_argument(parser) -> None:
-    """The command lines' ``--threads {1,all}`` (default 1, unless XLA_FLAGS is set), applied by
+    """The command lines' ``--threads {1,all}`` (default 1: the process on one core), applied by
     ``jaxmpm.threads.apply_threads``."""
     parser.add_argument("--threads", choices=THREAD_CHOICES, default=None,
-                        help="XLA's CPU threads: 1 (the default; faster below about 1e5 particles, "
-                             "docs/performance.md) or all (XLA's own choice); an XLA_FLAGS you set is kept")
+                        help="XLA's CPU threads: 1 (the default: the process on one core, faster below "
+                             "about 1e5 particles, docs/performance.md) or all (XLA's own pool on every core)")
 
 
 # ---- outputs, checked before any work ------------------------------------------------------------

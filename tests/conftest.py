@@ -1,22 +1,34 @@
 """Tests run in float64 with strict dtype promotion, set here and never at import time.
 
 The suite runs in pytest-xdist workers (``-n auto --dist loadfile`` in pyproject.toml: a file's
-tests, and its module fixtures, stay in one worker), each on a single-threaded XLA unless
-XLA_FLAGS says otherwise: the test problems are small, and on two cores one single-threaded
-process per core does more work than processes that each spread over both (a 1.1 s Jacobian of
-S7 at H/6 takes 1.7 s on XLA's default thread pool)."""
+tests, and its module fixtures, stay in one worker), worker k pinned to the k-th core
+(``jaxmpm.threads.use_one_thread``), as the command lines run: the test problems are small, and on
+two cores one single-core process per core does more work than processes whose XLA pools each
+spread over both (a whole S4 run at dx = 4 mm: 5.8 s on one core, 13.6 s on XLA's pool).
+JAXMPM_TEST_THREADS=all leaves XLA its own choice."""
 
 import os
 
-from jaxmpm.threads import SINGLE_THREAD_FLAGS  # starts no JAX backend
+import jax
 
-os.environ.setdefault("XLA_FLAGS", SINGLE_THREAD_FLAGS)
+from jaxmpm.threads import use_one_thread  # starts no JAX backend
+
 # The command lines' default --workers is every core; the suite already keeps both busy, so its
 # command-line runs stay in one process (tests/test_workers.py covers the worker processes).
 os.environ.setdefault("JAXMPM_WORKERS", "1")
 
-import jax  # noqa: E402  (after XLA_FLAGS, which the backend reads when it starts)
-
 jax.config.update("jax_enable_x64", True)
 jax.config.update("jax_numpy_dtype_promotion", "strict")
+
+
+def pytest_configure(config):
+    # In the workers only: xdist's controller runs no test, and the workers it starts would
+    # inherit its one core.
+    if os.environ.get("JAXMPM_TEST_THREADS") == "all":
+        return
+    worker = os.environ.get("PYTEST_XDIST_WORKER")
+    if worker:
+        use_one_thread(int(worker.removeprefix("gw")))
+    elif not getattr(config.option, "numprocesses", None):
+        use_one_thread()
 

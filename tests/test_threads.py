@@ -11,28 +11,38 @@ from jaxmpm.threads import SINGLE_THREAD_FLAGS
 
 
 def _python(code: str, xla_flags: str | None) -> subprocess.CompletedProcess:
+    """``code`` in a fresh Python allowed every core (the suite's own process is pinned to one)."""
     env = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}
     if xla_flags is not None:
         env["XLA_FLAGS"] = xla_flags
+    code = f"import os; os.sched_setaffinity(0, range(os.cpu_count())); {code}"
     return subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=120)
 
 
-def test_one_thread_before_the_backend_starts_keeps_the_users_flags():
-    code = ("import os, jax.numpy as jnp; from jaxmpm.threads import apply_threads; apply_threads(None); "
-            "jnp.zeros(1).block_until_ready(); print(os.environ['XLA_FLAGS'])")
+several_cores = pytest.mark.skipif(not hasattr(os, "sched_setaffinity") or (os.cpu_count() or 1) < 2,
+                                   reason="pinning to one core needs an affinity call and two cores")
+REPORT = ("import jax.numpy as jnp; jnp.zeros(1).block_until_ready(); from jaxmpm.threads import allowed_cores; "
+          "print(len(os.sched_getaffinity(0)), len(allowed_cores()) == os.cpu_count(), "
+          "os.environ.get('XLA_FLAGS', 'unset'))")
+
+
+@several_cores
+def test_one_core_before_the_backend_starts_keeps_the_users_flags_and_the_allowed_cores():
+    """The default pins the process to one core (the XLA flags alone no longer limit JAX's pools)
+    and adds the flags to a user's own; ``allowed_cores`` still names every core, for the worker
+    processes; --threads all changes nothing."""
+    code = f"from jaxmpm.threads import apply_threads; apply_threads(None); {REPORT}"
     default = _python(code, None)
     assert default.returncode == 0, default.stderr
-    assert default.stdout.strip() == SINGLE_THREAD_FLAGS
-    # A user's XLA_FLAGS is their choice: the default leaves it alone, --threads 1 adds to it.
-    own = _python(code, "--xla_cpu_enable_fast_math=false")
-    assert own.stdout.strip() == "--xla_cpu_enable_fast_math=false"
-    forced = _python(code.replace("apply_threads(None)", "apply_threads('1')"), "--xla_cpu_enable_fast_math=false")
-    assert forced.stdout.strip() == f"--xla_cpu_enable_fast_math=false {SINGLE_THREAD_FLAGS}"
-    every = code.replace("apply_threads(None)", "apply_threads('all')")
-    every = _python(every.replace("os.environ['XLA_FLAGS']", "os.environ.get('XLA_FLAGS', 'unset')"), None)
-    assert every.stdout.strip() == "unset"
+    assert default.stdout.strip().split(maxsplit=2) == ["1", "True", SINGLE_THREAD_FLAGS]
+    own = _python(code.replace("apply_threads(None)", "apply_threads('1')"), "--xla_cpu_enable_fast_math=false")
+    flags = f"--xla_cpu_enable_fast_math=false {SINGLE_THREAD_FLAGS}"
+    assert own.stdout.strip().split(maxsplit=2) == ["1", "True", flags]
+    every = _python(code.replace("apply_threads(None)", "apply_threads('all')"), None)
+    assert every.stdout.split() == [str(os.cpu_count()), "True", "unset"]
 
 
+@several_cores
 def test_a_choice_after_the_backend_started_is_an_error():
     late = _python("import jax.numpy as jnp; jnp.zeros(1).block_until_ready(); "
                    "from jaxmpm.threads import use_one_thread; use_one_thread()", None)

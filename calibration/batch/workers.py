@@ -33,21 +33,20 @@ from typing import Any
 import jax
 import numpy as np
 
-from jaxmpm.threads import use_one_thread
+from jaxmpm.threads import allowed_cores, use_one_thread
 
 __all__ = ["available_cores", "Workers", "as_workers", "using", "run_tasks", "jacobians_z", "residuals_at"]
 
 
 def available_cores() -> int:
-    """The cores this process may run on (its affinity mask where the system has one)."""
-    try:
-        return max(1, len(os.sched_getaffinity(0)))
-    except AttributeError:  # pragma: no cover (macOS, Windows)
-        return max(1, os.cpu_count() or 1)
+    """The cores this process may run on (its affinity mask where the system has one, as it was
+    before the command line pinned the process to one core: ``jaxmpm.threads.allowed_cores``)."""
+    return len(allowed_cores())
 
 
 def _init_worker(x64: bool, counter, cores: Sequence[int]) -> None:
-    use_one_thread()
+    # Worker k on the k-th of the cores its parent was allowed (the parent itself may be pinned to
+    # one of them, and its children would inherit that one core).
     with counter.get_lock():
         index = counter.value
         counter.value += 1
@@ -56,6 +55,7 @@ def _init_worker(x64: bool, counter, cores: Sequence[int]) -> None:
             os.sched_setaffinity(0, {cores[index % len(cores)]})
         except (AttributeError, OSError):  # pragma: no cover (no affinity on this system)
             pass
+    use_one_thread()
     from jaxmpm.precision import enable_x64
 
     enable_x64(x64)  # a fresh process: its parent's precision, once, before anything is traced
@@ -82,10 +82,7 @@ class Workers:
             from jaxmpm.precision import x64_enabled
 
             context = multiprocessing.get_context("spawn")
-            try:
-                cores = sorted(os.sched_getaffinity(0))
-            except AttributeError:  # pragma: no cover
-                cores = []
+            cores = list(allowed_cores())
             self._pool = concurrent.futures.ProcessPoolExecutor(
                 max_workers=self.n, mp_context=context, initializer=_init_worker,
                 initargs=(x64_enabled(), context.Value("i", 0), cores))
