@@ -107,6 +107,9 @@ def test_objective_rejects_bad_input():
         Objective(scene, KEYS, profile=ProfileTarget(xs, xs), weights={"profile": -1.0})
 
 
+# 28 s (the reverse-mode compilation); reverse equals forward mode by default
+# (test_reverse_mode_gradient_equals_forward_mode)
+@pytest.mark.slow
 def test_exact_data_give_zero_residual_and_finite_gradient(problem):
     _, truth, objective = problem
     r, pred = objective.residuals(truth)
@@ -117,6 +120,7 @@ def test_exact_data_give_zero_residual_and_finite_gradient(problem):
     assert np.all(np.isfinite(np.asarray(g)))  # the square has a zero, finite derivative at zero
 
 
+@pytest.mark.slow  # 13 s; the finite-difference Jacobian option is tested by default
 def test_jacobian_matches_central_differences(problem):
     """Forward-mode residual Jacobian through the whole rollout against float64 central
     differences, at a point away from the data (so the residuals are not zero).
@@ -159,6 +163,9 @@ def test_finite_difference_jacobian_option(problem):
         Objective(scene, KEYS, front=objective.front, jacobian="cd")
 
 
+# 37 s: compiles the reverse-mode gradient of a whole run; reverse mode through the engine is
+# checked against finite differences in the default suite (test_gradients, test_column).
+@pytest.mark.slow
 def test_reverse_mode_gradient_equals_forward_mode(problem):
     _, truth, objective = problem
     theta = truth * np.array([1.1, 0.95])
@@ -244,7 +251,8 @@ def sharing():
 def test_composite_with_keys_per_experiment(sharing):
     """``CompositeObjective.sharing``: μ1 one value, β each experiment's own (``beta@label``).
     Residuals, Jacobian and gradient are the members' own at their slices of θ, scattered into
-    the composite's columns (zero where a member does not fit a key)."""
+    the composite's columns (zero where a member does not fit a key); the gradient is checked in
+    the slow set (test_composite_gradient_is_its_members)."""
     comp, a, b, mu1 = sharing
     assert comp.keys == ("mu1", "beta@A", "beta@B")
     assert comp.initial() == {"mu1": mu1, "beta@A": 0.25, "beta@B": 0.25}
@@ -259,13 +267,22 @@ def test_composite_with_keys_per_experiment(sharing):
     np.testing.assert_allclose(J[:na, [1, 0]], Ja, rtol=1e-12)
     np.testing.assert_allclose(J[na:, [2, 0]], Jb, rtol=1e-12)
     assert np.all(J[:na, 2] == 0) and np.all(J[na:, 1] == 0)
-    (loss, _), grad = comp.value_and_grad(theta)
-    assert float(loss) == pytest.approx(a.loss(theta[[1, 0]]) + b.loss(theta[[2, 0]]), rel=1e-10)
-    np.testing.assert_allclose(np.asarray(grad), 2 * J.T @ np.asarray(r), rtol=1e-6, atol=1e-12)
     with pytest.raises(ValueError, match="shared: \\['xi'\\] are not fitted by members\\[0\\]"):
         CompositeObjective.sharing([a, b], shared=("xi",), labels=("A", "B"))
     with pytest.raises(ValueError, match="one distinct, non-empty label per member"):
         CompositeObjective.sharing([a, b], shared=("mu1",), labels=("A", "A"))
+
+
+# 35 s: compiles the reverse-mode gradient of both members' runs (as the test of one objective's).
+@pytest.mark.slow
+def test_composite_gradient_is_its_members(sharing):
+    """A composite's loss is its members' sum and its reverse-mode gradient is 2 Jᵀ r."""
+    comp, a, b, mu1 = sharing
+    theta = np.array([0.9 * mu1, 0.22, 0.31])
+    r, J, _ = comp.residuals_and_jacobian(theta)
+    (loss, _), grad = comp.value_and_grad(theta)
+    assert float(loss) == pytest.approx(a.loss(theta[[1, 0]]) + b.loss(theta[[2, 0]]), rel=1e-10)
+    np.testing.assert_allclose(np.asarray(grad), 2 * np.asarray(J).T @ np.asarray(r), rtol=1e-6, atol=1e-12)
 
 
 @pytest.mark.slow  # 60-100 s: two worker processes compile, then a fit of three keys

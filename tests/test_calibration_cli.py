@@ -20,10 +20,22 @@ def run(capsys, *argv):
     return code, json.loads(out)
 
 
-def test_fit_prints_the_documented_json_and_writes_history_and_figures(capsys, tmp_path):
-    code, out = run(capsys, "fit", "--scene", "cohesive-collapse", "--data", S4, "--fit", "beta,mu1",
-                    "--init", "beta=0.2", "--steps", "2", "--out", str(tmp_path / "fit.h5"), "--plot",
-                    str(tmp_path / "figs"), *TINY)
+@pytest.fixture(scope="module")
+def documented_fit(tmp_path_factory):
+    """The documented fit of (β, μ1), two iterations, with its file and figures: (code, JSON, folder)."""
+    import contextlib
+    import io
+
+    folder = tmp_path_factory.mktemp("documented")
+    stdout = io.StringIO()
+    with contextlib.redirect_stdout(stdout):
+        code = main(["fit", "--scene", "cohesive-collapse", "--data", S4, "--fit", "beta,mu1", "--init", "beta=0.2",
+                     "--steps", "2", "--out", str(folder / "fit.h5"), "--plot", str(folder / "figs"), *TINY])
+    return code, json.loads(stdout.getvalue()), folder
+
+
+def test_fit_prints_the_documented_json_and_writes_history_and_figures(documented_fit):
+    code, out, tmp_path = documented_fit
     assert code == 0
     for key in ("params", "loss", "iterations", "wall_s", "start", "verdict", "search"):
         assert key in out, key
@@ -61,6 +73,9 @@ def test_fit_reads_a_webplotdigitizer_export_with_units(capsys, tmp_path):
     assert "profile_likelihood" not in out and "not a fit of the data" in out["profile_likelihood_skipped"]
 
 
+# 23 s: a fit and the posterior's model-error runs; the posterior command's round trip and its
+# input errors stay in the default suite.
+@pytest.mark.slow
 def test_the_posterior_checks_measure_the_model_error(capsys, tmp_path):
     """posterior builds the fit's objective again from its file and measures the model's own error
     at its point (--model-error draws, coarse runs on a grid 1.5 times coarser, also with the
@@ -93,15 +108,6 @@ def test_fit_input_errors_name_the_argument(capsys, argv, message):
     assert message in capsys.readouterr().err
 
 
-@pytest.fixture(scope="module")
-def one_step_fit(tmp_path_factory):
-    """A fit's file: one LM step of beta on the tiny S4 (no interval: one step is no verified minimum)."""
-    fit = tmp_path_factory.mktemp("fit") / "fit.h5"
-    assert main(["fit", "--scene", "cohesive-collapse", "--data", S4, "--fit", "beta", "--init", "beta=0.2", "--steps",
-                 "1", "--roundoff-samples", "0", "--grid-check", "0", "--out", str(fit), *TINY]) == 0
-    return str(fit)
-
-
 @pytest.mark.parametrize("argv, message", [
     (["--nuts", "2"], "--nuts must be 0 (off) or >= 4"),
     (["--nuts", "8", "--chains", "0"], "--chains must be >= 1"),
@@ -116,10 +122,10 @@ def one_step_fit(tmp_path_factory):
     (["--emulated", "40", "--prior", "I0=0.3:0.1"], "--prior: ['I0'] not among the fitted keys"),
     ([], "ask for a check: --profiles, --posterior, --nuts or --emulated"),
 ])
-def test_posterior_input_errors_name_the_argument(capsys, one_step_fit, argv, message):
+def test_posterior_input_errors_name_the_argument(capsys, documented_fit, argv, message):
     capsys.readouterr()
     with pytest.raises(SystemExit) as exc:
-        main(["posterior", one_step_fit, *argv])
+        main(["posterior", str(documented_fit[2] / "fit.h5"), *argv])
     assert exc.value.code == 2
     assert message in capsys.readouterr().err
 

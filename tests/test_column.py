@@ -9,6 +9,7 @@ import pytest
 import jaxmpm as jm
 
 
+@pytest.mark.slow  # 11 s; the column's gradients at t = 0 are tested by default
 def test_column_collapses_end_to_end_without_flags():
     """S2 at a coarse dx = 5 mm to t = 0.42 s: no status bits, the deposit is lower and wider
     than the column, symmetric to within one cell, and the flow has come to rest."""

@@ -226,8 +226,9 @@ def banana():
     return objective, _fit_result(objective, [g0[best[0]], g1[best[1]]]), mean, sd, level
 
 
-@pytest.mark.parametrize("whitening, emulator", [("fit", "quadratic"), ("laplace", "quadratic"), ("fit", "corrected"),
-                                                 ("laplace", "corrected")])
+@pytest.mark.parametrize("whitening, emulator", [  # the first by default; the others 8 s each, slow
+    ("fit", "quadratic"), *(pytest.param(*case, marks=pytest.mark.slow) for case in (
+        ("laplace", "quadratic"), ("fit", "corrected"), ("laplace", "corrected")))])
 def test_emulated_posterior_matches_the_quadrature_of_a_curved_target(banana, whitening, emulator):
     """Whitened by a fit's Gauss–Newton covariance or by the Laplace covariance at a point given by
     value (the model's Jacobian there, the prior's curvature): the corrected moments are the
@@ -278,6 +279,7 @@ def test_emulated_posterior_matches_the_quadrature_of_a_curved_target(banana, wh
     assert len(out["check_chi2"]) == 400 and out["noise"] == {"profile": SIGMA}
 
 
+@pytest.mark.slow  # 14 s; the emulated posterior's refusals before any run are tested by default
 def test_a_misplaced_emulator_is_refused(banana):
     """An emulator fitted in a small patch far from the posterior (the Laplace whitening at a point
     on the crescent's far arm, no refinement): NUTS samples the emulator's wrong posterior, the
@@ -410,7 +412,7 @@ def _quadrature_mean(data):
     return np.array([np.sum(p * T0), np.sum(p * T1)])
 
 
-@pytest.mark.parametrize("levels", [1, 2])
+@pytest.mark.parametrize("levels", [1, pytest.param(2, marks=pytest.mark.slow)])  # 2 levels: 33 s, slow
 def test_the_grid_term_of_a_posterior_is_the_shift_of_its_mean_on_coarser_grids(banana, levels, tmp_path):
     """The same posterior on grids 1.5 and 2.25 times coarser: its grid term is the shift of the
     mean, which the quadratures of the three grids' posteriors give exactly; from two grids the

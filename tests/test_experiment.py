@@ -99,6 +99,7 @@ def test_user_experiment_equals_python_set_up(tmp_path):
 _main = main_exit
 
 
+@pytest.mark.slow  # 25 s; an experiment file's objective is built by default (tests/test_tutorial.py)
 def test_user_experiment_runs_and_fits_from_the_file_as_from_python(tmp_path, capsys):
     """The command line on the file against the library on the Python set-up: the same run
     (and its HDF5 records the experiment) and the same fit."""

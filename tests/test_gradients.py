@@ -91,6 +91,8 @@ def test_no_nan_gradient_at_t0():
         assert np.all(np.isfinite(leaf))
 
 
+# 13 s; the kernels' and the return map's gradients against finite differences stay in the default suite
+@pytest.mark.slow
 def test_rollout_gradient_matches_finite_differences():
     """d(final mean position)/dE, dnu, drho through ~60 adaptive steps with walls and friction,
     against central differences with a relative step of 1e-6 (agreement to 1e-5 relative)."""

@@ -51,6 +51,8 @@ def test_profile_likelihood_matches_gauss_newton_on_a_near_linear_twin(twin):
         profile_likelihood(objective, result, "xi")
 
 
+# 37 s; the posterior checks' plumbing is tested by default, this quadrature against Gauss-Newton here
+@pytest.mark.slow
 def test_grid_posterior_agrees_with_gauss_newton(twin):
     _, objective, result = twin
     post = grid_posterior(objective, result, span=4.0, n=7)
@@ -137,6 +139,9 @@ def test_nuts_through_the_twin(twin):
     np.testing.assert_allclose(b["data"], np.asarray(objective.data["h"]), rtol=1e-12)
 
 
+# 57 s on 2 cores; the emulated posterior's algorithm is tested by default on a closed-form crescent
+# (tests/test_emulator.py)
+@pytest.mark.slow
 def test_emulated_posterior_through_the_twin_agrees_with_the_quadrature(twin):
     """The emulated posterior (calibration.inference.emulator) through real runs: 7 to 12 Jacobians and 60
     checked runs give the corrected moments of the grid quadrature on the same target (its 15 × 15

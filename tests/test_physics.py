@@ -118,6 +118,7 @@ def _column_errors(dx, t_end):
     return mean, top_err, compression_err, lateral
 
 
+@pytest.mark.slow  # 7 s: a physics check at scale (the static column against Hencky)
 def test_elastic_column_settles_to_static_hencky_solution():
     """Uniaxial-strain column of height H = 0.5 m, width 0.2 m, ρ = 1000, g = 10, ν = 0.3,
     M = λ + 2G = 5e5 Pa (base strain ≈ −1 %), released stress-free under gravity.

@@ -90,6 +90,7 @@ def test_the_consumers_probe_no_objective():
         assert not probe.findall(source), f"calibration/{name}.py probes an objective: {probe.findall(source)}"
 
 
+@pytest.mark.slow  # 27 s; the z-space Jacobians drive every fit of the default suite
 def test_z_space_evaluation_returns_both_jacobians_from_one_trace(objectives):
     one, _ = objectives
     z = np.asarray(one.bounds.to_unconstrained(np.array([0.3, 0.4])))

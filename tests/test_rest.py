@@ -62,6 +62,7 @@ def test_at_rest_the_remaining_steps_do_nothing():
     assert np.abs(np.asarray(final.x) - np.asarray(moving.x)).max() < cfg.rest_speed * skipped
 
 
+@pytest.mark.slow  # 16 s; the rest check's other properties are tested by default
 def test_gradient_through_a_run_that_rests_matches_finite_differences():
     cfg, s0 = _scene(0.2)
     rollout = jm.make_rollout(cfg, observer=None)

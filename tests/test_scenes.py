@@ -13,6 +13,9 @@ from jaxmpm.observables import deposit_profile, front_position, particle_volumes
 from jaxmpm.scenes import S1_DEPTH, S4_SIDE
 
 
+# 40 s; every 2D scene runs by default through the command line (tests/test_cli.py), built from its file
+# (tests/test_named_scenes.py)
+@pytest.mark.slow
 @pytest.mark.parametrize(
     "build",
     [

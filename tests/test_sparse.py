@@ -43,6 +43,7 @@ def test_sparse_grid_equals_dense_grid(collapse):
             np.testing.assert_allclose(getattr(got, name), getattr(dense, name), rtol=1e-12, atol=1e-12, err_msg=name)
 
 
+@pytest.mark.slow  # 11 s; the sparse grid's slots and flags are tested by default
 def test_sparse_grid_equals_dense_grid_on_s2():
     """S2 (two gates lifted at 2.5 m/s: moving walls, whose contact uses the slots' node
     positions), coarse, over 0.03 s: the same to float64 round-off."""

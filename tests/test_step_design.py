@@ -57,6 +57,7 @@ def test_materialisation_points_are_the_identity(monkeypatch):
     assert np.all(np.isfinite(g1)) and np.abs(g1).max() > 0
 
 
+@pytest.mark.slow  # 16 s; a regression guard of the step against the 0.2.0 release
 def test_the_step_equals_release_0_2_0():
     ref = np.load(REFERENCE)
     scene = _scene()

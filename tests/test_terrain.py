@@ -115,6 +115,7 @@ def test_terrain_result_does_not_depend_on_where_the_vertices_fall():
         np.testing.assert_allclose(other, runs[0], rtol=1e-4, atol=1e-6)
 
 
+@pytest.mark.slow  # 18 s; finite wall-friction tangents are checked by default (tests/test_gradients.py)
 def test_gradient_with_respect_to_terrain_friction_matches_finite_differences():
     """d(mean downslope speed at t = 0.05 s)/dμ_w through the whole sliding run, reverse mode
     against central differences in float64 (the test suite's precision; measured agreement 1e-10
