@@ -24,6 +24,7 @@ from .cli import (
 )
 from .precision import DTYPES, use_dtype
 from .scenes import SCENE_NAMES, is_experiment_file
+from .studies.bench import SCENES
 from .threads import apply_threads
 
 
@@ -287,8 +288,9 @@ def build_parser() -> argparse.ArgumentParser:
                           help="precision of the study's runs (default float32, the run command's default)")
 
     bench = sub.add_parser("bench", help="time the engine and print JSON")
-    bench.add_argument("--scene", choices=("block", "column"), default="block",
-                       help="block: 2D Hencky block, 10k particles; column: S2 collapse, full model")
+    bench.add_argument("--scene", choices=SCENES, default="block",
+                       help="block: 2D Hencky block, 10k particles; column: S2 collapse, full model; s4: the "
+                            "cohesive collapse S4 at dx = 4 mm (beta = 0), full model")
     bench.add_argument("--quick", action="store_true", help="a small, fast case")
     bench.add_argument("--json", action="store_true", help="print one line of JSON")
     bench.add_argument("--dim", type=int, default=2, choices=(2, 3))

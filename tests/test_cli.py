@@ -83,9 +83,13 @@ def test_bench_prints_the_documented_fields():
     assert out.returncode == 0, out.stderr
     result = json.loads(out.stdout)
     for key in ("scene", "dim", "dtype", "n_particles", "n_steps", "compile_s", "run_s",
-                "particle_steps_per_s", "peak_rss_mb", "device"):
+                "particle_steps_per_s", "step_compile_s", "step_run_s", "step_particle_steps_per_s",
+                "run_over_step", "peak_rss_mb", "device", "cores"):
         assert key in result
     assert result["dtype"] == "float32" and result["n_steps"] > 0 and result["status"] == 0
+    # The whole run and the steps alone count the same steps; the command line ran on one core.
+    assert result["run_over_step"] == pytest.approx(result["step_run_s"] / result["run_s"], rel=1e-2)
+    assert result["cores"] == 1
 
 
 @pytest.mark.parametrize("module", ["jaxmpm", "calibration"])

@@ -1,9 +1,15 @@
 """Benchmarks that print JSON: compile time apart from run time, throughput, memory, device.
 
-``python -m jaxmpm bench --json`` times the forward rollout of the default scene (a 2D elastic
-block of 10,000 particles, float32, about 2,000 steps). ``--grad`` measures reverse mode: the
-cost of a gradient as a multiple of the forward run, and the memory XLA plans for it with and
-without the checkpointed blocks. Timings are medians over ``--repeat`` runs.
+``python -m jaxmpm bench --json`` times a forward run of the default scene (a 2D elastic block of
+10,000 particles, float32, about 2,000 steps) twice: as a user's run goes (``simulate`` block by
+block with its observer and rest check, as ``python -m jaxmpm run`` calls it: ``run_s``,
+``particle_steps_per_s``) and as the steps alone (every step in one compiled scan, no observer:
+``step_run_s``, ``step_particle_steps_per_s``), so that the two cannot drift apart unseen
+(``run_over_step``). ``--scene s4`` is the cohesive collapse S4 at dx = 4 mm (β = 0, p_c0 = 500 Pa,
+ξ = 50: 4,489 particles, 6,438 steps). ``--grad`` measures reverse mode: the cost of a gradient as
+a multiple of the forward run, and the memory XLA plans for it with and without the checkpointed
+blocks. Timings are medians over ``--repeat`` runs; ``cores`` is the number of cores the process
+ran on (one unless ``--threads all``: ``jaxmpm.threads``).
 """
 
 from __future__ import annotations
@@ -21,7 +27,8 @@ import jax.numpy as jnp
 
 from ..precision import use_dtype
 from ..rollout import make_rollout
-from ..scenes import S2_HEIGHT, S2_LENGTH, falling_block, gates_collapse
+from ..scenes import S2_HEIGHT, S2_LENGTH, cohesive_collapse, falling_block, gates_collapse
+from ..simulate import simulate
 
 __all__ = ["bench_forward", "bench_gradient", "bench_scene", "device_name", "median_time", "run_bench", "temp_mb"]
 
@@ -30,6 +37,13 @@ def device_name() -> str:
     dev = jax.devices()[0]
     kind = getattr(dev, "device_kind", dev.platform)
     return f"{dev.platform}:{kind} ({os.cpu_count()} cores, {platform.machine()})"
+
+
+def _cores() -> int:
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # pragma: no cover (macOS, Windows)
+        return os.cpu_count() or 1
 
 
 def _peak_rss_mb() -> float:
@@ -52,10 +66,15 @@ def median_time(fn, *args, repeat=20):
     return _timed(fn, *args, repeat=repeat)[0]
 
 
-SCENES = ("block", "column")
+SCENES = ("block", "column", "s4")
 
 
 def bench_scene(scene: str, quick: bool, dim: int, dtype, n_particles=None):
+    if scene == "s4":
+        if dim != 2 or n_particles:
+            raise ValueError("--scene s4 is the 2D S4 collapse at dx = 4 mm (--quick: L/10); it takes no --dim 3 "
+                             "or --particles")
+        return cohesive_collapse(dx=0.0089 if quick else 0.004, pc0=500.0, xi=50.0, beta=0.0, dtype=dtype)
     if scene == "column":
         if dim != 2:
             raise ValueError(f"--scene column is 2D (a quasi-2D channel), got dim={dim}")
@@ -72,9 +91,10 @@ def bench_scene(scene: str, quick: bool, dim: int, dtype, n_particles=None):
 
 def bench_forward(quick=False, dim=2, dtype="float32", repeat=3, n_particles=None, scene="block", steps=None,
                   active_nodes=None) -> dict:
-    """Forward rollout throughput. ``steps`` caps the run at that many steps (a fixed-length
-    scan; the ``BUDGET`` status bit is then expected), so that large cases stay affordable.
-    ``active_nodes`` runs the sparse grid with that many slots instead of the dense grid."""
+    """Forward-run throughput, as a user's run and as the steps alone (module docstring).
+    ``steps`` caps the run at that many steps (the ``BUDGET`` status bit is then expected), so
+    that large cases stay affordable. ``active_nodes`` runs the sparse grid with that many slots
+    instead of the dense grid."""
     config, state, params = bench_scene(scene, quick, dim, dtype, n_particles)
     if active_nodes is not None:
         config = dataclasses.replace(config, active_nodes=active_nodes)
@@ -82,28 +102,34 @@ def bench_forward(quick=False, dim=2, dtype="float32", repeat=3, n_particles=Non
         if not (isinstance(steps, int) and steps >= 1):
             raise ValueError(f"steps must be a positive int, got {steps!r}")
         config = dataclasses.replace(config, max_steps=min(steps, config.max_steps), block_size=None)
-    rollout = jax.jit(make_rollout(config, observer=None))
+    runs = [simulate(config, state, params, throw=False, timed=True) for _ in range(repeat)]
+    run_s = statistics.median(r.run_s for r in runs)
+    rollout = jax.jit(make_rollout(config, observer=None, checkpoint=False))
     start = time.perf_counter()
     compiled = rollout.lower(state, params).compile()
-    compile_s = time.perf_counter() - start
-    run_s, (final, _) = _timed(compiled, state, params, repeat=repeat)
-    steps = int(final.steps)
-    n = state.n_particles
+    step_compile_s = time.perf_counter() - start
+    step_run_s, (final, _) = _timed(compiled, state, params, repeat=repeat)
+    n, steps = state.n_particles, int(runs[0].state.steps)
     return {
-        "scene": "elastic-block" if scene == "block" else "column-S2",
+        "scene": {"block": "elastic-block", "column": "column-S2", "s4": "cohesive-collapse-S4"}[scene],
         "dim": dim,
         "dtype": str(jnp.dtype(state.x.dtype)),
         "n_particles": n,
         "n_steps": steps,
         "grid_nodes": config.grid.n_nodes,
         "active_nodes": config.active_nodes,
-        "compile_s": round(compile_s, 3),
-        "xla_temp_mb": temp_mb(compiled),
+        "compile_s": round(runs[0].compile_s, 3),
         "run_s": round(run_s, 4),
         "particle_steps_per_s": round(n * steps / run_s),
+        "step_compile_s": round(step_compile_s, 3),
+        "xla_temp_mb": temp_mb(compiled),
+        "step_run_s": round(step_run_s, 4),
+        "step_particle_steps_per_s": round(n * int(final.steps) / step_run_s),
+        "run_over_step": round(n * steps / run_s / (n * int(final.steps) / step_run_s), 3),
         "peak_rss_mb": round(_peak_rss_mb(), 1),
         "device": device_name(),
-        "status": int(final.status),
+        "cores": _cores(),
+        "status": runs[0].status,
         "repeat": repeat,
     }
 
@@ -124,7 +150,7 @@ def bench_gradient(quick=False, dim=2, dtype="float32", repeat=3, n_particles=No
         raise ValueError(f"steps must be a positive int, got {steps!r}")
     config, state, params = falling_block(n_particles=n_particles, dim=dim, t_end=10.0, max_steps=steps, dtype=dtype)
     out = {"scene": "elastic-block", "dim": dim, "dtype": str(jnp.dtype(state.x.dtype)),
-           "n_particles": state.n_particles, "n_steps": steps, "device": device_name()}
+           "n_particles": state.n_particles, "n_steps": steps, "device": device_name(), "cores": _cores()}
 
     def loss_fn(checkpoint):
         rollout = make_rollout(config, observer=None, checkpoint=checkpoint)
