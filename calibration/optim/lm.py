@@ -28,7 +28,7 @@ its own jitted loop, so a run compiled apart or spread over worker processes cou
 through a per-step linear surrogate or a callback; it damps with λ·I (no Marquardt scaling, no
 step cap for the sigmoid bounds), accepts a failed run at the start, and has neither the
 statistical stop nor ``max_rejections`` nor a converged/stopped verdict. On five test problems it
-took 1.2–3.7 times the model evaluations of this one to reach the same minimum.
+took 1.2–2.3 times the model evaluations of this one to reach the same minimum.
 
 The statistical stop judges the undamped step's promise, not the damped step's: after rejected
 steps λ is large, the damped step short, and its promise small wherever the minimum is. Judged
