@@ -133,6 +133,8 @@ def test_sweep_points_are_the_grid_or_the_latin_hypercube():
     np.testing.assert_array_equal(thetas, latin_hypercube({"beta": (0.1, 0.3), "mu1": (0.35, 0.45)}, 4, seed=2)[1])
 
 
+# 10 s: the sweep command end to end stays in the default suite (tests/test_calibration_cli.py).
+@pytest.mark.slow
 def test_the_sweep_command_prints_the_library_sweep(capsys, tmp_path):
     """``sweep --over beta=0.1:0.3:2`` prints the losses of the library's sweep of the same
     objective over the same points (a coarse grid, 0.1 s)."""

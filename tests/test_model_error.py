@@ -109,6 +109,9 @@ def test_unmeasured_terms_are_refused_not_taken_as_zero():
         model_error(ToyObjective(status=4), [1.0])
 
 
+# 11 s: three runs and a coarse one of the tiny S4; the terms' arithmetic is checked on a toy objective
+# in the default suite.
+@pytest.mark.slow
 def test_the_terms_of_a_real_run():
     """The tiny S4 collapse (dx = L/6): the final profile's draw and grid terms are measured,
     finite and of the size its particles make (a few per cent of the peak, not zero)."""
