@@ -273,7 +273,9 @@ class GriddedLinear(LinearObjective):
         return GriddedLinear(self.true_y, ratio * self.dx)
 
 
-@pytest.mark.slow  # 19 s; the emulated posterior's grid term is tested by default (tests/test_emulator.py)
+# 19 s; the posterior's grid term is checked in this slow set (tests/test_emulator.py too); its refusals
+# before any run stay in the default suite.
+@pytest.mark.slow
 def test_the_nuts_posterior_carries_its_grid_term():
     """The same chains on a grid 1.5 times coarser: the mean moves by the exact −0.1 dx (here 2 σ)
     within the two chains' Monte Carlo error, the index is 3 |shift| / 0.5, and the interval with
