@@ -33,8 +33,8 @@ from __future__ import annotations
 import os
 import sys
 
-__all__ = ["SINGLE_THREAD_FLAGS", "THREAD_CHOICES", "allowed_cores", "apply_threads", "use_one_thread",
-           "single_threaded"]
+__all__ = ["SINGLE_THREAD_FLAGS", "THREAD_CHOICES", "allowed_cores", "apply_threads", "cores_in_use",
+           "use_one_thread", "single_threaded"]
 
 #: XLA's CPU runtime on one thread, as older JAX read it (module docstring: this JAX ignores them).
 SINGLE_THREAD_FLAGS = "--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1"
@@ -64,6 +64,11 @@ def _affinity() -> tuple[int, ...] | None:
         return tuple(sorted(os.sched_getaffinity(0)))
     except AttributeError:  # pragma: no cover (macOS, Windows)
         return None
+
+
+def cores_in_use() -> int:
+    """How many cores this process runs on now (one once ``use_one_thread`` has pinned it)."""
+    return len(_affinity() or range(os.cpu_count() or 1))
 
 
 #: The affinity mask before ``use_one_thread`` narrowed it (None until then).

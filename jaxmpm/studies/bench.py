@@ -29,6 +29,7 @@ from ..precision import use_dtype
 from ..rollout import make_rollout
 from ..scenes import S2_HEIGHT, S2_LENGTH, cohesive_collapse, falling_block, gates_collapse
 from ..simulate import simulate
+from ..threads import cores_in_use
 
 __all__ = ["bench_forward", "bench_gradient", "bench_scene", "device_name", "median_time", "run_bench", "temp_mb"]
 
@@ -37,13 +38,6 @@ def device_name() -> str:
     dev = jax.devices()[0]
     kind = getattr(dev, "device_kind", dev.platform)
     return f"{dev.platform}:{kind} ({os.cpu_count()} cores, {platform.machine()})"
-
-
-def _cores() -> int:
-    try:
-        return len(os.sched_getaffinity(0))
-    except AttributeError:  # pragma: no cover (macOS, Windows)
-        return os.cpu_count() or 1
 
 
 def _peak_rss_mb() -> float:
@@ -128,7 +122,7 @@ def bench_forward(quick=False, dim=2, dtype="float32", repeat=3, n_particles=Non
         "run_over_step": round(n * steps / run_s / (n * int(final.steps) / step_run_s), 3),
         "peak_rss_mb": round(_peak_rss_mb(), 1),
         "device": device_name(),
-        "cores": _cores(),
+        "cores": cores_in_use(),
         "status": runs[0].status,
         "repeat": repeat,
     }
@@ -150,7 +144,7 @@ def bench_gradient(quick=False, dim=2, dtype="float32", repeat=3, n_particles=No
         raise ValueError(f"steps must be a positive int, got {steps!r}")
     config, state, params = falling_block(n_particles=n_particles, dim=dim, t_end=10.0, max_steps=steps, dtype=dtype)
     out = {"scene": "elastic-block", "dim": dim, "dtype": str(jnp.dtype(state.x.dtype)),
-           "n_particles": state.n_particles, "n_steps": steps, "device": device_name(), "cores": _cores()}
+           "n_particles": state.n_particles, "n_steps": steps, "device": device_name(), "cores": cores_in_use()}
 
     def loss_fn(checkpoint):
         rollout = make_rollout(config, observer=None, checkpoint=checkpoint)
