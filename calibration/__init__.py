@@ -1,20 +1,8 @@
 """calibration: fit the μ(I) rheology's β, μ1, μ2, I0 and ξ to collapse data with jaxmpm.
 
-The package reads from the ground up, one sub-package per role (docs/layout.md):
-
-- ``data``: what was measured (profiles, front histories, scaling laws), read and validated;
-- ``problem``: what a fit solves. A ``Problem`` (the scene's run, what it observes, the keys and
-  their bounds) with ``make_residuals(problem)``, the pure ``residuals(z, data)``; an
-  ``Objective`` is a problem with its data, a ``CompositeObjective`` a concatenation of them;
-- ``batch``: many runs at once (worker processes, vmapped sweeps, Dask);
-- ``inference``: what a point is worth (the verdict, Gauss–Newton intervals with their
-  round-off, sampling and grid terms, profile likelihoods, grid, NUTS and emulated posteriors);
-- ``optim``: the optimisers as ``(init, update)`` pairs, their one loop and history, ``fit``
-  and the global ``search``, and a fit's report;
-- ``design`` (what to measure), ``studies`` (twins, coverage, the runout law, cost), ``plots``
-  and ``cli`` (``python -m calibration``).
-
-This face re-exports what a user's script needs; everything else is reached by its module.
+One sub-package per role, read from the ground up (``data``, ``problem``, ``batch``, ``inference``,
+``optim``, ``design``, ``studies``, ``plots``, ``cli``; docs/layout.md says what each holds). This face
+re-exports what a user's script needs; everything else is reached by its module.
 """
 
 from jaxmpm.datasets import list_datasets

@@ -258,6 +258,14 @@ def test_the_walk_of_beta_from_the_command_line_to_the_return_map():
             path.reverse()
             raise Arrived
 
+    import jax
+
+    from calibration.problem.cache import BATCHES, MODEL_FUNCTIONS
+
+    # The run must be traced here: an earlier test in this process may have compiled the same one.
+    jax.clear_caches()
+    for cache in (MODEL_FUNCTIONS, BATCHES):
+        cache._entries.clear()
     argv = ["fit", "--scene", "cohesive-collapse", "--data", str(S4_DATA), "--fit", "beta", "--init", "beta=0.2",
             "--steps", "1", "--dx", str(TINY_DX), "--grid-check", "0", "--workers", "1", "--no-progress", "--json"]
     sys.setprofile(hook)

@@ -1,29 +1,13 @@
 """Sweeps beyond one machine, through Dask distributed (the optional ``cluster`` extra).
 
-The first level of parallelism stays ``calibration.batch.sweep``: one vmapped (or sharded) chunk of
-members per compiled call. This module adds the second: the chunks are Dask tasks, run by the
-workers of a cluster, and merged into one ``SweepResult``.
-
-- ``cluster="local:N"`` starts a ``distributed.LocalCluster`` of N single-threaded worker
-  processes on this machine (and closes it at the end); ``"tcp://HOST:PORT"`` connects to a
-  running scheduler (started by ``dask scheduler`` / ``dask worker``, or by ``dask-jobqueue``
-  on SLURM or PBS); a ``distributed.Client`` is used as it is.
-- The objective travels as a recipe, ``make_objective``: a picklable callable of no arguments
-  that builds it (a module-level function or a ``functools.partial`` of one). Each worker builds
-  it once per sweep and compiles once per chunk shape; every task has the same number of rows
-  (the last is padded with copies of its first member, dropped on merge).
-- A task that raises, or whose worker dies, is resubmitted up to ``retries`` times and every
-  attempt's error is kept (``ClusterSweepResult.tasks``). On a local cluster the scheduler's own
-  silent retries are switched off (``distributed.scheduler.allowed-failures = 0``) so that a lost
-  worker is seen and reported here; a remote scheduler keeps its own setting, and its retries
-  come on top. A chunk that fails every attempt is not dropped: its members are in ``failed``
-  with the error, loss NaN. Members that ran but failed in the engine (status bits) are in
-  ``failed`` too, with the engine's reasons, as in ``sweep``.
-- ``write_cluster_sweep`` writes one HDF5 file atomically: the sweep's datasets plus ``task``,
-  the task that made each member, and the attribute ``tasks_json`` (worker, attempts, errors).
-
-The numbers equal ``sweep(objective, thetas, mode="vmap", chunk=chunk)``'s: the same compiled
-batch shape on the same backend (tested).
+The chunks of a ``calibration.batch.sweep`` become Dask tasks, run by the workers of a cluster
+(``cluster="local:N"``, a scheduler's ``"tcp://HOST:PORT"`` or a ``distributed.Client``) and
+merged into one ``SweepResult``. The objective travels as a recipe, ``make_objective``: a
+picklable callable of no arguments that each worker calls once per sweep. A task that raises, or
+whose worker dies, is resubmitted up to ``retries`` times, every attempt's error kept; a chunk that
+fails every attempt leaves its members in ``failed``, loss NaN. On a local cluster the scheduler's
+own silent retries are off, so a lost worker is seen here. The numbers equal
+``sweep(objective, thetas, mode="vmap", chunk=chunk)``'s (tested). How to run one: docs/cluster.md.
 """
 
 from __future__ import annotations
@@ -39,10 +23,8 @@ from typing import Any
 
 import numpy as np
 
-from jaxmpm import describe_status
-
 from ..problem.protocol import ResidualModel
-from .sweep import SweepResult, _check_thetas, _jsonable, member_losses, sweep, write_sweep
+from .sweep import SweepResult, _check_thetas, _chunk_rows, _failure_text, _jsonable, member_losses, sweep, write_sweep
 
 __all__ = ["parse_cluster", "ClusterSweepResult", "write_cluster_sweep", "cluster_sweep"]
 
@@ -123,12 +105,8 @@ class ClusterSweepResult:
         for i in self.sweep.failed:
             t = self.tasks[int(self.task[i])]
             s = int(self.sweep.status[i])
-            if t["lost"]:
-                why = f"task {t['index']} failed {t['attempts']} attempts: " + " | ".join(t["errors"])
-            elif s:
-                why = "; ".join(describe_status(s))
-            else:
-                why = "non-finite loss (no status bit set)"
+            why = (f"task {t['index']} failed {t['attempts']} attempts: " + " | ".join(t["errors"]) if t["lost"]
+                   else _failure_text(s))
             out.append({"index": int(i), "params": self.sweep.params(int(i)), "task": t["index"], "status": s,
                         "why": why})
         return out
@@ -222,7 +200,7 @@ def cluster_sweep(make_objective: Callable[[], ResidualModel], thetas, *, cluste
         token = uuid.uuid4().hex
 
         def submit(t, attempt):
-            return client.submit(_run_task, token, make_objective, _task_rows(thetas, starts[t], size, dtype), x64,
+            return client.submit(_run_task, token, make_objective, _chunk_rows(thetas, starts[t], size, dtype), x64,
                                  pure=False, key=f"jaxmpm-sweep-{token[:8]}-task{t}-attempt{attempt}")
 
         tasks = [{"index": t, "members": [s, min(s + size, n_members)], "attempts": 0, "worker": None,
@@ -253,15 +231,6 @@ def _check_cluster_args(make_objective, cluster, retries, chunk) -> tuple[str, A
     return kind, value
 
 
-def _task_rows(thetas: np.ndarray, start: int, size: int, dtype) -> np.ndarray:
-    """The ``size`` members of the task from ``start``, in ``dtype`` (the last task's padded with
-    copies of its first member)."""
-    rows = thetas[start:start + size]
-    if rows.shape[0] < size:  # same shape for every task: one compilation per worker
-        rows = np.concatenate([rows, np.repeat(rows[:1], size - rows.shape[0], axis=0)])
-    return np.asarray(rows, dtype)
-
-
 def _run_tasks(submit: Callable, tasks: list[dict[str, Any]], retries: int, n_members: int,
                progress: bool) -> dict[int, dict]:
     """Every task submitted (``submit(t, attempt)``) and gathered as it completes, a failed one
@@ -271,9 +240,7 @@ def _run_tasks(submit: Callable, tasks: list[dict[str, Any]], retries: int, n_me
     from distributed import as_completed
 
     outputs: dict[int, dict] = {}
-    pending = {}
-    for t in range(len(tasks)):
-        pending[submit(t, 0)] = t
+    pending = {submit(t, 0): t for t in range(len(tasks))}
     bar = _bar(n_members, progress)
     completed = as_completed(list(pending))
     try:
@@ -288,16 +255,14 @@ def _run_tasks(submit: Callable, tasks: list[dict[str, Any]], retries: int, n_me
                     again = submit(t, tasks[t]["attempts"])
                     pending[again] = t
                     completed.add(again)
-                else:
-                    tasks[t]["lost"] = True
-                    if bar is not None:
-                        bar.update(tasks[t]["members"][1] - tasks[t]["members"][0])
-                continue
+                    continue
+                tasks[t]["lost"] = True
+            else:
+                outputs[t] = out
+                tasks[t].update(worker=out["worker"], pid=out["pid"], wall_s=out["wall_s"])
             finally:
                 future.release()
-            outputs[t] = out
-            tasks[t].update(worker=out["worker"], pid=out["pid"], wall_s=out["wall_s"])
-            if bar is not None:
+            if bar is not None:  # the task's members are done, with a result or lost
                 bar.update(tasks[t]["members"][1] - tasks[t]["members"][0])
     finally:
         if bar is not None:
@@ -316,25 +281,17 @@ def _merge(keys, thetas, starts, size, outputs: Mapping[int, dict], n_workers: i
     import jax
 
     n_members = thetas.shape[0]
+    fields = ("residuals", "status", "predictions")
     template = next(iter(outputs.values()), None)
-    m = template["residuals"].shape[1] if template is not None else 0
-    residuals = np.full((n_members, m), np.nan)
-    status = np.zeros(n_members, np.int64)
-    predictions = None
-    if template is not None:
-        predictions = jax.tree.map(
-            lambda a: np.full((n_members,) + a.shape[1:], np.nan if np.issubdtype(a.dtype, np.floating) else 0,
-                              a.dtype), template["predictions"])
-    for t, start in enumerate(starts):
-        stop = min(start + size, n_members)
-        out = outputs.get(t)
-        if out is None:
-            continue
-        n = stop - start
-        residuals[start:stop] = out["residuals"][:n]
-        status[start:stop] = out["status"][:n]
-        predictions = jax.tree.map(lambda full, part, a=start, b=stop, k=n: _put(full, part[:k], a, b),
-                                   predictions, out["predictions"])
+    if template is None:  # every task lost
+        residuals, status, predictions = np.full((n_members, 0), np.nan), np.zeros(n_members, np.int64), None
+    else:
+        lost = jax.tree.map(_missing, {k: template[k] for k in fields})
+        chunks = [{k: outputs[t][k] for k in fields} if t in outputs else lost for t in range(len(starts))]
+        # Every task has ``size`` rows, the last one's padding at the end: concatenated, then cut.
+        merged = jax.tree.map(lambda *a: np.concatenate(a)[:n_members], *chunks)
+        residuals, status, predictions = (merged[k] for k in fields)
+    residuals, status = np.asarray(residuals, float), status.astype(np.int64)
     loss, failed = member_losses(residuals, status)
     compile_s = max((o["compile_s"] for o in outputs.values()), default=0.0)
     return SweepResult(keys=keys, thetas=thetas, loss=loss, status=status, residuals=residuals,
@@ -342,6 +299,6 @@ def _merge(keys, thetas, starts, size, outputs: Mapping[int, dict], n_workers: i
                        n_devices=n_workers, wall_s=time.perf_counter() - clock, compile_s=compile_s)
 
 
-def _put(full: np.ndarray, part: np.ndarray, start: int, stop: int) -> np.ndarray:
-    full[start:stop] = part
-    return full
+def _missing(a: np.ndarray) -> np.ndarray:
+    """A lost task's stand-in for ``a``: NaN (0 for integers) of its shape and dtype."""
+    return np.full(a.shape, np.nan if np.issubdtype(a.dtype, np.floating) else 0, a.dtype)

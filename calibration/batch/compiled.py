@@ -62,7 +62,6 @@ def compile_batch(model, mode: str, chunk: int, n_keys: int, dtype, devices) -> 
     content = content_key(model)
     key = None if content is None else ("sweep", content, mode, int(chunk), int(n_keys), np.dtype(dtype).str,
                                         tuple(d.id for d in devices))
-    built = []
 
     def build():
         from jax.sharding import Mesh, NamedSharding, PartitionSpec
@@ -79,8 +78,8 @@ def compile_batch(model, mode: str, chunk: int, n_keys: int, dtype, devices) -> 
             arg = jax.ShapeDtypeStruct((chunk, n_keys), dtype, sharding=sharding)
             fn = jax.jit(jax.vmap(member), in_shardings=sharding, out_shardings=sharding)
             compiled = fn.lower(arg).compile()
-        built.append(time.perf_counter() - clock)
-        return CompiledBatch(mode, chunk, compiled, sharding, 0.0)
+        return CompiledBatch(mode, chunk, compiled, sharding, time.perf_counter() - clock)
 
+    cached = key is not None and key in BATCHES
     batch = BATCHES.get(key, build)
-    return batch._replace(compile_s=built[0]) if built else batch
+    return batch._replace(compile_s=0.0) if cached else batch

@@ -1,26 +1,9 @@
 """Parameter sweeps: a loss and its residuals on a grid or a Latin hypercube of parameter values.
 
-``sweep(objective, thetas)`` evaluates ``objective.residual_fn`` for every row of ``thetas`` (one
-rollout per row) in one of three ways that give the same numbers:
-
-- ``"loop"``: one jitted member at a time (the reference);
-- ``"vmap"``: ``jit(vmap(...))`` over chunks of members;
-- ``"shard"``: the same, with each chunk's member axis split over all local devices
-  (``jax.sharding.Mesh`` / ``NamedSharding``); ``"auto"`` shards when there is more than one.
-
-Chunks keep memory bounded: every chunk has one shape (the last is padded by repeating one of
-its own members, and the padding is dropped), so one compilation serves the whole sweep. Without
-an explicit ``chunk`` the size comes from XLA's memory analysis of a compiled trial chunk.
-
-A member that fails (status bits set by the engine, see ``jaxmpm.describe_status``, or a
-non-finite loss) is reported in ``SweepResult.failed`` / ``.failures`` with loss NaN; the other
-members are independent of it by construction (a vmapped or sharded batch shares no reductions).
-
-Numbers: members are bitwise identical whatever the chunk and mode *as long as the compiled
-per-device batch shape is the same*; across shapes (loop vs vmap, chunk 2 vs chunk 5) XLA's CPU
-backend may sum in another order (e.g. its YNNPACK reduce fusion for batched reductions), which
-moves the last bits (measured on a small collapse: residuals 4e-16 apart, losses 2e-15 relative). The loss is summed
-on the host (numpy, row by row) so that it adds no such difference of its own.
+``sweep(objective, thetas)`` evaluates ``objective.residual_fn`` at every row of ``thetas``: one
+member at a time ("loop"), in vmapped chunks of one shape ("vmap"), or in chunks sharded over the
+local devices ("shard"). A failed member gets loss NaN without touching the others. How far the
+modes and chunk sizes agree: docs/fitting.md, "Sweeps".
 """
 
 from __future__ import annotations
@@ -62,9 +45,7 @@ def _check_ranges(ranges: Mapping[str, Sequence[float]], keys) -> tuple[tuple[st
         keys = tuple(ranges)
     else:
         keys = tuple(keys)
-        unknown = [k for k in keys if k not in ranges]
-        missing = [k for k in ranges if k not in keys]
-        if unknown or missing or len(set(keys)) != len(keys):
+        if set(keys) != set(ranges) or len(keys) != len(ranges):
             raise ValueError(f"keys must order the keys of ranges {list(ranges)} once each, got {list(keys)}")
     lo, hi = [], []
     for k in keys:
@@ -79,9 +60,9 @@ def _check_ranges(ranges: Mapping[str, Sequence[float]], keys) -> tuple[tuple[st
     return keys, np.asarray(lo), np.asarray(hi)
 
 
-def _check_count(name: str, value) -> int:
-    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)) or value < 1:
-        raise ValueError(f"{name} must be an integer >= 1, got {value!r}")
+def _check_count(name: str, value, least: int = 1) -> int:
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)) or value < least:
+        raise ValueError(f"{name} must be an integer >= {least}, got {value!r}")
     return int(value)
 
 
@@ -94,9 +75,7 @@ def grid_points(ranges: Mapping[str, tuple[float, float]], num: int | Mapping[st
     """
     keys, lo, hi = _check_ranges(ranges, keys)
     if isinstance(num, Mapping):
-        missing = [k for k in keys if k not in num]
-        extra = [k for k in num if k not in keys]
-        if missing or extra:
+        if set(num) != set(keys):
             raise ValueError(f"num must give a count for each of {list(keys)}, got {dict(num)}")
         counts = [_check_count(f"num[{k!r}]", num[k]) for k in keys]
     else:
@@ -113,9 +92,7 @@ def latin_hypercube(ranges: Mapping[str, tuple[float, float]], n: int, seed: int
     independent random permutations. Returns ``(keys, thetas)`` with ``thetas`` (n, n_keys)."""
     keys, lo, hi = _check_ranges(ranges, keys)
     n = _check_count("n", n)
-    if isinstance(seed, (bool, np.bool_)) or not isinstance(seed, (int, np.integer)) or seed < 0:
-        raise ValueError(f"seed must be an integer >= 0, got {seed!r}")
-    rng = np.random.default_rng(int(seed))
+    rng = np.random.default_rng(_check_count("seed", seed, least=0))
     u = np.stack([(rng.permutation(n) + rng.random(n)) / n for _ in keys], axis=-1)
     return keys, lo + (hi - lo) * u
 
@@ -132,6 +109,11 @@ def sweep_points(over: Mapping[str, tuple[float, float, int]], lhs: int | None =
 
 
 # ---- the result -------------------------------------------------------------------------------
+def _failure_text(status: int) -> str:
+    """Why a member failed, in words: the engine's status reasons, or a non-finite loss."""
+    return "; ".join(describe_status(status)) if status else "non-finite loss (no status bit set)"
+
+
 def _jsonable(value):
     if isinstance(value, dict):
         return {str(k): _jsonable(v) for k, v in value.items()}
@@ -191,8 +173,7 @@ class SweepResult:
         out = []
         for i in self.failed:
             s = int(self.status[i])
-            text = "; ".join(describe_status(s)) if s else "non-finite loss (no status bit set)"
-            out.append({"index": int(i), "params": self.params(int(i)), "status": s, "status_text": text})
+            out.append({"index": int(i), "params": self.params(int(i)), "status": s, "status_text": _failure_text(s)})
         return out
 
     def best(self) -> dict[str, Any]:
@@ -308,10 +289,8 @@ def sweep(objective: ResidualModel, thetas, *, chunk: int | None = None, mode: s
 
     Parameters
     ----------
-    objective: a ``calibration.Objective`` (any ``calibration.problem.protocol.ResidualModel``: ``keys``,
-        ``dtype``, a pure ``residual_fn(theta) -> (r, prediction)``, prediction a dict that may
-        hold ``status``, ``check_thetas``, ``fingerprint`` and ``describe``). Its compiled
-        chunks are kept by content (``calibration.batch.compiled.compile_batch``).
+    objective: any ``calibration.problem.protocol.ResidualModel`` (a ``calibration.Objective``);
+        its compiled chunks are kept by content (``calibration.batch.compiled.compile_batch``).
     thetas: (B, n) physical values ordered as ``objective.keys``, or the ``(keys, thetas)`` pair
         that ``grid_points`` / ``latin_hypercube`` return (its columns are reordered to match).
     chunk: members per compiled call ("vmap", "shard"); in "shard" mode a multiple of the device
@@ -321,11 +300,9 @@ def sweep(objective: ResidualModel, thetas, *, chunk: int | None = None, mode: s
         share the host's RAM, so it is split among them). Default: a quarter of the device's
         memory limit, or of physical RAM.
     progress: print progress lines to stderr (one per chunk, at most about twenty).
-    validate: check every member before anything compiles with ``objective.check_thetas`` (the
-        engine's parameter rules, as ``python -m jaxmpm run --set`` applies them) and raise
-        ``ValueError`` naming the invalid members: a member with β < 0 or μ2 < μ1 would run,
-        get a finite loss and could be reported as the best. ``False`` runs them anyway (their
-        failures, if any, are reported as usual).
+    validate: check every member with ``objective.check_thetas`` before anything compiles and
+        raise ``ValueError`` naming the invalid ones (a member with μ2 < μ1 would run, get a finite
+        loss and could be reported as the best); ``False`` runs them anyway.
     """
     keys, thetas, chunk = _check_sweep(objective, thetas, mode, chunk, memory_budget_bytes, validate)
     devices = jax.devices()
@@ -394,40 +371,40 @@ def _chunk_evaluator(objective, mode, chunk, memory_budget_bytes, n_members, dty
 
 def _run_chunks(evaluator, thetas, mode, dtype, progress, clock):
     """Every member through ``evaluator`` chunk by chunk, dispatching the next chunk before fetching
-    the last (jax dispatch is async); the last chunk is padded with a copy of one of its members,
-    dropped here. Returns (residuals, status, predictions) with a leading member axis."""
+    the last (jax dispatch is async); the last chunk's padding (``_chunk_rows``) is dropped here.
+    Returns (residuals, status, predictions) with a leading member axis."""
     size, n_members = evaluator.chunk, thetas.shape[0]
     starts = list(range(0, n_members, size))
 
     def dispatch(start):
-        rows = thetas[start:start + size]
-        if rows.shape[0] < size:  # pad with a copy of a real member, dropped below
-            rows = np.concatenate([rows, np.repeat(rows[:1], size - rows.shape[0], axis=0)])
-        return evaluator(np.asarray(rows, dtype))
+        return evaluator(_chunk_rows(thetas, start, size, dtype))
 
     outputs, pending = [], dispatch(starts[0])
     for k, start in enumerate(starts):
         out = pending
         if k + 1 < len(starts):
             pending = dispatch(starts[k + 1])
-        out = jax.tree.map(np.asarray, out)
-        n_real = min(size, n_members - start)
-        if mode == "loop":
-            out = jax.tree.map(lambda a: a[None], out)
-        outputs.append(jax.tree.map(lambda a, n=n_real: a[:n], out))
+        outputs.append(jax.tree.map(lambda a: np.asarray(a)[None] if mode == "loop" else np.asarray(a), out))
         if progress and (k + 1 == len(starts) or k % max(1, len(starts) // 20) == 0):
-            done = start + n_real
-            print(f"sweep ({mode}, chunk {size}): {done}/{n_members} members, "
+            print(f"sweep ({mode}, chunk {size}): {min(start + size, n_members)}/{n_members} members, "
                   f"{time.perf_counter() - clock:.1f} s", file=sys.stderr, flush=True)
-    return jax.tree.map(lambda *a: np.concatenate(a), *outputs)
+    return jax.tree.map(lambda *a: np.concatenate(a)[:n_members], *outputs)  # the padding dropped
+
+
+def _chunk_rows(thetas: np.ndarray, start: int, size: int, dtype) -> np.ndarray:
+    """The ``size`` members from ``start``, in ``dtype``; a last, short chunk is padded with copies
+    of its first member, so that every chunk has one shape (one compilation)."""
+    rows = thetas[start:start + size]
+    if rows.shape[0] < size:
+        rows = np.concatenate([rows, np.repeat(rows[:1], size - rows.shape[0], axis=0)])
+    return np.asarray(rows, dtype)
 
 
 def write_sweep(path, result: SweepResult, objective: ResidualModel | None = None, extra=None) -> None:
     """Write a sweep to the HDF5 file ``path``: attributes ``keys_json`` (and ``objective_json``,
     the objective's ``describe()``), datasets ``thetas``, ``loss``, ``status`` and ``residuals``;
     ``extra(f)``, if given, adds to the open file (the cluster sweep's task of each member).
-    Written to a temporary file in the same folder and renamed (the atomic write of the fit
-    histories), so a reader never sees a partial file and a failure leaves the old one."""
+    Written atomically (``jaxmpm.io.atomic_h5``): a reader never sees a partial file."""
     import json
     import pathlib
 

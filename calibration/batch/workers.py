@@ -1,24 +1,10 @@
 """Every core busy: independent model runs on one single-threaded XLA process per core.
 
-A calibration's cost is model runs that do not depend on each other: the columns of a
-forward-mode Jacobian, the starts of a search, the perturbed runs of the round-off check, the
-members of a sampling-seed ensemble. On the CPU one XLA process using two threads does about a
-third of the work of two single-threaded processes side by side (docs/performance.md): the
-step is a chain of small kernels, and XLA splits each one between its threads. ``Workers(n)``
-holds ``n`` such processes (the standard library's ``ProcessPoolExecutor``, started with
-``spawn``; each pins itself to one core where the system allows and runs XLA on one thread)
-and maps picklable tasks over them.
-
-A task is a module-level function and its arguments: the static description of a problem's run
-(``jaxmpm.Config``, ``calibration.problem.observe.Observations``, the fitted keys) and numpy arrays
-(``calibration.problem.residuals.column_pass`` and ``run_pass``, made by each part of an objective;
-this module splits an objective's work into them and joins the results). Each worker builds and
-compiles the model functions of a description once and keeps them
-(``calibration.problem.residuals.model_functions``' cache), so a fit compiles once per worker. A task
-computes exactly what the same function computes in the calling process: the results do not
-depend on the number of workers or on which worker ran which task (tested bit for bit).
-
-``Workers(1)`` runs the tasks in the calling process, one after the other: the same numbers.
+``Workers(n)`` holds ``n`` processes (``spawn``ed, each pinned to one core where the system
+allows and running XLA on one thread; docs/performance.md says why) and maps picklable tasks over
+them: a module-level function and its arguments, such as ``calibration.problem.residuals.column_pass``.
+Each worker compiles a problem's functions once; the results do not depend on the number of
+workers (tested bit for bit). ``Workers(1)`` runs the tasks in the calling process.
 """
 
 from __future__ import annotations
@@ -133,8 +119,7 @@ def using(workers):
 
 
 def run_tasks(workers, tasks) -> list:
-    """The results of ``(fn, args)`` tasks, computed by ``workers`` (``calibration.batch.workers``)."""
-
+    """The results of ``(fn, args)`` tasks, computed by ``workers``."""
     return as_workers(workers).map(_call, tasks)
 
 
@@ -142,17 +127,10 @@ def _call(fn, args):
     return fn(*args)
 
 
-def column_tasks(objective, z) -> list[tuple]:
-    """The forward-mode passes of dr/dz at z (the objective's bounds), one per key of each of its
-    parts (``objective.parts``, each making its own tasks), as tasks ``(fn, args)``;
-    ``combine_columns`` assembles them."""
-    return [part.column_task(np.asarray(z)[..., index], tangent, bounds) for part, index, bounds in objective.parts
-            for tangent in np.eye(len(part.keys), dtype=part.dtype)]
-
-
 def combine_columns(objective, results) -> tuple:
-    """(r, dr/dz, dr/dθ, prediction) of ``objective`` from the results of ``column_tasks`` (each
-    part's residuals and prediction from its first pass: every pass computes the same primal)."""
+    """(r, dr/dz, dr/dθ, prediction) of ``objective`` from the results of its column tasks, one per
+    key of each part in turn (each part's residuals and prediction from its first pass: every pass
+    computes the same primal)."""
     outs, start = [], 0
     for part, _, _ in objective.parts:
         cols = results[start:start + len(part.keys)]
@@ -162,37 +140,26 @@ def combine_columns(objective, results) -> tuple:
     return objective.join(outs)
 
 
-def residual_tasks(objective, thetas, seeds=None) -> list[tuple]:
-    """Runs at the rows of ``thetas`` (each part with its scene's particles, or drawn with the
-    matching entry of ``seeds``) as tasks, part after part: (r, prediction) each."""
-    thetas = np.atleast_2d(np.asarray(thetas, float))
-    return [part.residual_task(theta, None if seeds is None else seeds[i]) for part, index, _ in objective.parts
-            for i, theta in enumerate(thetas[:, index])]
-
-
-def combine_residuals(objective, results, rows: int) -> list[tuple]:
-    """Per row, the (r, prediction) of ``objective`` from the results of ``residual_tasks``."""
-    parts = range(len(objective.parts))
-    return [objective.join([results[j * rows + i] for j in parts]) for i in range(rows)]
-
-
 def jacobians_z(objective, Z, workers) -> tuple:
     """(r (k, m), dr/dz (k, m, n), dr/dθ (k, m, n), predictions stacked over k) at the rows of
-    ``Z`` (k, n): every forward-mode pass of every row, spread over ``workers``."""
+    ``Z`` (k, n) and the objective's bounds: every forward-mode pass of every row (one per key of
+    each of the objective's parts, made by the part), spread over ``workers``."""
     Z = np.atleast_2d(np.asarray(Z))
-    per_row = [column_tasks(objective, z) for z in Z]
-    results = run_tasks(workers, [t for tasks in per_row for t in tasks])
-    rows, start = [], 0
-    for tasks in per_row:
-        rows.append(combine_columns(objective, results[start:start + len(tasks)]))
-        start += len(tasks)
+    tasks = [part.column_task(z[..., index], tangent, bounds) for z in Z for part, index, bounds in objective.parts
+             for tangent in np.eye(len(part.keys), dtype=part.dtype)]
+    n = len(tasks) // len(Z)  # every row: the same passes
+    results = run_tasks(workers, tasks)
+    rows = [combine_columns(objective, results[i * n:(i + 1) * n]) for i in range(len(Z))]
     r, Jz, J, preds = zip(*rows)
     return np.stack(r), np.stack(Jz), np.stack(J), jax.tree.map(lambda *a: np.stack(a), *preds)
 
 
 def residuals_at(objective, thetas, workers, seeds=None) -> list[tuple]:
     """[(r, prediction)] at the rows of ``thetas`` (with the particles drawn with ``seeds``,
-    row by row, if given), the runs spread over ``workers``."""
+    row by row, if given), the runs spread over ``workers``: each part's runs, part after part."""
     thetas = np.atleast_2d(np.asarray(thetas, float))
-    results = run_tasks(workers, residual_tasks(objective, thetas, seeds))
-    return combine_residuals(objective, results, thetas.shape[0])
+    tasks = [part.residual_task(theta, None if seeds is None else seeds[i]) for part, index, _ in objective.parts
+             for i, theta in enumerate(thetas[:, index])]
+    results = run_tasks(workers, tasks)
+    rows = thetas.shape[0]
+    return [objective.join([results[j * rows + i] for j in range(len(objective.parts))]) for i in range(rows)]

@@ -14,10 +14,10 @@ import pathlib
 import sys
 
 from jaxmpm import Experiment
-from jaxmpm.cli import print_json
+from jaxmpm.cli import parse_set, print_json
 from jaxmpm.experiment import FrontMeasurement, ProfileMeasurement
 from jaxmpm.precision import use_dtype
-from jaxmpm.scenes import experiments_dtype
+from jaxmpm.scenes import SCENE_NAMES, experiments_dtype, is_experiment_file
 
 from ..batch.workers import available_cores
 from ..inference.options import JudgeOptions
@@ -45,8 +45,6 @@ def parse_keys(text: str, option: str = "--fit") -> tuple[str, ...]:
 
 def parse_pairs(items, option: str) -> dict[str, float]:
     """``KEY=VALUE`` items as {key: value}; a malformed or repeated key is an error naming ``option``."""
-    from jaxmpm.cli import parse_set
-
     out = {}
     for item in items:
         try:
@@ -127,8 +125,6 @@ def parse_variants(items) -> dict[str, dict[str, float]]:
 
 def design_scene(text: str) -> str:
     """The argument type of ``design --scene``: a collapse scene's name or an experiment file."""
-    from jaxmpm.scenes import SCENE_NAMES, is_experiment_file
-
     collapses = [n for n in SCENE_NAMES if n != "elastic-block"]
     if is_experiment_file(text) or text in collapses:
         return text
@@ -242,7 +238,7 @@ def start_count(args, init=None) -> int:
     return args.starts
 
 
-def fit_meta(args, setup: FitSetup) -> dict:
+def fit_meta(setup: FitSetup) -> dict:
     """What a fit's file records of the command: its line and the setup its objective was built
     from (``FitSetup.to_json``: ``python -m calibration posterior`` builds it again)."""
     return {"command": "python -m calibration " + " ".join(sys.argv[1:]), "setup": setup.to_json()}

@@ -7,6 +7,8 @@ import importlib.util
 import math
 import pathlib
 
+from jaxmpm.cli import check_output_dir, check_output_file, check_scene_args
+
 from .args import data_options, fit_options, parse_keys, parse_over, parse_pairs, posterior_options, start_count
 
 __all__ = ["check_args", "check_options", "check_command", "check_outputs"]
@@ -36,8 +38,6 @@ def check_args(args) -> None:
 
 def check_options(args) -> None:
     """Checks the library would make later, or with its own argument names."""
-    from jaxmpm.cli import check_scene_args
-
     if hasattr(args, "sampling"):  # the scene options of add_scene_arguments
         check_scene_args(args)
     if getattr(args, "front_correlation_time", None) is not None and not args.front:
@@ -61,9 +61,9 @@ def check_options(args) -> None:
             shared = parse_keys(args.shared, "--shared")
             if len(args.experiments) < 2:
                 raise ValueError("--shared needs two experiment files or more (the keys they share)")
-            if args.fit and sorted(set(shared) - set(parse_keys(args.fit))):
-                raise ValueError(f"--shared {','.join(sorted(set(shared) - set(parse_keys(args.fit))))}: not among "
-                                 f"the fitted keys (--fit {args.fit})")
+            stray = sorted(set(shared) - set(parse_keys(args.fit))) if args.fit else []
+            if stray:
+                raise ValueError(f"--shared {','.join(stray)}: not among the fitted keys (--fit {args.fit})")
         starts = start_count(args)  # --starts against the options that need a single start
         if args.coarse is not None:
             if not (math.isfinite(args.coarse) and args.coarse > 1):
@@ -76,9 +76,7 @@ def check_options(args) -> None:
 
 
 def check_command(args) -> None:
-    """Each command's own checks: ``sweep``'s --over items, a figure only of one or two keys on
-    a grid, and --cluster's options; ``twin``'s scene options (the S4 scene's own); ``coverage``'s
-    noise and seeds; ``design``'s figure of two keys."""
+    """Each command's own checks (``posterior``, ``sweep``, ``twin``, ``coverage`` and ``design``)."""
     command = getattr(args, "command", None)
     if command == "posterior":
         _check_posterior(args)
@@ -134,8 +132,6 @@ def check_outputs(args) -> None:
     """Every output path is checked before the data are read or anything compiles: a file for
     --out (which must exist for --resume, and must not, unless --overwrite, otherwise), a folder
     for --plot. Nothing is created here."""
-    from jaxmpm.cli import check_output_dir, check_output_file
-
     out = getattr(args, "out", None)
     resume, overwrite = getattr(args, "resume", False), getattr(args, "overwrite", False)
     if out:

@@ -1,26 +1,6 @@
-"""The commands of ``python -m calibration``: each parses its flags into the library's objects
-(``calibration.cli.args``), makes its library call and prints the result.
-
-    python -m calibration fit --scene cohesive-collapse --data deposit.csv --fit beta,mu1 --out fit.h5 --json
-    python -m calibration posterior fit.h5 --profiles 9 --nuts 200 --plot figs --json
-    python -m calibration sweep --scene cohesive-collapse --data deposit.csv --over beta=0.05:0.5:8 \
-        --over mu1=0.3:0.5:8 --plot figs
-    python -m calibration twin --quick --noise 0.02 --json
-
-Without --init, ``fit`` is a global search: Levenberg–Marquardt from --starts K (default 8)
-space-filling starts in one vmapped batch (``calibration.optim.search``); its JSON lists every
-distinct minimum, the start the best came from, and the verdict
-(``calibration.inference.verdict.assess_fit``): a point that is not a verified minimum, sits at a
-bound or leaves a misfit well above the noise is "not a fit of the data" and gets no interval.
-With --init (or --resume, --method adam, --jacobian fd) one start runs. ``--out`` keeps the fit
-in a file (its history, its setup and its end point); ``posterior`` reads that file, builds the
-objective again and runs the checks beyond Gauss–Newton around its point.
-
-Invalid input exits with status 2 and a message naming the argument and what was wrong, before
-anything compiles: options, data (against the scene too), every swept member, and every output
-path (--out, --plot). An existing --out is never replaced without --overwrite; --resume
-continues only a history made for the same problem. --json output is valid JSON: a non-finite
-number is printed as null and its path listed under "nonfinite".
+"""The commands of ``python -m calibration`` (docs/cli.md): each parses its flags into the library's
+objects (``calibration.cli.args``), refuses bad input before anything compiles (``calibration.cli.checks``),
+makes its library call and prints the result.
 """
 
 from __future__ import annotations
@@ -28,13 +8,13 @@ from __future__ import annotations
 import json
 import pathlib
 
-from jaxmpm.cli import print_json
+from jaxmpm.cli import print_json, scene_dtype, scene_from_args
 from jaxmpm.precision import use_dtype
 from jaxmpm.scenes.collapse import S4_SIDE
 from jaxmpm.threads import apply_threads
 
 from ..batch.workers import Workers
-from ..plots.fits import fit_figures, law_figures, sweep_figures, twin_landscape_figure
+from ..plots.fits import fit_figures, law_figures, plot_coverage, plot_design, sweep_figures, twin_landscape_figure
 from ..plots.posteriors import likelihood_figures
 from .args import (
     coarse_setup,
@@ -62,6 +42,15 @@ from .parser import build_parser
 __all__ = ["main"]
 
 
+def _print_with_figures(out: dict, args, figures=None) -> int:
+    """Print ``out`` with the paths ``figures()`` draws under --plot, if asked for (a failure is
+    kept under "output_errors" and the JSON still prints); ``finish``'s exit status."""
+    errors: dict[str, str] = {}
+    if args.plot and figures is not None:
+        out["figures"] = guard(errors, "--plot", figures)
+    return finish(out, args, errors)
+
+
 def _fit(args) -> int:
     from ..optim.report import fit_report
     from ..optim.search import fit_from_starts
@@ -78,12 +67,9 @@ def _fit(args) -> int:
         result, found = fit_from_starts(objective, init, starts=starts, options=options, judge=judge, coarse=coarse,
                                         refine=args.refine, seed=args.search_seed, out=args.out, resume=args.resume,
                                         overwrite=args.overwrite, progress=not args.no_progress,
-                                        meta=fit_meta(args, setup), workers=workers)
+                                        meta=fit_meta(setup), workers=workers)
     out = {**fit_report(objective, result, found), **fit_fields(args, setup, init, found)}
-    errors: dict[str, str] = {}
-    if args.plot:
-        out["figures"] = guard(errors, "--plot", lambda: fit_figures(args.plot, objective, result))
-    return finish(out, args, errors)
+    return _print_with_figures(out, args, lambda: fit_figures(args.plot, objective, result))
 
 
 def _posterior(args) -> int:
@@ -112,11 +98,8 @@ def _posterior(args) -> int:
         checks = posterior_checks(objective, record, options, noise=args.noise, workers=workers,
                                   progress=not args.json)
     out = {"fit": str(args.fit_file), "keys": list(record.keys), "params": record.theta, **checks.report}
-    errors: dict[str, str] = {}
-    if args.plot and checks.profiles:
-        out["figures"] = guard(errors, "--plot", lambda: likelihood_figures(args.plot, checks.profiles,
-                                                                             posterior=checks.posterior))
-    return finish(out, args, errors)
+    figures = lambda: likelihood_figures(args.plot, checks.profiles, posterior=checks.posterior)  # noqa: E731
+    return _print_with_figures(out, args, figures if checks.profiles else None)
 
 
 def _sweep(args) -> int:
@@ -146,9 +129,7 @@ def _sweep(args) -> int:
     if args.plot:
         out["figures"] = guard(errors, "--plot", lambda: sweep_figures(args.plot, result, keys))
     code = finish(out, args, errors)
-    # A task that failed every attempt left members without a result: the sweep did not run
-    # in full (its members are in "failed" with the errors), so it does not exit 0.
-    return 1 if lost else code
+    return 1 if lost else code  # a task lost after every attempt: the sweep did not run in full
 
 
 def _twin(args) -> int:
@@ -180,19 +161,11 @@ def _coverage(args) -> int:
     result = coverage(args.seeds, noise=args.noise, keys=parse_keys(args.fit), quick=args.quick,
                       progress=not args.no_progress, dx=args.dx, values=parse_pairs(args.set, "--set"),
                       steps=args.steps)
-    out = result.to_json()
-    errors: dict[str, str] = {}
-    if args.plot:
-        from ..plots.fits import plot_coverage
-
-        out["figures"] = guard(errors, "--plot", lambda: [str(plot_coverage(
-            result, pathlib.Path(args.plot) / "coverage.png"))])
-    return finish(out, args, errors)
+    return _print_with_figures(result.to_json(), args,
+                               lambda: [str(plot_coverage(result, pathlib.Path(args.plot) / "coverage.png"))])
 
 
 def _design(args) -> int:
-    from jaxmpm.cli import scene_dtype, scene_from_args
-
     from ..design.design import design
 
     use_dtype(scene_dtype(args))
@@ -206,8 +179,6 @@ def _design(args) -> int:
     out = result.to_json()
     errors: dict[str, str] = {}
     if args.plot:
-        from ..plots.fits import plot_design
-
         out["figure"] = guard(errors, "--plot", lambda: str(plot_design(result, args.plot)))
     if not args.json:
         print("\n".join(result.lines()))
@@ -224,11 +195,7 @@ def _law(args) -> int:
                             values=parse_pairs(args.set, "--set"), steps=args.steps, out=args.out,
                             overwrite=args.overwrite, progress=not args.no_progress, jacobian=args.jacobian,
                             fd_step=args.fd_step)
-    out = result.to_json()
-    errors: dict[str, str] = {}
-    if args.plot:
-        out["figures"] = guard(errors, "--plot", lambda: law_figures(args.plot, result, law))
-    return finish(out, args, errors)
+    return _print_with_figures(result.to_json(), args, lambda: law_figures(args.plot, result, law))
 
 
 def _bench(args) -> int:
@@ -236,7 +203,7 @@ def _bench(args) -> int:
 
     use_dtype(args.dtype)
     kw = {"dx": S4_SIDE / 8, "t_end": 0.2} if args.quick else {"dx": args.dx}
-    values = {k: float(v) for k, v in parse_pairs(args.set, "--set").items()}
+    values = parse_pairs(args.set, "--set")
     result = bench(parse_keys(args.fit), repeat=args.repeat, dtype=args.dtype, values=values, **kw)
     return 1 if print_json(result.to_json(), args.json) else 0
 

@@ -5,8 +5,9 @@ from __future__ import annotations
 
 import argparse
 
-from jaxmpm.cli import add_threads_argument
+from jaxmpm.cli import add_scene_arguments, add_threads_argument
 from jaxmpm.precision import DTYPES
+from jaxmpm.scenes import SCENE_NAMES
 from jaxmpm.scenes.collapse import S4_SIDE
 
 from ..batch.sweep import MODES as SWEEP_MODES
@@ -20,9 +21,6 @@ __all__ = ["build_parser"]
 
 
 def _common(p, data: bool = True) -> None:
-    from jaxmpm.cli import add_scene_arguments
-    from jaxmpm.scenes import SCENE_NAMES
-
     if data:
         p.add_argument("experiments", nargs="*", metavar="EXPERIMENT.toml",
                        help="experiment files (docs/experiments.md): the set-up, its measurements and what to fit; "
@@ -247,8 +245,6 @@ def _add_coverage(sub) -> None:
 
 
 def _add_design(sub) -> None:
-    from jaxmpm.scenes import SCENE_NAMES
-
     de = sub.add_parser("design", help="which measurements constrain which keys: expected 95 %% half-widths of "
                                        "candidate observation sets before the experiment")
     de.add_argument("--scene", required=True, type=design_scene, metavar="SCENE|EXPERIMENT.toml",

@@ -1,59 +1,6 @@
-"""Loading the data that a calibration compares against: deposit profiles, front histories,
-scaling laws, and the files shipped in ``experiments_data/``.
-
-Formats
--------
-**Project CSV** (the format of ``jaxmpm.tables``: what ``python -m jaxmpm run ... --profile-csv``,
-``Profile.to_csv`` and ``FrontHistory.to_csv`` write)::
-
-    # experiment: cohesive-collapse (synthetic, jaxmpm 0.1.0)
-    # time_s: 0.5
-    # units: m
-    # source: python -m jaxmpm run cohesive-collapse --set beta=0.25 ...
-    # parameters: {"beta": 0.25, ...}
-    x_m,h_m
-    -6.955788e-03,3.189269e-04
-    ...
-
-Comment lines ``# key: value`` form the header; a value is JSON-decoded where it parses as JSON
-and kept as a string otherwise. A comment line indented by two or more blanks after the ``#``
-right below a key line continues that key's value (joined with a blank), so a long citation may
-span lines. Keys with a meaning here: ``experiment`` (str), ``time_s`` (s, the time the profile
-was taken; ``None`` when absent, or when it is words starting with "final", such as ``final
-deposit (the flow has stopped)``: the text is kept in ``meta["time_s_text"]``), ``units``
-(``m``, ``cm`` or ``mm``), ``source`` (str: a citation or the command that made the file) and ``synthetic`` (bool; when
-absent a profile is synthetic if the word "synthetic" is in ``experiment``). Every other key goes
-to ``meta``. The column header is ``x_m,h_m``; ``x_cm,h_cm`` and ``x_mm,h_mm`` are converted to
-metres, and ``x,h`` takes its units from the ``units`` key or the ``units=`` argument.
-A front history has columns ``t_s,xf_m`` (or ``xf_cm``, ``xf_mm``); a scaling law has columns
-``a,dL_over_L0[,Hf_over_L0]`` and a ``secondary`` key.
-
-**WebPlotDigitizer export**: two numeric columns with no header, or with a first row ``X,Y``
-(any case); or WPD's multi-dataset layout, a first row of dataset names (``Dataset 1,,Dataset
-2,``), a second row ``X,Y,X,Y`` and then rows in which a shorter dataset's cells are empty. The
-first dataset is taken unless ``dataset=`` names another. Such a file carries no units: pass
-``units='m'|'cm'|'mm'`` (and ``experiment=``, ``time_s=`` for the metadata it lacks).
-
-Either kind may use ``,``, ``;`` or tab as delimiter (or blanks, when a row has none of those),
-Windows or Unix line endings and a UTF-8 byte-order mark. In ``;``- or tab-delimited files a
-decimal comma (``1,5``) is read as a decimal point.
-
-Validation
-----------
-Every error is a ``ValueError`` that names the file and, where it concerns one row, its 1-based
-line number: a non-numeric or non-finite cell, a wrong number of columns, x (or t) not strictly
-increasing (``sort=True`` sorts points in WebPlotDigitizer click order, and refuses duplicate
-x), a negative height, fewer than 3 points, unknown or missing units. Nothing is silently
-changed: ``clip_noise=True`` sets heights in [-1e-3 max h, 0) to zero (digitisation noise) and
-lists their lines in ``meta["clipped_noise_lines"]``.
-
-Shipped data
-------------
-``list_datasets()`` reads ``experiments_data/manifest.json``; ``dataset_path(name)`` finds a
-file from its manifest name or its path inside ``experiments_data/``. The folder is where the
-environment variable ``JAXMPM_EXPERIMENTS_DATA`` points if it is set, else the one next to the
-``jaxmpm`` package (a source checkout or an editable install), else the installed package
-``jaxmpm.experiments_data`` (``pip install .`` installs the folder under that name).
+"""Loading the data that a calibration compares against: deposit profiles, front histories and
+scaling laws, from the project's CSV or WebPlotDigitizer exports. The formats, and what is
+refused (every error names the file and, for a row, its line), are in docs/data_files.md.
 """
 
 from __future__ import annotations
@@ -93,6 +40,22 @@ __all__ = [
 ]
 
 
+def _set_series(data, along: str, value: str) -> None:
+    """Check a data set's two columns (``along`` strictly increasing, ``value`` as long, at least
+    ``_MIN_POINTS`` points, both finite and 1-D) and store them as read-only float64 arrays, with
+    a copy of its ``meta``."""
+    owner = type(data).__name__
+    a, v = _frozen_array(along, getattr(data, along), owner), _frozen_array(value, getattr(data, value), owner)
+    if a.shape != v.shape:
+        raise ValueError(f"{owner}: {along} and {value} must have equal length, got {a.size} and {v.size}")
+    if a.size < _MIN_POINTS:
+        raise ValueError(f"{owner}: at least {_MIN_POINTS} points are needed, got {a.size}")
+    if np.any(np.diff(a) <= 0):
+        raise ValueError(f"{owner}: {along} must be strictly increasing")
+    for name, array in ((along, a), (value, v), ("meta", dict(data.meta))):
+        object.__setattr__(data, name, array)
+
+
 @dataclasses.dataclass(frozen=True, eq=False)
 class Profile:
     """A deposit (or flow) height profile h(x) in metres, with where it came from.
@@ -112,21 +75,11 @@ class Profile:
     path: str | None = None
 
     def __post_init__(self):
-        x = _frozen_array("x", self.x, "Profile")
-        h = _frozen_array("h", self.h, "Profile")
-        if x.shape != h.shape:
-            raise ValueError(f"Profile: x and h must have equal length, got {x.size} and {h.size}")
-        if x.size < _MIN_POINTS:
-            raise ValueError(f"Profile: at least {_MIN_POINTS} points are needed, got {x.size}")
-        if np.any(np.diff(x) <= 0):
-            raise ValueError("Profile: x must be strictly increasing")
-        if np.any(h < 0):
+        _set_series(self, "x", "h")
+        if np.any(self.h < 0):
             raise ValueError("Profile: h must be >= 0")
         if self.time_s is not None and not math.isfinite(self.time_s):
             raise ValueError(f"Profile: time_s must be finite or None, got {self.time_s!r}")
-        object.__setattr__(self, "x", x)
-        object.__setattr__(self, "h", h)
-        object.__setattr__(self, "meta", dict(self.meta))
 
     @property
     def n(self) -> int:
@@ -150,7 +103,7 @@ def load_profile(
     sort: bool = False,
     clip_noise: bool = False,
 ) -> Profile:
-    """Read a deposit profile: the project CSV or a WebPlotDigitizer export (module docstring).
+    """Read a deposit profile: the project CSV or a WebPlotDigitizer export (docs/data_files.md).
 
     ``units`` (``'m'``, ``'cm'``, ``'mm'``) is required when the file does not declare them and must
     agree with the file when it does; ``experiment`` and ``time_s`` supply what the file lacks (and
@@ -231,17 +184,7 @@ class FrontHistory:
     path: str | None = None
 
     def __post_init__(self):
-        t = _frozen_array("t", self.t, "FrontHistory")
-        xf = _frozen_array("x_front", self.x_front, "FrontHistory")
-        if t.shape != xf.shape:
-            raise ValueError(f"FrontHistory: t and x_front must have equal length, got {t.size} and {xf.size}")
-        if t.size < _MIN_POINTS:
-            raise ValueError(f"FrontHistory: at least {_MIN_POINTS} points are needed, got {t.size}")
-        if np.any(np.diff(t) <= 0):
-            raise ValueError("FrontHistory: t must be strictly increasing")
-        object.__setattr__(self, "t", t)
-        object.__setattr__(self, "x_front", xf)
-        object.__setattr__(self, "meta", dict(self.meta))
+        _set_series(self, "t", "x_front")
 
     @property
     def n(self) -> int:

@@ -1,33 +1,13 @@
 """What to measure before measuring it: the expected intervals of candidate experiments.
 
-A fit's Gauss–Newton covariance needs only the Jacobian of the observations at the parameters
-and the noise, not the data themselves. ``design`` therefore runs each candidate *experiment*
-(the scene, and any ``variants`` of it: the same material at another height, slope or gate speed)
-once at θ with every observation it could give recorded:
-
-- ``final``: the deposit profile at the end (a photograph of the deposit);
-- ``profiles``: the profile at ``times`` during the flow (a calibrated side view through a wall);
-- ``front``: the front's position at ``front_times`` (a video from above or from the side);
-- ``top``: the height of the column's top, near the back wall, at ``front_times`` (a video of the back).
-
-One forward-mode Jacobian per experiment then gives the Fisher information of every *set* of
-these observations by choosing its rows, so a dozen candidate sets cost one Jacobian per
-experiment. Each set gets its expected 95 % half-width per key, 1.96 sqrt(diag Cov), Cov the
-covariance of the fit the library would make from those data (the sandwich of
-``uncertainty.gauss_newton_uncertainty``: the fit weighs each block as a whole, which is not
-1/σ² per row when blocks differ in length), with the noise a user expects (relative, as the
-fit's: a fraction of the profile's peak, of the column's length for the front, of the top's
-height), optionally plus the particle draw's share (``sampling_seeds`` other draws, as
-``uncertainty.sampling_scatter``) and the grid's (``grid_ratio``, as
-``uncertainty.grid_shift``), both read off the same runs by row selection.
-
-The cost to the experimenter is counted per experiment: 1 for running it and photographing the
-deposit, 2 more if anything time-resolved is filmed (profiles, front and top come from the same
-video), 1 more for each experiment beyond the first (a second set-up). The recommendation is the
-cheapest set whose half-widths are all within ``tolerance`` of |θ| (ties: the narrowest).
-
-The expected half-widths are linear-Gaussian: they hold where the misfit is close to quadratic
-over the interval (docs/grid_convergence.md and the validation in docs/what_collapses_tell.md).
+``design`` runs each candidate experiment (the scene and its ``variants``) once at θ with every
+observation of ``KINDS`` recorded, takes one forward-mode Jacobian of it, and gives every *set* of
+observations, by choosing its rows, the expected 95 % half-widths of the fit the library would
+make from such data (the sandwich covariance of ``gauss_newton_uncertainty``), optionally with the
+particle draw's and the grid's shares. The sets are ranked by what they cost the experimenter and
+the cheapest that constrains every key within ``tolerance`` of |θ| is recommended. The half-widths
+are linear-Gaussian: they hold where the misfit is close to quadratic over the interval. The
+method, its costs and its validation: docs/what_collapses_tell.md.
 """
 
 from __future__ import annotations
@@ -51,7 +31,9 @@ from ..problem.targets import FrontTarget, ProfileTarget
 __all__ = ["KINDS", "Experiment", "DesignResult", "expected_halfwidths", "design"]
 
 
-#: The observations an experiment can give, in the order they are listed.
+#: The observations an experiment can give: the deposit profile at the end (a photograph), the
+#: profiles at ``times`` during the flow (a side view), the front's position and the height of the
+#: column's top near the back wall at ``front_times`` (a video).
 KINDS = ("final", "profiles", "front", "top")
 
 
@@ -188,11 +170,14 @@ def _experiment(label, scene, keys, theta, xs, times, front_times, top_x, noise,
     J = np.asarray(J, float) / scale[:, None]
     names = list(objective.blocks)
     n_prof = len(profile_times)
-    rows = {"final": np.arange(objective.blocks[names[n_prof - 1]].start, objective.blocks[names[n_prof - 1]].stop),
-            "profiles": np.concatenate([np.arange(objective.blocks[b].start, objective.blocks[b].stop)
-                                        for b in names[:n_prof]]),
+
+    def block_rows(name):
+        return np.arange(objective.blocks[name].start, objective.blocks[name].stop)
+
+    rows = {"final": block_rows(names[n_prof - 1]),
+            "profiles": np.concatenate([block_rows(b) for b in names[:n_prof]]),
             "top": np.array([objective.blocks[b].start for b in names[n_prof:n_prof + len(front_times)]]),
-            "front": np.arange(objective.blocks["front"].start, objective.blocks["front"].stop)}
+            "front": block_rows("front")}
     sigma = np.empty(np.size(objective.row_scale))
     sigma[rows["profiles"]] = noise["profile"]
     sigma[rows["top"]] = noise["top"]
@@ -212,13 +197,13 @@ def _experiment(label, scene, keys, theta, xs, times, front_times, top_x, noise,
 
 
 def _cost(parts) -> float:
+    """1 per experiment for running it and photographing the deposit, 2 more if anything of it is
+    filmed (``VIDEO``), 1 more for each experiment beyond the first (a second set-up)."""
     by_experiment: dict[str, set] = {}
     for label, kind in parts:
         by_experiment.setdefault(label, set()).add(kind)
-    cost = 0.0
-    for i, kinds in enumerate(by_experiment.values()):
-        cost += 1.0 + (2.0 if kinds & set(VIDEO) else 0.0) + (1.0 if i > 0 else 0.0)
-    return cost
+    return sum(1.0 + (2.0 if kinds & set(VIDEO) else 0.0) + (1.0 if i > 0 else 0.0)
+               for i, kinds in enumerate(by_experiment.values()))
 
 
 def expected_halfwidths(experiments: Sequence[Experiment], parts) -> tuple[np.ndarray, ...]:
@@ -298,7 +283,8 @@ def design(scene, keys: Sequence[str], theta: Mapping[str, float] | None = None,
     """Expected 95 % half-widths of ``keys`` at ``theta`` (default: the scene's values) for
     candidate sets of observations (see the module docstring).
 
-    ``noise``: relative noise by kind ("profile", "front", "top"), or one number for all.
+    ``noise``: relative noise by kind, as the fit's ("profile": of the profile's peak, "front": of
+    the column's length, "top": of the top's height), or one number for all.
     ``times``: the profile times during the flow (default t_end × (0.1, 0.2, 0.4)); the final
     profile is always recorded. ``front_times``: the front's and the top's times (default 20 over
     (0, t_end]). ``variants``: {label: changes to the scene's builder} (``Scene.variant``), the

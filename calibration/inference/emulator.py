@@ -1,43 +1,11 @@
 """A posterior for many keys at a few dozen runs: NUTS on a quadratic emulator of the residuals,
 corrected to the model's own posterior by Pareto-smoothed importance sampling.
 
-NUTS on the model itself (``calibration.inference.mcmc.nuts_posterior``) spends one Jacobian per leapfrog
-step: a converged five-key posterior is tens of thousands of runs, weeks on two cores. Here the
-model runs only where they inform:
-
-1. **Design.** Residuals and their Jacobians at 3k + 1 points in whitened logit coordinates w
-   (z = m + L w, ``calibration.inference.mcmc``'s, from a fit's Gauss–Newton covariance or the Laplace
-   covariance at a given point): the centre, ±``axial`` along every axis (a star) and k points
-   drawn from N(0, ``axial``²/4 I).
-2. **Emulator.** Every residual is fitted as a quadratic in w, r(w) ≈ a + b·w + ½ wᵀ C w, by
-   least squares on the values and the Jacobians together (each point gives 1 + k equations per
-   residual, the quadratic has (k + 1)(k + 2)/2 coefficients), each point weighed by a Gaussian
-   kernel exp(−|w|²/(2 ``reach``²)) of its distance from the posterior of the round. χ² = Σ W r²
-   from it is a quartic: the curvature of a valley that Gauss–Newton misses is kept. By default
-   (``emulator="corrected"``, ``CorrectedQuadratic``) a Gaussian process through the quadratic's
-   errors in the design points' values and slopes is added, so that the emulator follows the
-   model wherever it was run: on five keys the quadratic alone bent one flat valley into two wells.
-3. **Rounds: the design follows the posterior.** NUTS on the emulator (``EmulatedObjective``:
-   the objective with its residuals replaced; cheap, so the chains can be long); then the
-   coordinates are re-centred and re-whitened on the draws' mean and covariance, the model's
-   Jacobians are taken at the new centre and star (2k + 1 points), and the emulator is fitted
-   again in them, ``rounds`` times. A quadratic fitted over a wide first design is smoothly
-   wrong in a posterior much narrower than that design (measured on five keys: 99 % of the
-   emulator's χ² error at the checked draws was a quadratic in θ); the kernel and the new star
-   make it right where the mass is. Each round records the previous emulator's χ² error at the
-   new points and how far the posterior's mean moved (in its own standard deviations).
-4. **Correction.** The model's χ² at ``checks`` draws taken at random from the final chains;
-   importance weights exp(−(χ²_model − χ²_emulator)/2), Pareto-smoothed (``psis``, Vehtari et al.
-   2024). The reported mean, sd and 95 % interval are the weighted ones: the model's posterior, not
-   the emulator's. Pareto k̂ < 0.7 says the weights are reliable; above it the emulator is too far
-   from the model where the posterior lies, and the answer is refused (``converged`` False), as
-   it is when the weights leave fewer than 100 effective draws.
-
-The chains' R̂ and ESS are those of the emulator's posterior (which NUTS samples exactly); the
-correction's accuracy is the importance sample's (its ESS, ``ess_importance``). A draw where the
-model's run fails has weight zero, and is counted. Like every importance sampler, the correction
-cannot see mass the emulator puts nowhere near: the rounds place the design where the emulated
-posterior is, and k̂ catches an emulator that is wrong where its draws are.
+The model's Jacobians at a design around a centre (3k + 1 points in whitened logit coordinates
+w) fit the emulator (``surrogates``), each point weighed by exp(−|w|²/(2 ``reach``²)); NUTS
+samples it; the design is re-centred on the draws until it settles; the model's χ² at
+``checks`` draws gives the importance weights. The steps, why each is there and when to believe
+the answer (Pareto k̂ < 0.7): docs/posteriors.md.
 """
 
 from __future__ import annotations
@@ -57,9 +25,9 @@ import numpy as np
 from ..batch.workers import jacobians_z, residuals_at
 from ..problem.bounds import dphysical_dz, physical, unconstrained
 from ..problem.protocol import ObjectiveLike
-from .gridpost import weighted_quantile
+from .gridpost import weighted_summary
 from .gridterm import GridTerm, coarse_objectives, with_grid_term
-from .likelihood import checked_point, noise_levels
+from .likelihood import checked_point, noise_levels, row_weights
 from .surrogates import EMULATORS, EmulatedObjective, psis
 
 __all__ = ["EmulatedPosterior", "log_uniform", "scale_keys", "prior_sensitivity", "emulated_posterior"]
@@ -75,20 +43,17 @@ PARETO_K_MAX = 0.7
 
 @dataclasses.dataclass(frozen=True)
 class EmulatedPosterior(GridTerm):
-    """The model's posterior from NUTS on an emulator and the importance correction (module
-    docstring). ``mean``, ``sd``, ``ci95`` by key: the corrected ones; ``emulated``: the
-    emulator's NUTS posterior (its chains, R̂ and ESS); ``pareto_k`` and ``ess_importance``: the
-    correction's reliability; ``checks``: (θ (n, k), raw log importance weight (n,)) at the
-    checked draws (−∞: the model's run failed there, ``failed_checks`` of them); ``rounds``: per
-    emulator its design points, the kernel's weight (``kernel_points``, points' worth near the
-    posterior), the fit's ``emulator_rms``, how far its posterior's mean lay from the centre of
-    its design (``posterior_mean_from_centre_sd``, in the posterior's sd: the rounds stop below
-    ``settle``) and, from the second on, the previous emulator's χ² error at the new star
-    (``new_points_dchi2``); ``settled``: whether the last did; ``jacobians`` and ``runs``: the
-    model's Jacobians (design) and forward runs (checks) spent; ``check_chi2``: the model's χ² at
-    the checked draws (∞ where the run failed) with ``noise``, the likelihood's σ by block
-    (``credible_level`` places a point inside or outside the joint credible regions); ``prior``: the
-    normal priors of keys measured elsewhere it was sampled with (None: flat in the bounds)."""
+    """The model's posterior from NUTS on an emulator and the importance correction.
+    ``mean``, ``sd``, ``ci95`` by key: the corrected ones; ``emulated``: the emulator's NUTS
+    posterior; ``pareto_k`` and ``ess_importance``: the correction's reliability; ``checks``:
+    (θ (n, k), raw log importance weight (n,)) at the checked draws (−∞: the model's run failed
+    there, ``failed_checks`` of them); ``rounds``: per emulator its design points, the kernel's
+    weight (``kernel_points``), the fit's ``emulator_rms``, how far its posterior's mean lay from
+    its design's centre (``posterior_mean_from_centre_sd``, in the posterior's sd) and, from the
+    second on, the previous emulator's χ² error at the new star (``new_points_dchi2``);
+    ``jacobians`` and ``runs``: the model's Jacobians and forward runs spent; ``check_chi2``: the
+    model's χ² at the checked draws (∞: failed) on ``noise``, the likelihood's σ by block;
+    ``prior``: the normal priors it was sampled with (None: flat in the bounds)."""
 
     keys: tuple[str, ...]
     mean: dict[str, float]
@@ -136,10 +101,8 @@ class EmulatedPosterior(GridTerm):
         """The posterior's mass where the model's χ² is below ``chi2`` (the importance-weighted
         checks): the smallest joint credible region, ordered by the likelihood, that holds a point
         of χ² ``chi2``; a point is inside the joint 95 % region when the level is at most 0.95.
-        Under the flat prior in θ the posterior's density is exp(−χ²/2), so this is its
-        highest-density region, and it does not change with the keys' parametrisation. Unlike
-        the marginal intervals, it is not moved by how much room a ridge the data leave open has
-        in the box. ``log_prior``: the same region's mass under another prior (``reweighted``)."""
+        Unlike a marginal interval, it is not moved by the room a ridge has in the box.
+        ``log_prior``: the same region's mass under another prior (``reweighted``)."""
         if self.check_chi2 is None:
             raise ValueError("this posterior carries no χ² at its checks (made before they were kept)")
         if not (isinstance(chi2, (int, float, np.floating)) and not math.isnan(chi2)):
@@ -149,26 +112,17 @@ class EmulatedPosterior(GridTerm):
 
     def reweighted(self, log_prior) -> dict[str, Any]:
         """The posterior under another prior, from the same checks: ``log_prior`` maps θ (n, k),
-        keys in order, to the new prior's log density (n,) up to a constant (``log_uniform`` for
-        scale keys); the checks' weights are multiplied by it and Pareto-smoothed again. The
-        mean, sd and 95 % interval by key, with ``pareto_k`` and ``ess_importance`` (a prior
-        that puts its mass where the checks are few leaves few effective draws: then sample it
-        instead). Beside the flat prior's, this says how much of an interval is the prior's: a
-        key the data fix does not move."""
+        keys in order, to the new prior's log density (n,) up to a constant (``log_uniform``).
+        The mean, sd and 95 % interval by key, with ``pareto_k`` and ``ess_importance`` (a prior
+        whose mass lies where the checks are few leaves few effective draws: then sample it)."""
         w, k_hat = self._weights(log_prior)
-        thetas = self.checks[0]
-        mean = {k: float(np.sum(w * thetas[:, j])) for j, k in enumerate(self.keys)}
-        return {"mean": mean,
-                "sd": {k: float(np.sqrt(np.sum(w * (thetas[:, j] - mean[k]) ** 2))) for j, k in enumerate(self.keys)},
-                "ci95": {k: [float(v) for v in weighted_quantile(thetas[:, j], w, [0.025, 0.975])]
-                         for j, k in enumerate(self.keys)},
+        mean, sd, ci = weighted_summary(self.keys, self.checks[0], w)
+        return {"mean": mean, "sd": sd, "ci95": {k: list(v) for k, v in ci.items()},
                 "pareto_k": k_hat if math.isfinite(k_hat) else None, "ess_importance": float(1.0 / np.sum(w**2))}
 
     def chi2_at(self, objective: ObjectiveLike, theta) -> float:
         """The model's χ² at ``theta`` (a mapping by key, or values in key order) with this
         posterior's noise: one forward run. ∞ where the run fails."""
-        from .nuts import row_weights
-
         if self.noise is None:
             raise ValueError("this posterior carries no noise level (made before it was kept)")
         if tuple(objective.keys) != self.keys:
@@ -263,32 +217,23 @@ def emulated_posterior(objective: ObjectiveLike, centre, *, noise: Mapping[str, 
                        workers=None, progress: bool = False) -> EmulatedPosterior:
     """The posterior of ``objective``'s keys from NUTS on a quadratic emulator whose design follows
     the posterior (at most ``rounds`` re-centrings, until the emulated posterior's mean lies within
-    ``settle`` of its standard deviations of the centre it was designed around), corrected with
-    the model's runs at ``checks`` draws (module docstring).
+    ``settle`` of its standard deviations of the design's centre), corrected with the model's runs
+    at ``checks`` draws (docs/posteriors.md).
 
-    ``centre``: a fit (its point, Gauss–Newton covariance and noise whiten the first round, as
-    ``nuts_posterior``'s), or parameter values by key: then the first whitening is the Laplace
-    covariance at that point (the Jacobian there, with the flat prior's curvature in the logit
-    coordinates, so that keys the data leave free span their box), and ``noise`` is needed. A
-    point need not be a fit: where the fit's verdict refuses one (a valley, a key at its bound),
-    the posterior is still defined, and this samples it. ``noise``: σ by block (default: the fit's).
-    ``axial``: the star's reach and ``reach`` the kernel's, in whitened units; ``chains``,
-    ``warmup``, ``draws``, ``target_accept``: the emulator's NUTS (cheap: long chains cost seconds;
-    a higher acceptance target takes smaller steps where its chains diverge); ``workers``:
-    processes for the model's runs (``calibration.batch.workers``). The model is run 3k + 1 + (2k + 1) per
-    re-centring with its Jacobian and ``checks`` times without. ``emulator``: "corrected" (a
-    quadratic per residual and a Gaussian process through the design points' values and slopes,
-    ``CorrectedQuadratic``; the default) or "quadratic" (the quadratic alone, ``QuadraticEmulator``).
-    ``prior``: {key: (mean, sd)}, a normal in θ for keys measured by another experiment
-    (``calibration.inference.nuts.gaussian_prior``), beside the flat prior in the bounds; the emulator's
-    chains and the model's posterior both carry it, so the importance weights do not.
-
-    ``grid_ratio``, ``grid_levels``: the grid term (``calibration.inference.gridterm``; None: not measured):
-    the same posterior, with the same noise, prior and settings, on the objective rebuilt at
-    ``grid_ratio`` × dx (and its square with ``grid_levels=2``), centred on this one's mean; the
-    shift of its mean gives ``grid`` and ``ci95_with_grid``. About ``grid_ratio``⁻³ of the cost per
-    level in 2D."""
-    from .nuts import gaussian_prior, row_weights
+    ``centre``: a fit (its point, Gauss–Newton covariance and noise whiten the first round), or
+    parameter values by key, which need ``noise``: then the first whitening is the Laplace
+    covariance there, with the flat prior's curvature in the logit coordinates so that keys the
+    data leave free span their box (a point the verdict refuses still has a posterior).
+    ``noise``: σ by block (default: the fit's). ``axial``: the star's reach and ``reach`` the
+    kernel's, in whitened units; ``chains``, ``warmup``, ``draws``, ``target_accept``: the
+    emulator's NUTS; ``workers``: processes for the model's runs (``calibration.batch.workers``),
+    3k + 1 + (2k + 1) per re-centring with the Jacobian and ``checks`` without. ``emulator``:
+    "corrected" (``CorrectedQuadratic``) or "quadratic" (``QuadraticEmulator``). ``prior``:
+    {key: (mean, sd)}, a normal in θ for keys measured elsewhere (``nuts.gaussian_prior``), which
+    the emulator's chains and the model's posterior both carry. ``grid_ratio``, ``grid_levels``:
+    the grid term (``calibration.inference.gridterm``; None: not measured), the same posterior on
+    the objective rebuilt at ``grid_ratio`` × dx (and its square with ``grid_levels=2``)."""
+    from .nuts import gaussian_prior
 
     keys = tuple(objective.keys)
     _check_settings(rounds=rounds, checks=checks, chains=chains, warmup=warmup, draws=draws, axial=axial,
@@ -477,10 +422,7 @@ def _correction(objective, target, flat, weights, rng, *, checks, workers, say):
     log_w[~np.isfinite(chi2_model)] = -np.inf
     smoothed, k_hat = psis(log_w)
     w = np.exp(smoothed)
-    mean = {key: float(np.sum(w * thetas[:, j])) for j, key in enumerate(keys)}
-    sd = {key: float(np.sqrt(np.sum(w * (thetas[:, j] - mean[key]) ** 2))) for j, key in enumerate(keys)}
-    ci = {key: tuple(float(v) for v in weighted_quantile(thetas[:, j], w, [0.025, 0.975]))
-          for j, key in enumerate(keys)}
+    mean, sd, ci = weighted_summary(keys, thetas, w)
     return thetas, log_w, chi2_model, (mean, sd, ci, k_hat, float(1.0 / np.sum(w**2)))
 
 

@@ -1,68 +1,10 @@
 """Uncertainty and identifiability from the residual Jacobian at the optimum (Gauss–Newton).
 
-For residual blocks e_b (relative misfits of the profile, of the front, ...) with independent
-noise of standard deviation σ_b, fitted by minimising Σ_b w_b Σ_i e_bi² (each block's weight
-w_b shared by its m_b rows: w_b = weight / m_b), the linearised covariance of the fitted
-parameters is the sandwich
-
-    Cov = A⁻¹ B A⁻¹,  A = Σ_b w_b J_bᵀ J_b,  B = Σ_b w_b² σ_b² J_bᵀ J_b,
-
-with J_b = de_b/dθ. When w_b ∝ 1/σ_b² (one block; or blocks of equal length and noise) it is the
-familiar (Σ_b J_bᵀ J_b / σ_b²)⁻¹; otherwise it is wider, and the fit is not the most efficient
-use of the data (a block of few rows weighs as much as a long one: design.py's validation).
-σ_b is either given (a known measurement precision) or estimated from the
-residuals at the optimum, s_b² = Σ e_b² / (m_b − n m_b / m) (each block takes its share of the
-n degrees of freedom). Standard errors are sqrt(diag Cov), 95 % intervals θ ± 1.96 se (a normal
-quantile: the data have many more points than parameters), and correlations Cov_ij / (se_i se_j).
-
-**Identifiability** must not depend on how small the residual happens to be (a noise-free
-twin has s_b ≈ 0 and would call everything constrained). So a parameter is called
-*constrained* when, at a reference noise of ``reference_noise`` (1 % of the block's scale, or
-the estimated noise if larger), its 95 % half-width is at most ``threshold`` (10 %) of its
-scale (|θ|, or 1 % of its bound range when θ ≈ 0). The eigenvectors of the Fisher matrix in
-these relative units name the combinations the data fix well and the one they fix worst.
-
-**Not every minimum is a fit of the data** (``assess_fit``). A Gauss–Newton interval describes
-the curvature at a minimum of the data's misfit; it is withheld (``stderr``, ``ci95`` and ``cov``
-are None, the statement says why) when the point
-
-- is not a verified minimum: the optimiser stopped on its rejection or step budget without
-  meeting one of its convergence tests (``calibration.optim.lm``);
-- sits at a bound (``Bounds.near_bound``): the minimum lies outside the physical range, or the
-  reparametrisation's flat tail stopped the optimiser;
-- leaves a misfit well above the noise: in some block, χ² = Σ e²/σ² exceeds the 99.9 % quantile
-  of χ² with that block's degrees of freedom. σ is the given noise, or is estimated from the
-  residuals' *structure*, not from their size: ``structural_noise`` takes the robust spread of
-  second differences of neighbouring residuals (the high-frequency part; a smooth misfit has
-  almost none). An estimated σ is itself uncertain, so the limit is then raised by three of the
-  estimate's standard deviations (``~4/sqrt(c)`` relative in σ², c second differences).
-
-**The run's own scatter** (``model_scatter``). A float32 rollout of thousands of steps is not a
-smooth function of θ below some level: a change of θ by a few ulps changes the rounding of every
-step, and the deposit moves by what that rounding adds up to (coherently, not as white noise).
-``model_scatter`` measures it where a fit ends: the residuals at ``samples`` points θ + d_k with
-|d_k| ≈ 1e-6 of θ (far below any interval, far above θ's own rounding), with the exact linear
-change J d_k taken off, scatter only by the run's round-off; their spread gives the noise σ_num of
-each block and, mapped through the least-squares solution, the covariance of θ that the round-off
-alone produces. It enters twice: a stopped optimiser whose remaining Gauss–Newton step is within
-that scatter (Mahalanobis distance below the 99 % quantile of Hotelling's T² for a covariance
-estimated from that many runs, ``roundoff_limit``; χ²_n as the runs grow) has converged as far as the
-run can tell, and is a verified minimum; and the reported covariance is the statistical one plus
-the numerical one (``stderr`` the total; ``stderr_statistical`` and ``stderr_numerical`` apart).
-For noise-free twins made by the same program that numerical part is what is left, and it is
-what keeps their interval from claiming a precision the run does not have.
-
-**The grid** (``grid_shift``). A fitted value is a property of the material only if it does not
-move with the grid. ``grid_shift`` rebuilds the objective at a coarser spacing ρ·dx
-(``Objective.at_dx``; ρ = 1.5 by default), averages its residuals at the fitted θ over a few
-particle draws, and takes one Gauss–Newton step with the fit's Jacobian: the shift
-δ = −J⁺ r̄_coarse is, to first order, where a fit at ρ·dx would land (at the fit's minimum J⁺r = 0,
-so the fine run's own draw does not enter; that is the sampling term). The grid term is Roache's
-grid convergence index for two grids, a 95 % half-width of 3 |δ| / (ρ^p − 1) with the order p = 1
-that the S4 deposit shows (docs/grid_convergence.md); its covariance, rank one along δ, is added to the
-interval. Two grids cannot show the order, and the S4 study shows fits at two neighbouring grids
-that agree while both are off: the term is a floor on the grid's share, not a bound. Where it
-exceeds the data's interval for some key, the statement says the fit is not converged in the grid.
+The covariance is the sandwich A⁻¹ B A⁻¹ of the fit as it is weighted (A = Σ_b w_b J_bᵀ J_b,
+B = Σ_b w_b² σ_b² J_bᵀ J_b), with σ_b given or estimated from the residuals; the run's round-off,
+the particle draw and the grid add their covariances. A key is *constrained* when its 95 %
+half-width at a reference noise is within ``threshold`` of its scale, so that a noise-free twin
+does not call everything constrained. What each term means: docs/verdict.md and docs/grid_term.md.
 """
 
 from __future__ import annotations
@@ -93,11 +35,8 @@ class Uncertainty:
     ci95: np.ndarray | None  # (n, 2)
     noise: dict[str, float]  # the σ_b used, by block
     noise_estimated: dict[str, float]
-    reference_stderr: np.ndarray | None  # se at the reference noise (for identifiability)
     relative_halfwidth: np.ndarray | None  # 1.96 se_ref / scale
     constrained: tuple[str, ...]
-    eigenvalues: np.ndarray  # of the relative Fisher matrix, descending
-    eigenvectors: np.ndarray  # columns
     statement: str
     verdict: Verdict | None = None
     stderr_statistical: np.ndarray | None = None  # from the data's noise alone
@@ -181,14 +120,11 @@ def gauss_newton_uncertainty(
     ``J`` (m × n) and ``r`` (m) are the objective's weighted residuals and Jacobian in physical
     units; ``blocks`` and ``row_scale`` (the objective's) undo the weights. ``noise``: the known
     σ of each block in the block's relative units (a float applies to every block); None:
-    estimate it from the residuals. ``verdict`` (from ``assess_fit``): when it says the point
-    is not a fit of the data, every interval (stderr, ci95, cov, the half-widths and the
-    constrained keys) is withheld and the statement says why; only the local geometry
-    (correlations, Fisher eigen-directions) is kept. ``scatter`` (``model_scatter``; default:
-    the verdict's): its covariance of θ, the run's round-off, is added to the statistical one;
-    so is ``sampling``'s (``sampling_scatter``), the particle draw's, and ``grid``'s
-    (``grid_shift``), the grid's; ``grid_note`` says why the grid term is missing, if it is.
-    """
+    estimate it from the residuals. ``verdict`` (``assess_fit``): where the point is not a fit of
+    the data, every interval is withheld and the statement says why; only the local geometry
+    (correlations, Fisher eigen-directions) is kept. The covariances of ``scatter`` (default: the
+    verdict's), ``sampling`` and ``grid`` are added to the statistical one; ``grid_note`` says
+    why the grid term is missing, if it is."""
     keys = tuple(keys)
     J = np.asarray(J, float)
     r = np.asarray(r, float)
@@ -209,18 +145,18 @@ def gauss_newton_uncertainty(
     cov = cov_stat + sum(sc.cov for sc in (scatter, sampling, grid) if sc is not None)
     stderr, corr = _stderr_and_corr(cov)
     ci95 = np.stack([theta - Z95 * stderr, theta + Z95 * stderr], axis=1)
-    se_ref, rel, evals, evecs = _identifiability(fisher_ref, theta, bounds)
+    rel, evals, evecs = _identifiability(fisher_ref, theta, bounds)
     constrained = tuple(k for k, v in zip(keys, rel) if v <= threshold)
     lines = _identifiability_lines(keys, rel, constrained, corr, evals, evecs, reference_noise=reference_noise,
                                    threshold=threshold)
     if verdict is not None and not verdict.is_fit:
-        return Uncertainty(keys, theta, None, None, corr, None, used, estimated, None, None, (), evals, evecs,
+        return Uncertainty(keys, theta, None, None, corr, None, used, estimated, None, (),
                            _withheld_statement(keys, lines, verdict, grid), verdict, sampling=sampling, grid=grid,
                            grid_note=grid_note)
     se_stat = np.sqrt(np.maximum(np.diag(cov_stat), 0.0))
     lines += _share_lines(keys, se_stat, scatter, sampling, grid, grid_note)
-    return Uncertainty(keys, theta, stderr, cov, corr, ci95, used, estimated, se_ref, rel, constrained,
-                       evals, evecs, " ".join(lines), verdict, se_stat,
+    return Uncertainty(keys, theta, stderr, cov, corr, ci95, used, estimated, rel, constrained,
+                       " ".join(lines), verdict, se_stat,
                        scatter.stderr if scatter is not None else None, sampling, grid, grid_note)
 
 
@@ -229,9 +165,7 @@ def _sandwich_terms(e, Je, row_scale, blocks, noise, reference_noise):
     their Jacobian ``Je``, with the noise used and the noise estimated, by block."""
     m, n = Je.shape
     estimated, used, reference = {}, {}, {}
-    # The fit minimises Σ (row_scale e)²: its weights are row_scale², which need not be 1/σ² (a block's
-    # weight is shared by its rows, so a short block's rows weigh more). The covariance of that
-    # estimator is the sandwich A⁻¹ B A⁻¹; its inverse, A B⁻¹ A, is the Fisher matrix used below.
+    # The fit's weights are row_scale², not 1/σ² (a short block's rows weigh more): hence the sandwich.
     weight = row_scale ** 2
     A = np.zeros((n, n))
     B = np.zeros((n, n))
@@ -260,9 +194,9 @@ def _stderr_and_corr(cov):
 
 
 def _identifiability(fisher_ref, theta, bounds):
-    """At the reference noise: the standard errors, the 95 % half-widths relative to each key's
-    scale (|θ|, at least 1 % of its bound range), and the relative Fisher matrix's eigenvalues
-    (descending) and eigenvectors."""
+    """At the reference noise: the 95 % half-widths relative to each key's scale (|θ|, at least
+    1 % of its bound range), and the relative Fisher matrix's eigenvalues (descending) and
+    eigenvectors."""
     if bounds is not None:
         span = np.asarray(bounds.upper) - np.asarray(bounds.lower)
     else:
@@ -275,7 +209,7 @@ def _identifiability(fisher_ref, theta, bounds):
     fisher_rel = fisher_ref * np.outer(scale, scale)
     evals, evecs = np.linalg.eigh(fisher_rel)
     order = np.argsort(evals)[::-1]
-    return se_ref, rel, evals[order], evecs[:, order]
+    return rel, evals[order], evecs[:, order]
 
 
 def _identifiability_lines(keys, rel, constrained, corr, evals, evecs, *, reference_noise, threshold) -> list[str]:

@@ -12,6 +12,7 @@ from typing import Any
 
 import numpy as np
 
+from ..problem.options import OptionError, _is_int, _is_number
 from ..problem.protocol import ObjectiveLike
 from .gauss_newton import _inverse
 from .noise import Z95
@@ -34,7 +35,7 @@ GCI_SAFETY, GRID_ORDER = 3.0, 1.0
 
 @dataclasses.dataclass(frozen=True)
 class GridCheck:
-    """The grid's share of a fit's uncertainty (``grid_shift``; the module docstring)."""
+    """The grid's share of a fit's uncertainty (``grid_shift``; docs/grid_term.md)."""
 
     dx: float  # the fit's grid spacing (m)
     dx_coarse: float
@@ -88,16 +89,12 @@ def three_grid_index(shift1, shift2, ratio: float, scale=None,
                      what: str = "grids") -> tuple[np.ndarray, float | None, str]:
     """The grid convergence index from three grids (dx, ρ dx, ρ² dx) by the shifts of θ to the
     two coarser ones: (95 % half-width per key, the observed order or None, how it was made).
-
-    With e21 = shift1 and e32 = shift2 − shift1, each key divided by its ``scale`` (the data's
-    standard error or the posterior's sd: without it a key in large units, ξ ~ 50 beside μ ~ 0.4,
-    decides the order alone), their ratio along e21, q = e32·e21 / |e21|², is ρ^p on a grid
-    converging with order p. When q > 1 (the changes shrink as the grid is
-    refined) p = ln q / ln ρ, limited to [0.5, 2], and the index is Roache's three-grid one,
-    1.25 |e21| / (ρ^p − 1). Otherwise the grids oscillate or are not yet in the range where the
-    error shrinks (what the S4 study shows, docs/grid_convergence.md): the index is 3 max(|e21|,
-    |e32|) / (ρ − 1), the two-grid one on the larger change. ``what``: the three things compared,
-    in the method's words (grids, or posteriors' means)."""
+    With e21 = shift1 and e32 = shift2 − shift1, q = e32·e21 / |e21|² is ρ^p on a grid converging
+    with order p: where q > 1, Roache's three-grid index 1.25 |e21| / (ρ^p − 1), p limited to
+    [0.5, 2]; else the two-grid one on the larger change (docs/grid_term.md). Each key is
+    measured in its ``scale`` (the data's standard error or the posterior's sd), lest a key in
+    large units decide the order alone. ``what``: the three things compared (grids, or
+    posteriors' means)."""
     e21 = np.asarray(shift1, float)
     e32 = np.asarray(shift2, float) - e21
     scale = np.ones_like(e21) if scale is None else np.asarray(scale, float)
@@ -119,15 +116,10 @@ def check_grid_options(ratio, draws, levels: int = 1) -> None:
     """Refuse a grid check that cannot be made (before anything runs): ``ratio`` None (no
     check) or a number > 1, ``draws`` an integer >= 1, ``levels`` 1 or 2 coarser grids. The one
     check of these options (``JudgeOptions`` calls it); an ``OptionError`` names the field."""
-    from ..problem.options import OptionError  # options imports this module's constants
-
-    def number(v):
-        return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
-
-    if ratio is not None and not (number(ratio) and ratio > 1.0):
+    if ratio is not None and not (_is_number(ratio) and ratio > 1.0):
         raise OptionError("grid_ratio", "must be off (None; 0 on the command line) or a finite factor > 1 of the "
                                         f"grid spacing, got {ratio!r}")
-    if not (isinstance(draws, int) and not isinstance(draws, bool) and draws >= 1):
+    if not (_is_int(draws) and draws >= 1):
         raise OptionError("grid_draws", f"must be an integer >= 1, got {draws!r}")
     if isinstance(levels, bool) or levels not in (1, 2):
         raise OptionError("grid_levels", f"must be 1 or 2 (coarser grids), got {levels!r}")
@@ -138,7 +130,7 @@ def grid_shift(objective: ObjectiveLike, theta, J, *, ratio: float = GRID_RATIO,
     """The grid term at the fit's θ (``J`` the objective's weighted Jacobian there): the
     objective rebuilt at ``ratio`` × its dx (``Objective.at_dx``), its residuals at θ averaged over
     ``draws`` particle draws (one, the scene's own, for a sampling with no seed), and the
-    Gauss–Newton shift −J⁺ r̄ (see the module docstring). ``levels=2`` adds a second coarser grid,
+    Gauss–Newton shift −J⁺ r̄ (docs/grid_term.md). ``levels=2`` adds a second coarser grid,
     ρ² dx, and the index from the three (``three_grid_index``): the order the grids show, or a
     wider index where they oscillate. Raises ``ValueError`` when the objective cannot be rebuilt
     (a scene with no recipe, data outside the coarser grid); returns None when no coarse run ran

@@ -5,7 +5,6 @@ prediction of data the fit never saw (``predict_heldout``).
 from __future__ import annotations
 
 import dataclasses
-import math
 import time
 from collections.abc import Mapping
 from typing import Any
@@ -15,9 +14,9 @@ import numpy as np
 from ..batch.sweep import sweep
 from ..problem.protocol import ObjectiveLike
 from .likelihood import _check_span, _stderr, noise_levels
-from .noise import chi2_of
+from .noise import Z95, chi2_of
 
-__all__ = ["GridPosterior", "weighted_quantile", "grid_posterior", "HeldOut", "predict_heldout"]
+__all__ = ["GridPosterior", "weighted_quantile", "weighted_summary", "grid_posterior", "HeldOut", "predict_heldout"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -88,6 +87,16 @@ def weighted_quantile(values, weights, q):
     return np.interp(np.asarray(q, float), cum / np.sum(w), v)
 
 
+def weighted_summary(keys, thetas, weight) -> tuple[dict, dict, dict]:
+    """By key: the mean, sd and equal-tailed 95 % interval of the points ``thetas`` (n, k) under
+    ``weight`` (n,, summing to 1)."""
+    mean = {k: float(np.sum(weight * thetas[:, j])) for j, k in enumerate(keys)}
+    sd = {k: float(np.sqrt(np.sum(weight * (thetas[:, j] - mean[k]) ** 2))) for j, k in enumerate(keys)}
+    ci = {k: tuple(float(v) for v in weighted_quantile(thetas[:, j], weight, [0.025, 0.975]))
+          for j, k in enumerate(keys)}
+    return mean, sd, ci
+
+
 def grid_posterior(objective: ObjectiveLike, fit_result, *, span: float = 4.0, n: int = 21,
                    ranges: Mapping[str, tuple[float, float]] | None = None,
                    noise: Mapping[str, float] | float | None = None, chunk: int | None = None) -> GridPosterior:
@@ -103,7 +112,6 @@ def grid_posterior(objective: ObjectiveLike, fit_result, *, span: float = 4.0, n
     _check_span(span, n)
     sigma = noise_levels(objective, fit_result, noise)
     theta_hat = np.array([fit_result.theta[k] for k in keys], float)
-    unc = getattr(fit_result, "uncertainty", None)
     se = _stderr(fit_result)
     lower, upper = np.asarray(objective.bounds.lower), np.asarray(objective.bounds.upper)
     margin = 1e-6 * (upper - lower)
@@ -111,7 +119,7 @@ def grid_posterior(objective: ObjectiveLike, fit_result, *, span: float = 4.0, n
     mesh = np.stack([m.ravel() for m in np.meshgrid(*u_axes, indexing="ij")], axis=1)
     whitened = not ranges and se is not None
     if whitened:
-        thetas = theta_hat[None, :] + mesh @ np.linalg.cholesky(np.asarray(unc.cov, float)).T
+        thetas = theta_hat[None, :] + mesh @ np.linalg.cholesky(np.asarray(fit_result.uncertainty.cov, float)).T
     else:
         ranges = dict(ranges or {})
         missing = [k for k in keys if k not in ranges]
@@ -136,12 +144,7 @@ def grid_posterior(objective: ObjectiveLike, fit_result, *, span: float = 4.0, n
         raise ValueError("grid_posterior: every grid point is outside the bounds or its run failed")
     weight = np.where(finite, np.exp(-0.5 * (np.where(finite, chi2, 0.0) - np.nanmin(chi2))), 0.0)
     weight /= weight.sum()
-    mean, sd, ci = {}, {}, {}
-    for j, k in enumerate(keys):
-        x = thetas[:, j]
-        mean[k] = float(np.sum(weight * x))
-        sd[k] = float(math.sqrt(max(np.sum(weight * (x - mean[k]) ** 2), 0.0)))
-        ci[k] = tuple(float(v) for v in weighted_quantile(x, weight, [0.025, 0.975]))
+    mean, sd, ci = weighted_summary(keys, thetas, weight)
     on_edge = np.any(np.abs(mesh) >= span * (1 - 1e-12), axis=1)
     return GridPosterior(keys, thetas, chi2, weight, (n,) * len(keys), whitened, mean, sd, ci,
                          dict(zip(keys, theta_hat.tolist())), None if se is None else dict(zip(keys, se.tolist())),
@@ -214,7 +217,7 @@ def predict_heldout(fit_result, objective) -> HeldOut:
     observed = observed_blocks(objective)
     for name, e in err.items():
         G = np.stack([c[name] for c in cols], axis=1)
-        band = 1.959963984540054 * np.sqrt(np.maximum(np.einsum("mi,ij,mj->m", G, cov, G), 0.0))
+        band = Z95 * np.sqrt(np.maximum(np.einsum("mi,ij,mj->m", G, cov, G), 0.0))
         at, measured = observed[name]
         blocks[name] = {"at": at, "data": measured, "predicted": measured + e, "band": band}
         rms[name] = float(np.sqrt(np.mean(e ** 2)))

@@ -1,21 +1,11 @@
 """The grid term of a sampled posterior: how far the same posterior moves on a coarser grid.
 
-A fit's grid term (``calibration.inference.gridcheck.grid_shift``) is the Gauss–Newton shift of its point
-on a grid ``ratio`` times coarser. A posterior needs more than that linearisation: along a flat,
-curved valley a small systematic change of the residuals moves the posterior's mass far. On the
-five keys of three filmed collapses (L/12, I0 measured) the linearised shift at the posterior's
-mean moved μ2 by −0.005 where the same posterior at L/8 moved its mean by −0.10 (docs/verdict.md).
-So the posterior is sampled again, with the same noise, prior and settings, on the objective
-rebuilt at ``ratio`` × dx (and ``ratio``² × dx), and the shift of its mean gives Roache's index as
-for a fit: 3 |δ| / (ρ − 1) from two grids (order 1 assumed), the observed order's from three
-(``three_grid_index``, the shifts measured in the posterior's sds). The index is added in
-quadrature to each side of the 95 % interval, measured from the mean (``ci95_with_grid``, kept
-inside the bounds). In 2D each coarser level costs about ρ⁻³ of the posterior (ρ⁻² the
-particles, ρ⁻¹ the steps).
-
-``GridTerm`` gives a posterior's dataclass the reading of it (``grid_converged``, ``adequate_dx``,
-``grid_statement``, ``grid_json``); ``coarse_objectives`` refuses a bad option before any run;
-``with_grid_term`` samples the coarser posteriors and attaches the result.
+Along a flat, curved valley the Gauss–Newton shift of a fit (``gridcheck.grid_shift``) misses
+where the posterior's mass moves, so the posterior is sampled again on the objective rebuilt at
+``ratio`` × dx (and ``ratio``² × dx), and the shift of its mean gives Roache's index, added in
+quadrature to each side of the 95 % interval (docs/grid_term.md). ``GridTerm`` gives a
+posterior's dataclass the reading of it; ``coarse_objectives`` refuses a bad option before any
+run; ``with_grid_term`` samples the coarser posteriors and attaches the result.
 """
 
 from __future__ import annotations

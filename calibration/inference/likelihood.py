@@ -1,27 +1,8 @@
-"""Uncertainty beyond Gauss–Newton: profile likelihoods, a grid posterior and held-out predictions.
+"""Uncertainty beyond Gauss–Newton: the profile likelihood of a key (``profile_likelihood``), the
+likelihood's noise by block (``noise_levels``) and the model's own error in it (``model_error``).
 
-The Gauss–Newton interval (``calibration.inference``) is the curvature at the minimum; along a
-curved β–μ1 valley, or where the run's response is not linear over one standard error, it can be
-too narrow or too wide. Three checks that do not linearise:
-
-- ``profile_likelihood(objective, fit_result, key)``: χ²(θ_key) with the other keys refitted
-  at every value (damped Gauss–Newton on them, warm-started from the neighbouring value). The
-  95 % interval is where χ² − χ²_min crosses ``chi2_quantile(0.95, 1)`` = 3.84 (Wilks); "open"
-  where the scanned range does not reach it.
-- ``grid_posterior(objective, fit_result)``: for one or two fitted keys the posterior under a
-  flat prior inside the bounds, p ∝ exp(−χ²/2), by quadrature on a grid regular in the whitened
-  coordinates of the Gauss–Newton covariance (so a narrow correlated valley is resolved across
-  as well as along; every grid point one run, batched with ``calibration.batch.sweep``): exact up to
-  the grid's resolution, no sampler, no convergence to diagnose. Marginal means, standard
-  deviations and equal-tailed 95 % credible intervals.
-- ``predict_heldout(fit_result, objective)``: what the fitted model predicts for observations
-  the fit never saw (another objective, its data only compared with afterwards), with a 95 %
-  band from the fit's covariance propagated through the prediction's Jacobian (delta method).
-
-χ² is Σ_b Σ (e_b / σ_b)² with the noise σ_b of each block that the fit used (given, or estimated
-from the residuals' second differences: ``fit_result.uncertainty.noise``), so the three are on
-the scale of the fit's own interval. ``python -m calibration profile`` runs the first two and
-draws them.
+χ² is Σ_b Σ (e_b / σ_b)² on the noise σ_b of each block that the fit used, so every check is on
+the scale of the fit's own interval. What the checks say: docs/verdict.md and docs/posteriors.md.
 """
 
 from __future__ import annotations
@@ -36,12 +17,13 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..problem.bounds import MAX_STEP
+from ..problem.options import _is_int, _is_number
 from ..problem.protocol import ObjectiveLike
 from .gridcheck import GRID_DRAWS, GRID_ORDER, GRID_RATIO
 from .noise import NOISE_FLOOR, chi2_of, chi2_quantile
 from .scatter import SAMPLING_SEEDS, clean_runs, coarse_residuals, redrawn_residuals
 
-__all__ = ["noise_levels", "ModelError", "model_error", "ProfileLikelihood", "profile_likelihood"]
+__all__ = ["noise_levels", "row_weights", "ModelError", "model_error", "ProfileLikelihood", "profile_likelihood"]
 
 
 #: Δχ² of a 95 % interval of one parameter (Wilks' theorem).
@@ -68,13 +50,10 @@ def noise_levels(objective: ObjectiveLike, fit_result, noise) -> dict[str, float
 
 @dataclasses.dataclass(frozen=True)
 class ModelError:
-    """The model's own error in the residuals, σ by block in the blocks' relative units, beside
-    the data's noise (``model_error``): ``draw``, a residual's spread over particle draws (the
-    texture that makes χ²(θ) rough); ``grid``, the residuals' estimated discretisation error,
-    |r̄(dx) − r̄(ρ dx)| / (ρ^p − 1) root-mean-squared over the block with the draws' share of that
-    difference taken off (Richardson's estimate for order p; the error against the continuum,
-    which real data measure). ``noise(data)`` is what a likelihood uses:
-    σ_b² = σ_data,b² + draw_b² + grid_b², every residual independent."""
+    """The model's own error in the residuals, σ by block in the blocks' relative units
+    (``model_error``; docs/posteriors.md): ``draw``, a residual's spread over particle draws;
+    ``grid``, Richardson's estimate of the residuals' discretisation error. ``noise(data)`` is
+    what a likelihood uses: σ_b² = σ_data,b² + draw_b² + grid_b², every residual independent."""
 
     draw: dict[str, float]
     grid: dict[str, float]
@@ -116,15 +95,15 @@ def model_error(objective: ObjectiveLike, theta, *, draws: int = SAMPLING_SEEDS,
     particles cannot be drawn again (a lattice sampling) or fewer than two draws, or no coarse
     run, ran without status bits: an unmeasured term is not taken as zero."""
     for name, value in (("draws", draws), ("coarse_draws", coarse_draws)):
-        if not (isinstance(value, int) and not isinstance(value, bool)):
+        if not _is_int(value):
             raise ValueError(f"{name} must be an integer, got {value!r}")
     if draws < 2:
         raise ValueError(f"draws must be >= 2 (a spread beside the objective's own draw), got {draws!r}")
-    if not (_number(ratio) and ratio > 1.0):
+    if not (_is_number(ratio) and ratio > 1.0):
         raise ValueError(f"ratio must be a finite factor > 1 of the grid spacing, got {ratio!r}")
     if coarse_draws < 1:
         raise ValueError(f"coarse_draws must be >= 1, got {coarse_draws!r}")
-    if not (_number(order) and order > 0):
+    if not (_is_number(order) and order > 0):
         raise ValueError(f"order must be > 0, got {order!r}")
     if not objective.seeded:
         raise ValueError("objective: its particles cannot be drawn again (a lattice sampling), so the draw term "
@@ -167,10 +146,6 @@ def checked_point(objective: ObjectiveLike, theta) -> np.ndarray:
                          f"{theta.tolist()}")
     objective.check_thetas(theta[None, :], "theta")
     return theta
-
-
-def _number(value) -> bool:
-    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
 
 
 def _stderr(fit_result) -> np.ndarray | None:
@@ -231,19 +206,19 @@ class ProfileLikelihood:
                 "delta_chi2_95": DELTA_CHI2_95, "noise": self.noise, "wall_s": round(self.wall_s, 2)}
 
 
-def _chi2_weights(objective: ObjectiveLike, sigma) -> np.ndarray:
-    """Per residual 1 / (row_scale σ_b): Σ (w r)² is ``chi2_of``'s χ²."""
-    w = 1.0 / np.asarray(objective.row_scale, float)
+def row_weights(objective: ObjectiveLike, sigma: Mapping[str, float]) -> np.ndarray:
+    """W with χ² = Σ W r²: 1 / (row_scale σ_b)² on the rows of blocks with a noise level, else 0."""
+    w = np.zeros(np.size(objective.row_scale))
     for name, sl in objective.blocks.items():
-        w[sl] /= max(float(sigma[name]), NOISE_FLOOR)
-    return w
+        if sigma.get(name) is not None:
+            w[sl] = 1.0 / max(float(sigma[name]), NOISE_FLOOR) ** 2
+    return w / np.asarray(objective.row_scale, float) ** 2
 
 
 def _refit_others(objective: ObjectiveLike, z, fixed: int, sigma, steps: int, lam0: float = 1e-3):
     """Damped Gauss–Newton on every z but ``fixed``, minimising χ² (the residuals weighted by
     each block's noise); returns (z, r, status). Steps capped at 2 in z (``calibration.problem.bounds.MAX_STEP``)."""
-
-    w = _chi2_weights(objective, sigma)
+    w = np.sqrt(row_weights(objective, sigma))  # Σ (w r)² is χ²
     free = [j for j in range(z.size) if j != fixed]
 
     def evaluate(z_):
@@ -335,9 +310,6 @@ def profile_likelihood(objective: ObjectiveLike, fit_result, key: str, *, span: 
     chi2_hat = chi2_of(r_hat, objective.row_scale, objective.blocks, sigma)
     floor = min(chi2_hat, float(np.nanmin(chi2)))
     ci = _crossings(grid, chi2 - floor, theta_hat[j], DELTA_CHI2_95)
-    gn = None
-    unc = getattr(fit_result, "uncertainty", None)
-    if unc is not None and not unc.withheld:
-        gn = (float(unc.ci95[j, 0]), float(unc.ci95[j, 1]))
+    gn = None if se is None else tuple(float(v) for v in fit_result.uncertainty.ci95[j])
     return ProfileLikelihood(key, keys, grid, chi2, others, status, float(theta_hat[j]), float(chi2_hat), ci, gn,
                              {k: max(float(v), NOISE_FLOOR) for k, v in sigma.items()}, time.perf_counter() - clock)

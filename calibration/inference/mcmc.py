@@ -1,44 +1,11 @@
 """A posterior by gradient-based MCMC: the No-U-Turn sampler (blackjax), for any number of keys.
 
 ``nuts_posterior(objective, fit_result)`` samples p(θ | data) ∝ exp(−χ²(θ)/2) under a flat prior
-inside the bounds (and μ2 ≥ μ1 where both enter), χ² on the noise σ_b of each block that the fit
-used (``calibration.inference.likelihood``'s convention, so the three checks are on one scale). Where the
-quadrature of ``grid_posterior`` stops (more than two keys) this is the way to the posterior, and
-for one or two keys the two are a check on each other.
-
-How it samples (the choices, and why):
-
-- **Coordinates.** The chains move in w, the unconstrained z = logit((θ − lo)/(hi − lo)) of the
-  bounds (``calibration.problem.bounds.physical``) whitened by the fit's Gauss–Newton covariance
-  mapped to z: z = ẑ + L w. The flat prior in θ becomes the log-Jacobian Σ log dθ/dz, the bounds
-  are never crossed, and where the Gauss–Newton picture holds the target is close to a standard
-  normal, so an identity mass matrix is right and NUTS needs few leapfrog steps (typically 3) per
-  draw. Where it does not hold (a curved valley, a bound), NUTS still samples the true target:
-  the whitening only preconditions it.
-- **Gradients in forward mode.** χ² is a ``jax.custom_vjp`` whose derivative is 2 Jᵀ W r with J
-  from ``jacobian_by_columns`` (k forward-mode passes, for k keys about 3.5 runs at two keys; the
-  checkpointed reverse mode costs 7 to 9). A failed run (status bits set) or a non-finite χ² has
-  log density −∞ and χ²'s gradient 0 (never NaN): NUTS counts the trajectory as divergent and
-  never moves there.
-- **Warm-up.** Dual averaging of the step size only (blackjax's, target acceptance
-  ``target_accept``), per chain, from dispersed starts w ~ N(0, ``spread``² I); the mass matrix
-  stays the identity of the whitened coordinates (adapting it from a few hundred draws would
-  add noise, not information, where the Gauss–Newton covariance already scales the problem).
-- **Longer chains, not new ones.** ``resume=`` goes on with stored chains (``to_json`` and
-  ``McmcPosterior.from_json``) from their last draws, with their step sizes and no new warm-up:
-  a run that has not reached R̂ < 1.01 is made longer, and its diagnostics are those of the
-  whole chains. The new segment's random keys fold in its length so far and each chain's number,
-  so chains taken apart (``take``) and resumed in separate processes draw exactly what they
-  would have drawn together, and ``join`` gives the one posterior back.
-- **Diagnostics.** Rank-normalised split R̂, bulk and tail effective sample sizes (Vehtari et al.
-  2021, arviz-stats': blackjax's own differ from the reference where a chain's length is odd or
-  its autocorrelations stay positive to the end, by up to 3 % in bulk and 94 % in tail ESS,
-  docs/results/library_check.json), the number of divergent
-  transitions, the mean acceptance and the mean number of leapfrog steps (each one run's
-  Jacobian). ``converged`` asks R̂ < 1.01 and a bulk ESS of at least 100 (the thresholds of Vehtari
-  et al.) and no divergence.
-
-blackjax is an optional dependency: ``pip install "jaxmpm[bayes]"``.
+inside the bounds (and μ2 ≥ μ1 where both enter), χ² on the fit's noise σ_b by block, in the
+bounds' logit coordinates whitened by the fit's Gauss–Newton covariance, with forward-mode
+gradients and a step size adapted per chain. ``resume=`` makes stored chains longer;
+``take`` and ``join`` split them across processes and back. Each choice and its reason:
+docs/posteriors.md. blackjax is an optional dependency: ``pip install "jaxmpm[bayes]"``.
 """
 
 from __future__ import annotations
@@ -285,23 +252,18 @@ def nuts_posterior(objective: ObjectiveLike, fit_result, *, chains: int | None =
                    target_accept: float = 0.8, max_doublings: int = 6, spread: float = 1.0,
                    resume: McmcPosterior | None = None, prior: Mapping[str, tuple[float, float]] | None = None,
                    grid_ratio: float | None = None, grid_levels: int = 1, progress: bool = False) -> McmcPosterior:
-    """NUTS draws of ``objective``'s keys around ``fit_result`` (which must carry a Gauss–Newton
-    covariance: the sampler's preconditioner, see the module docstring). ``chains`` (default 4)
-    run one after the other (on the CPU a vmapped batch of runs costs more than the runs in
-    turn), each with ``warmup`` (default 100) step-size adaptation steps, then ``draws`` kept;
-    ``noise``: σ by block (default: the fit's); ``max_doublings``: the tree depth limit (2^depth
-    leapfrog steps at most per draw); ``prior``: {key: (mean, sd)}, a normal in θ for keys
-    measured elsewhere (``gaussian_prior``), beside the flat prior in the bounds.
-    ``grid_ratio``: the grid term (``calibration.inference.gridterm``; None: not measured): the same chains
-    (noise, prior, settings, the fit's whitening) on the objective rebuilt at ``grid_ratio`` × dx
-    (and its square with ``grid_levels=2``), about ``grid_ratio``⁻³ of the cost per level in 2D;
-    not with ``resume``.
+    """NUTS draws of ``objective``'s keys around ``fit_result``, whose Gauss–Newton covariance
+    preconditions the sampler. ``chains`` (default 4) run one after the other (on the CPU a
+    vmapped batch of runs costs more than the runs in turn), each with ``warmup`` (default 100)
+    step-size adaptation steps, then ``draws`` kept; ``noise``: σ by block (default: the fit's);
+    ``max_doublings``: at most 2^``max_doublings`` leapfrog steps per draw; ``prior``: {key:
+    (mean, sd)}, a normal in θ for keys measured elsewhere (``gaussian_prior``). ``grid_ratio``,
+    ``grid_levels``: the grid term (``calibration.inference.gridterm``; None: not measured), the
+    same chains on the objective rebuilt at ``grid_ratio`` × dx; not with ``resume``.
 
-    ``resume``: a posterior of the same objective, fit and noise (its own ``to_json`` record
-    through ``McmcPosterior.from_json`` will do) whose chains go on for ``draws`` more each, from
-    their last draws with their adapted step sizes and no new warm-up, on random keys that
-    ``seed`` and the draws so far fold in. The result holds every draw, and its diagnostics are
-    those of the whole chains: a chain that has not converged is made longer, not restarted.
+    ``resume``: a posterior of the same objective, fit and noise (``McmcPosterior.from_json`` of
+    a record will do) whose chains go on for ``draws`` more each, with their step sizes and no
+    new warm-up; the result holds every draw, and its diagnostics are those of the whole chains.
 
     The parts: ``log_density_fn`` (the target), ``nuts_sampler`` (the kernels), per chain
     ``start_chain``, ``warm_up`` and ``sample_chain``, and ``diagnose`` (the summary)."""
@@ -393,13 +355,10 @@ def _whitened_target(objective, theta_hat, sigma, gn_cov, prior_terms, dtype, re
 def _with_grid_term(found: McmcPosterior, objective, coarse, grid_ratio, fit_result, settings) -> McmcPosterior:
     """``found`` with the grid term: the same chains (``settings``, the fit's whitening) on the
     coarser objectives."""
-
-    def sample(obj):
-        return nuts_posterior(obj, fit_result, **settings)
-
-    return with_grid_term(found, objective, coarse, grid_ratio, sample, lambda other: {
-        "rhat_max": max((v for v in other.rhat.values() if math.isfinite(v)), default=None),
-        "divergences": int(sum(other.divergences)), "gradient_evaluations": other.gradient_evaluations})
+    return with_grid_term(
+        found, objective, coarse, grid_ratio, lambda obj: nuts_posterior(obj, fit_result, **settings),
+        lambda other: {"rhat_max": max((v for v in other.rhat.values() if math.isfinite(v)), default=None),
+                       "divergences": int(sum(other.divergences)), "gradient_evaluations": other.gradient_evaluations})
 
 
 def _summary(keys, samples):
@@ -426,12 +385,10 @@ def _summary(keys, samples):
 
 
 def _check_resume(resume, keys, fit_result, sigma):
-    """A resumed chain must go on on the target it was drawn from: the same keys and noise (the
-    noise to 1e-5 relative: the log density then moves by ~1e-4, far below the Monte Carlo
-    error), and in the whitening of the same fit (its point to 1e-3 standard errors and its
-    covariance to 1e-3 relative). The whitening only preconditions: a fit that differs by
-    round-off (a run in float32 on another thread count, say) leaves the chain valid, as NUTS with
-    any fixed preconditioner keeps the target; a different fit is refused as a sign of a mix-up."""
+    """A resumed chain must go on on the target it was drawn from: the same keys and noise (to
+    1e-5 relative), and the whitening of the same fit (its point to 1e-3 standard errors, its
+    covariance to 1e-3 relative). The whitening only preconditions, so a fit that differs by
+    round-off leaves the chain valid; a different fit is refused as a sign of a mix-up."""
     if tuple(resume.keys) != keys:
         raise ValueError(f"resume samples {tuple(resume.keys)}, the objective fits {keys}")
     unc = fit_result.uncertainty

@@ -29,10 +29,8 @@ MIN_NOISE_POINTS = 5
 
 def chi2_quantile(p: float, dof: float) -> float:
     """The ``p`` quantile of χ² with ``dof`` degrees of freedom (scipy ships with jax)."""
-    try:
-        from scipy.stats import chi2
-    except ImportError as err:  # pragma: no cover (jax depends on scipy)
-        raise ImportError("the χ² quantiles need scipy: pip install 'jaxmpm[sampling]'") from err
+    from scipy.stats import chi2
+
     return float(chi2.ppf(p, dof))
 
 

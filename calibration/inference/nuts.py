@@ -18,8 +18,7 @@ import numpy as np
 from ..problem.bounds import log_jacobian, physical, unconstrained
 from ..problem.protocol import ObjectiveLike
 from ..problem.residuals import jacobian_by_columns
-from .likelihood import noise_levels
-from .noise import NOISE_FLOOR
+from .likelihood import noise_levels, row_weights
 
 __all__ = [
     "gauss_newton_point", "gaussian_prior", "log_density_fn", "row_weights", "Sampler", "ChainDraws", "nuts_sampler",
@@ -35,15 +34,6 @@ def _blackjax():
     except ImportError as err:  # pragma: no cover - exercised without the extra
         raise ImportError(f"the posteriors need {err.name}: pip install 'jaxmpm[bayes]'") from err
     return blackjax
-
-
-def row_weights(objective: ObjectiveLike, sigma: Mapping[str, float]) -> np.ndarray:
-    """W with χ² = Σ W r²: 1 / (row_scale σ_b)² on the rows of blocks with a noise level, else 0."""
-    w = np.zeros(np.size(objective.row_scale))
-    for name, sl in objective.blocks.items():
-        if sigma.get(name) is not None:
-            w[sl] = 1.0 / max(float(sigma[name]), NOISE_FLOOR) ** 2
-    return w / np.asarray(objective.row_scale, float) ** 2
 
 
 def _support(objective: ObjectiveLike, theta):
@@ -107,8 +97,8 @@ def log_density_fn(objective: ObjectiveLike, weights, z_hat, L, lower, upper, pr
     """``(log_density, theta_of)`` of the chains' coordinates w, θ = physical(ẑ + L w, lower,
     upper): log p(w) = −χ²(θ)/2 + log |dθ/dz| up to a constant, χ² = Σ ``weights`` r², with a
     forward-mode gradient (a ``jax.custom_vjp``); −∞ where the run fails or θ leaves the
-    support; ``prior``, ``gaussian_prior``'s (indices, means, sds), adds −½ Σ ((θ_j − m_j)/s_j)².
-    See the module docstring."""
+    support; ``prior``, ``gaussian_prior``'s (indices, means, sds), adds −½ Σ ((θ_j − m_j)/s_j)²
+    (docs/posteriors.md)."""
     dtype = z_hat.dtype
 
     def theta_of(w):

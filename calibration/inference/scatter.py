@@ -41,11 +41,9 @@ def roundoff_limit(n: int, samples: int, p: float = ROUNDOFF_P) -> float:
     """The largest remaining Gauss–Newton step, in standard deviations of a round-off scatter whose
     covariance was estimated from ``samples`` degrees of freedom, that counts as converged.
 
-    A step δ independent of the estimate S, with δ ~ N(0, Σ) in n dimensions, has
-    δᵀS⁻¹δ · (ν − n + 1)/(n ν) ~ F(n, ν − n + 1) for ν = ``samples`` (Hotelling's T²): a handful of
-    runs understates Σ often enough that χ²_n's quantile would refuse true minima (with six runs,
-    five of eight points one standard deviation from a float32 twin's truth). Returns the square
-    root of the ``p`` quantile; χ²_n's where ν < n (S singular: nothing better is known)."""
+    A step δ ~ N(0, Σ) independent of the estimate S has δᵀS⁻¹δ · (ν − n + 1)/(n ν) ~ F(n, ν − n + 1)
+    for ν = ``samples`` (Hotelling's T²); χ²_n's quantile would refuse true minima, as a handful of
+    runs often understates Σ. Returns the square root of the ``p`` quantile; χ²_n's where ν < n."""
     if samples < n:
         return math.sqrt(chi2_quantile(p, n))
     from scipy.stats import f
@@ -55,7 +53,7 @@ def roundoff_limit(n: int, samples: int, p: float = ROUNDOFF_P) -> float:
 
 @dataclasses.dataclass(frozen=True)
 class ModelScatter:
-    """The run's own (round-off) scatter at a point; see the module docstring."""
+    """The run's own scatter at a point, its round-off or its particle draw (docs/verdict.md)."""
 
     samples: int  # perturbed runs used (failed runs left out)
     step: float  # their relative size (0 for the sampling's scatter: same θ, other particles)
@@ -83,7 +81,6 @@ class ModelScatter:
 
 def _scatter_of(S, J, blocks, row_scale, kind, step, clock) -> ModelScatter:
     """σ by block and the covariance of θ = J⁺ s from the spread of the residual rows S."""
-
     dev = S - S.mean(axis=0)
     e = dev / np.asarray(row_scale, float)[None, :]
     noise = {name: float(math.sqrt(np.sum(e[:, sl] ** 2) / ((len(S) - 1) * max(sl.stop - sl.start, 1))))
@@ -103,15 +100,14 @@ def _runs(objective: ObjectiveLike, thetas, workers, seeds=None) -> list:
     return [objective.residuals_resampled(t, int(sd)) for t, sd in zip(thetas, seeds)]
 
 
+def _ran_cleanly(r, pred) -> bool:
+    """The run set no status bit and its residuals are finite."""
+    return int(np.asarray(pred["status"])) == 0 and bool(np.all(np.isfinite(np.asarray(r, float))))
+
+
 def clean_runs(runs) -> list[np.ndarray]:
-    """The residuals of the runs (``_runs``' (r, prediction) pairs) that ran without status bits
-    and are finite."""
-    kept = []
-    for r, pred in runs:
-        r = np.asarray(r, float)
-        if int(np.asarray(pred["status"])) == 0 and np.all(np.isfinite(r)):
-            kept.append(r)
-    return kept
+    """The residuals of the runs (``_runs``' (r, prediction) pairs) that ran cleanly."""
+    return [np.asarray(r, float) for r, pred in runs if _ran_cleanly(r, pred)]
 
 
 def redrawn_residuals(objective: ObjectiveLike, theta, seeds: int, workers=None) -> list[np.ndarray]:
@@ -141,7 +137,6 @@ def model_scatter(objective: ObjectiveLike, theta, r, J, *, samples: int = ROUND
     from r only by the round-off (the curvature term is ~step² smaller). Their sample spread gives
     σ_num by block and, through p_k = J⁺ s_k, the covariance of θ due to the scatter. Returns None
     when fewer than two runs succeeded (then nothing is known about the scatter)."""
-
     samples = int(samples)
     if samples < 2:
         raise ValueError(f"samples must be >= 2 (a spread needs two runs besides the point), got {samples!r}")
@@ -150,17 +145,13 @@ def model_scatter(objective: ObjectiveLike, theta, r, J, *, samples: int = ROUND
     lower, upper = np.asarray(objective.bounds.lower), np.asarray(objective.bounds.upper)
     scale = np.maximum(np.abs(theta), 0.01 * (upper - lower))
     rng = np.random.default_rng(seed)
-    kept = [r]
     steps = []
     for _ in range(samples):
         u = rng.standard_normal(theta.size)
         d = step * scale * u / np.linalg.norm(u)
         steps.append(np.where((theta + d <= lower) | (theta + d >= upper), -d, d))
-    for d, (r_k, pred) in zip(steps, _runs(objective, [theta + d for d in steps], workers)):
-        r_k = np.asarray(r_k, float)
-        if int(np.asarray(pred["status"])) != 0 or not np.all(np.isfinite(r_k)):
-            continue
-        kept.append(r_k - J @ d)
+    runs = _runs(objective, [theta + d for d in steps], workers)
+    kept = [r] + [np.asarray(r_k, float) - J @ d for d, (r_k, pred) in zip(steps, runs) if _ran_cleanly(r_k, pred)]
     if len(kept) < 3:
         return None
     return _scatter_of(np.stack(kept), J, objective.blocks, objective.row_scale, "round-off", step, clock)
@@ -171,11 +162,8 @@ def sampling_scatter(objective: ObjectiveLike, theta, r, J, *, seeds: int = SAMP
     """The scatter that the particle sampling puts into the prediction at θ: the residuals with
     the scene's body drawn with ``seeds`` other seeds (``Objective.residuals_resampled``), beside
     its own ``r``. Their spread gives σ by block and, through J⁺, the covariance of θ that the
-    choice of one draw of the particles produces: a fitted value that moves by more than its
-    statistical interval from one draw to the next is a property of the discretisation, not of
-    the material. None when the objective cannot redraw its particles (a lattice, a composite)
-    or fewer than two redrawn runs succeed."""
-
+    choice of one draw of the particles produces. None when the objective cannot redraw its
+    particles (a lattice, a composite) or fewer than two redrawn runs succeed."""
     seeds = int(seeds)
     if seeds < 2:
         raise ValueError(f"seeds must be >= 2, got {seeds!r}")

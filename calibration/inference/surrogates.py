@@ -97,8 +97,7 @@ class CorrectedQuadratic:
     quadratic's errors in the values and the Jacobians at the design points are interpolated
     (squared-exponential kernel of length ``length``, the median distance from a point to its
     nearest neighbour, at least 0.5; a relative nugget ``NUGGET``), so that the emulator follows
-    every design point's value and slope, and returns to the quadratic away from the design. The
-    quadratic's global shape where the design is sparse, the model's own where it is dense;
+    every design point's value and slope and returns to the quadratic away from the design.
     ``rms`` is the quadratic's."""
 
     quadratic: QuadraticEmulator
@@ -183,12 +182,9 @@ def psis(log_weights) -> tuple[np.ndarray, float]:
     normalised log weights with their largest M = min(S/5, 3√S) replaced by the quantiles of a
     generalised Pareto fitted to them (Zhang and Stephens 2009, with the weakly informative prior
     on k of the paper), and the shape k̂ (0 where the tail is flat: equal weights; NaN below 25
-    weights, whose tail is too short to fit). −∞ entries (a failed run) stay −∞.
-
-    Written here rather than taken from arviz-stats (``psislw``): the two agree to 3e-14 for the
-    same tail (``docs/scripts/library_check.py``), but arviz-stats floors the tail length 3√S where
-    this and the reference (the R package posterior) take the ceiling, and it raises where this
-    returns k̂ = 0 (equal weights: an exact emulator) or NaN (fewer than 25 weights)."""
+    weights, whose tail is too short to fit). −∞ entries (a failed run) stay −∞. Not arviz-stats'
+    ``psislw``, which floors the tail length where the reference (the R package posterior) takes
+    the ceiling, and raises on equal weights (an exact emulator) or fewer than 25."""
     lw = np.asarray(log_weights, float).copy()
     finite = np.isfinite(lw)
     if finite.sum() < 2:

@@ -22,7 +22,7 @@ __all__ = ["Verdict", "assess_fit", "judge_point"]
 
 @dataclasses.dataclass(frozen=True)
 class Verdict:
-    """Whether a point is a fit of the data, and if not, why (see the module docstring)."""
+    """Whether a point is a fit of the data, and if not, why (docs/verdict.md)."""
 
     is_fit: bool
     reasons: tuple[str, ...]
@@ -111,41 +111,42 @@ def judge_point(objective: ObjectiveLike, r, J, theta, *, converged: bool, messa
                 noise: Mapping[str, float] | float | None = None, uncertainty: bool = True,
                 roundoff_samples: int = ROUNDOFF_SAMPLES, sampling_seeds: int = 0, reference_noise: float = 0.01,
                 threshold: float = 0.1, grid_ratio: float | None = None, grid_draws: int = GRID_DRAWS,
-                grid_levels: int = 1, workers=None):
+                grid_levels: int = 1, workers=None, scatter: ModelScatter | None = None):
     """The verdict on a fit's end point and, when ``uncertainty``, its Gauss–Newton uncertainty
     (intervals withheld unless the verdict is a fit): what ``fit`` and ``search`` report for
-    their best point. ``roundoff_samples`` perturbed runs measure the run's own scatter there
-    (``model_scatter``; 0: not measured, the verdict and interval then assume a smooth run);
-    ``sampling_seeds`` other draws of the particles measure the sampling's share of the interval
-    (``sampling_scatter``; 0, the default: not measured); ``grid_ratio`` rebuilds the objective at
-    that multiple of its dx for the grid's share (``grid_shift``, ``grid_draws`` draws there; None,
-    the default: not measured). All go to ``workers`` (a ``calibration.batch.workers.Workers``) when
-    given. Returns ``(verdict, uncertainty or None)``."""
+    their best point. The other options are ``JudgeOptions``': ``roundoff_samples`` for
+    ``model_scatter``, ``sampling_seeds`` for ``sampling_scatter``, ``grid_ratio``, ``grid_draws``
+    and ``grid_levels`` for ``grid_shift`` (0 or None: not measured; unmeasured, the round-off is
+    taken as nil). ``scatter``: the round-off scatter already measured at θ with
+    ``roundoff_samples`` runs (the optimiser's, ``calibration.optim.fit.roundoff_stop``), reused.
+    All runs go to ``workers`` (a ``calibration.batch.workers.Workers``) when given.
+    Returns ``(verdict, uncertainty or None)``."""
     check_grid_options(grid_ratio, grid_draws, grid_levels)
     J = np.asarray(J, float)
-    scatter = None
-    if roundoff_samples and np.all(np.isfinite(J)):
+    finite = np.all(np.isfinite(J))
+    if not (roundoff_samples and finite):
+        scatter = None
+    elif scatter is None:
         scatter = model_scatter(objective, theta, r, J, samples=roundoff_samples, workers=workers)
     verdict = assess_fit(r, objective.row_scale, objective.blocks, theta, converged=converged, message=message,
                          bounds=objective.bounds, noise=noise, J=J if scatter is not None else None,
                          scatter=scatter)
-    unc = None
-    if uncertainty:
-        sampling = None
-        if sampling_seeds and np.all(np.isfinite(J)):
-            sampling = sampling_scatter(objective, theta, r, J, seeds=sampling_seeds, workers=workers)
-        grid, grid_note = None, ""
-        if grid_ratio is not None and np.all(np.isfinite(J)):
-            try:
-                grid = grid_shift(objective, theta, J, ratio=grid_ratio, draws=grid_draws, levels=grid_levels,
-                                  workers=workers)
-            except ValueError as error:
-                grid_note = str(error)
-            else:
-                if grid is None:
-                    grid_note = f"no run at {grid_ratio:g} × dx ran without status bits"
-        unc = gauss_newton_uncertainty(J, r, objective.keys, theta, objective.blocks, objective.row_scale,
-                                       noise=noise, bounds=objective.bounds, verdict=verdict, scatter=scatter,
-                                       sampling=sampling, grid=grid, grid_note=grid_note,
-                                       reference_noise=reference_noise, threshold=threshold)
-    return verdict, unc
+    if not uncertainty:
+        return verdict, None
+    sampling = None
+    if sampling_seeds and finite:
+        sampling = sampling_scatter(objective, theta, r, J, seeds=sampling_seeds, workers=workers)
+    grid, grid_note = None, ""
+    if grid_ratio is not None and finite:
+        try:
+            grid = grid_shift(objective, theta, J, ratio=grid_ratio, draws=grid_draws, levels=grid_levels,
+                              workers=workers)
+        except ValueError as error:
+            grid_note = str(error)
+        else:
+            if grid is None:
+                grid_note = f"no run at {grid_ratio:g} × dx ran without status bits"
+    return verdict, gauss_newton_uncertainty(J, r, objective.keys, theta, objective.blocks, objective.row_scale,
+                                             noise=noise, bounds=objective.bounds, verdict=verdict, scatter=scatter,
+                                             sampling=sampling, grid=grid, grid_note=grid_note,
+                                             reference_noise=reference_noise, threshold=threshold)

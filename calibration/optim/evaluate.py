@@ -1,10 +1,8 @@
 """The model at a batch of points z, as the optimisers see it.
 
-An ``Evaluation`` holds the runs at k points: the physical θ, the loss, the status bits, the
-gradient, and (for Levenberg–Marquardt) the residuals and their Jacobians in θ and in z. The
-evaluators make one from the rows z that ``calibration.optim.loop.run`` asks for: ``evaluator``
-for a single fit (forward mode, central differences or the reverse-mode gradient; in worker
-processes where there are several), ``BatchEvaluator`` for a search's batch of starts.
+An ``Evaluation`` holds the runs at k points; the evaluators make one from the rows z that
+``calibration.optim.loop.run`` asks for: ``evaluator`` for a single fit, ``BatchEvaluator`` for a
+search's batch of starts.
 """
 
 from __future__ import annotations
@@ -20,7 +18,7 @@ import numpy as np
 from ..batch.workers import jacobians_z
 from ..problem.protocol import ObjectiveLike
 
-__all__ = ["BatchEvaluator", "Evaluation", "evaluator", "parallel_evaluator"]
+__all__ = ["BatchEvaluator", "Evaluation", "evaluator"]
 
 
 class Evaluation(NamedTuple):
@@ -46,7 +44,7 @@ def evaluator(objective: ObjectiveLike, rev: bool, workers=None) -> Callable[[np
     bounds = objective.bounds
     z_space = objective.jacobian == "ad"  # else central differences in θ (``residuals_and_jacobian``)
     if z_space and not rev and workers is not None and workers.parallel:
-        return parallel_evaluator(objective, workers)
+        return lambda Z: _of_jacobians(bounds, Z, *jacobians_z(objective, Z, workers), with_grad_z=True)
 
     def one(z):
         theta = np.asarray(bounds.to_physical(jnp.asarray(z)))
@@ -78,21 +76,16 @@ def evaluator(objective: ObjectiveLike, rev: bool, workers=None) -> Callable[[np
     return evaluate
 
 
-def parallel_evaluator(objective: ObjectiveLike, workers) -> Callable[[np.ndarray], Evaluation]:
-    """``evaluator`` for forward-mode LM with the passes in ``workers``: the same Evaluation."""
-    bounds = objective.bounds
-
-    def evaluate(Z):
-        r, Jz, J, pred = jacobians_z(objective, Z, workers)
-        r, Jz, J = np.asarray(r, float), np.asarray(Jz, float), np.asarray(J, float)
-        with np.errstate(invalid="ignore", over="ignore"):  # dθ/dz = 0 at a bound: J, |g| inf
-            g = np.einsum("kmn,km->kn", 2.0 * J, r)
-        g_z = np.einsum("kmn,km->kn", 2.0 * Jz, r)
-        return Evaluation(theta=np.asarray(bounds.to_physical(jnp.asarray(Z)), float), loss=np.sum(r * r, axis=1),
-                          status=np.asarray(pred["status"], int).reshape(-1), grad=g, residuals=r, jacobian=J,
-                          jacobian_z=Jz, grad_z=g_z, prediction=pred)
-
-    return evaluate
+def _of_jacobians(bounds, Z, r, Jz, J, pred, *, with_grad_z: bool) -> Evaluation:
+    """The ``Evaluation`` of forward-mode runs at the rows Z from their residuals r (k, m) and
+    Jacobians Jz, J (k, m, n) in z and θ; ``grad_z`` only ``with_grad_z``."""
+    r, Jz, J = np.asarray(r, float), np.asarray(Jz, float), np.asarray(J, float)
+    with np.errstate(invalid="ignore", over="ignore"):  # dθ/dz = 0 at a bound: J, |g| inf
+        g = np.einsum("kmn,km->kn", 2.0 * J, r)
+    g_z = np.einsum("kmn,km->kn", 2.0 * Jz, r) if with_grad_z else None
+    return Evaluation(theta=np.asarray(bounds.to_physical(jnp.asarray(Z)), float), loss=np.sum(r * r, axis=1),
+                      status=np.asarray(pred["status"], int).reshape(-1), grad=g, residuals=r, jacobian=J,
+                      jacobian_z=Jz, grad_z=g_z, prediction=pred)
 
 
 class BatchEvaluator:
@@ -123,9 +116,4 @@ class BatchEvaluator:
             self.compile_s += time.perf_counter() - clock  # the first call of a shape: compile + one run
         self.evaluations += size
         r, Jz, J = (np.array(a[:b], float) for a in (r, Jz, J))
-        pred = jax.tree.map(lambda a: a[:b], pred)
-        with np.errstate(invalid="ignore", over="ignore"):  # dθ/dz = 0 at a bound: J, |g| inf
-            g = np.stack([2.0 * J_.T @ r_ for J_, r_ in zip(J, r)])
-        return Evaluation(theta=np.asarray(objective.bounds.to_physical(jnp.asarray(Z)), float),
-                          loss=np.sum(r * r, axis=1), status=np.asarray(pred["status"], int).reshape(-1), grad=g,
-                          residuals=r, jacobian=J, jacobian_z=Jz, grad_z=None, prediction=pred)
+        return _of_jacobians(objective.bounds, Z, r, Jz, J, jax.tree.map(lambda a: a[:b], pred), with_grad_z=False)

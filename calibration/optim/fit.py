@@ -1,36 +1,12 @@
 """Fitting: Levenberg–Marquardt on the residual Jacobian, or optax Adam, with a resumable history.
 
-Both optimisers work on unconstrained z (``calibration.problem.bounds``), so every iterate is a
-physical parameter set. Each iteration is one model evaluation. ``fit`` runs one start (a batch
-of one) of the optimiser through the driver loop ``calibration.optim.loop.run``, which records every
-iteration in a ``calibration.optim.history.History``:
-
-- ``method="lm"``: Levenberg–Marquardt with Marquardt's diagonal scaling
-  (``calibration.optim.lm.levenberg_marquardt``: the step and the stopping rules the batched
-  ``calibration.optim.search`` uses too). Every evaluation returns the residuals and their Jacobian
-  together (forward mode, one batched tangent pass); a trial step is accepted when the loss
-  falls and the run has no status bits. A run that fails (status bits: the flow left the grid,
-  non-finite stress, ...) is a rejected trial, reported in the history; a failing run at the
-  start is an error.
-- ``method="adam"``: optax Adam with gradient clipping and a cosine learning-rate schedule
-  (``calibration.optim.adam``); the gradient comes from forward mode (``grad_mode="fwd"``, J_θᵀ r) or
-  reverse mode through the checkpointed rollout (``"rev"``). The best iterate is returned.
-
-The result carries a ``Verdict`` (``calibration.inference.verdict.judge_point``): a point that is not a
-verified minimum (LM stopped on its rejection or step budget), sits at a bound, or leaves a misfit
-well above the noise is "not a fit of the data", and its uncertainty holds no interval. A scene
-value on a bound (S4's β = 0) is not a usable start: the fit starts inside (``start_theta``) and
-``start_note`` says where.
-
-After every iteration the whole history (θ, z, loss, gradient norm, status, accepted flag, λ,
-wall time) and what is needed to continue (LM: the accepted point and λ; Adam: the current
-point and the optimiser state) is written to ``out`` (HDF5, written to a temporary file and
-renamed, so a kill never leaves a partial file). ``resume=True`` continues from that file
-exactly where it stopped (LM runs its accepted point again, not counted as an iteration): the
-resumed trajectory equals the uninterrupted one. The file records the objective's
-``fingerprint`` (the data's content, the scene and every option that changes the loss), and a
-resume refuses an objective whose fingerprint differs, naming what differs; it also refuses a
-missing file. An existing file is never replaced by a new fit unless ``overwrite=True``.
+``fit`` runs one start (a batch of one) of ``calibration.optim.lm`` or ``calibration.optim.adam``
+in the unconstrained z (every iterate is a physical parameter set) through the driver loop
+``calibration.optim.loop.run``, one model evaluation per iteration. Every iteration is written to
+``out`` (``calibration.optim.history``), from which ``resume=True`` continues exactly where it
+stopped. The result carries a ``Verdict`` (``calibration.inference.verdict.judge_point``): a point
+that is not a verified minimum, sits at a bound or leaves a misfit well above the noise is "not a
+fit of the data", and gets no interval. docs/fitting.md describes the steps and the stops.
 """
 
 from __future__ import annotations
@@ -50,6 +26,7 @@ import numpy as np
 from ..batch.workers import using
 from ..inference.gauss_newton import Uncertainty
 from ..inference.options import JudgeOptions
+from ..inference.scatter import model_scatter, roundoff_limit
 from ..inference.verdict import Verdict, judge_point
 from ..problem.protocol import ObjectiveLike
 from .adam import adam
@@ -60,10 +37,13 @@ from .loop import run, status_text
 from .options import FitOptions, split_fields
 from .record import write_record
 
-__all__ = ["FitResult", "start_theta", "fit"]
+__all__ = ["FitResult", "start_theta", "fit", "roundoff_stop", "measured_at", "ROUNDOFF_CHECK_AFTER"]
 
 
-#: The optimiser options a resume must share with the file (the others may change).
+#: LM's point is judged against the run's round-off scatter after this many rejected steps in a row.
+ROUNDOFF_CHECK_AFTER = 2
+
+
 @dataclasses.dataclass
 class FitResult:
     keys: tuple[str, ...]
@@ -131,8 +111,6 @@ def start_theta(objective: ObjectiveLike, init: Mapping[str, float] | None) -> t
     return theta, note
 
 
-
-
 def _snapshot(state) -> dict[str, Any]:
     """What a resume needs from the state of one start, by the names of the history file: LM's
     accepted point and λ; Adam's current point and optax state (λ NaN)."""
@@ -162,33 +140,17 @@ def fit(objective: ObjectiveLike, init: Mapping[str, float] | None = None, *, op
         progress: bool = False, callback: Callable | None = None, meta: Mapping[str, Any] | None = None,
         workers=None, **fields) -> FitResult:
     """Fit ``objective.keys`` from ``init`` (physical values by key; missing keys start at the
-    scene's values). How it runs is ``options`` (``calibration.optim.options.FitOptions``) and how its
-    end point is judged ``judge`` (``JudgeOptions``); any of their fields may also be given by
-    name (``steps=10``, ``grid_ratio=1.5``), replacing the object's value. ``steps``: the
-    maximum number of iterations (model evaluations), counted
-    over resumes. ``out``: the HDF5 history file; ``resume``: continue from it (it must exist
-    and hold a fit of the same objective: same fingerprint, keys, method and optimiser options);
-    ``overwrite``: replace an existing ``out`` with a new fit (without it an existing file is an
-    error, so that no history is lost by accident). ``noise``: the
-    known noise per residual block, for the uncertainty (None: estimated from the residuals).
-    LM stops when the decrease its linearised model promises for the next step is below
-    ``stat_tol`` × n σ² (σ² = loss / (m − n), what fitting pure noise would promise: the step is
-    then a fraction sqrt(stat_tol) of a standard error, and the loss differences are at the
-    level of the runs' round-off or chaotic scatter), when an accepted step lowers the loss by
-    less than ``ftol`` (relative) or moves θ by less than ``xtol`` (relative), or after
-    ``max_rejections`` rejected steps in a row.
-    ``callback(iteration, record)`` is called after each iteration is written.
-    ``roundoff_samples`` perturbed runs at the end point measure the run's own round-off scatter
-    for the verdict and the interval (``uncertainty.model_scatter``; 0: not measured);
-    ``sampling_seeds`` other draws of the particles add the sampling's share to the interval
-    (``uncertainty.sampling_scatter``; 0, the default: not measured); ``reference_noise`` and
-    ``threshold`` decide which parameters count as constrained. ``grid_ratio``: the grid's
-    share of the interval from the objective rebuilt at that multiple of its dx, ``grid_draws``
-    particle draws there (``uncertainty.grid_shift``; None, the default: not measured; the
-    command line's ``--grid-check`` is 1.5). ``workers``: an integer or a
-    ``calibration.batch.workers.Workers``; with more than one, each iteration's forward-mode passes
-    (one per key) and the verdict's extra runs go to that many single-threaded processes (the
-    same numbers as one process; None or 1: everything in this process)."""
+    scene's values, moved off a bound: ``start_theta``). How it runs is ``options``
+    (``FitOptions``: the method, ``steps`` counted over resumes, LM's stops) and how its end point
+    is judged ``judge`` (``JudgeOptions``: noise, round-off, sampling and grid terms); any of their
+    fields may also be given by name (``steps=10``, ``grid_ratio=1.5``), replacing the object's
+    value. ``out``: the HDF5 history file; ``resume``: continue from it (it must exist and hold a
+    fit of the same objective: same fingerprint, keys, method and optimiser options);
+    ``overwrite``: replace an existing ``out`` (without it an existing file is an error, so that no
+    history is lost by accident). ``callback(iteration, record)`` is called after each iteration
+    is written. ``workers``: an integer or a ``calibration.batch.workers.Workers``; with more than
+    one, each iteration's forward-mode passes and the verdict's extra runs go to that many
+    single-threaded processes (the same numbers as one process)."""
     run_fields, judge_fields = split_fields(fields)
     options = dataclasses.replace(options or FitOptions(), **run_fields)
     judge = dataclasses.replace(judge or JudgeOptions(), **judge_fields)
@@ -210,13 +172,52 @@ def fit(objective: ObjectiveLike, init: Mapping[str, float] | None = None, *, op
         evaluate = evaluator(objective, rev=method == "adam" and options.grad_mode == "rev", workers=workers)
         if method == "lm" and history.iterations:  # resumed: run the accepted point again (not an iteration)
             state = optimiser.update(evaluate(state.z_next), state)
+        scatters: dict = {}
+        stop = roundoff_stop(objective, judge.roundoff_samples, workers, scatters) if method == "lm" else None
         with _progress(objective.keys, history, options, progress, callback) as report:
             state = run(optimiser, state, evaluate, history, steps=options.steps,
-                        check_start=_check_start if method == "lm" else None, report=report)
-        result = _result(objective, state, history, method, start_note, judge, workers)
+                        check_start=_check_start if method == "lm" else None, report=report, stop=stop)
+        result = _result(objective, state, history, method, start_note, judge, workers, scatters)
     if path is not None:
         write_record(path, result)
     return result
+
+
+def roundoff_stop(objective: ObjectiveLike, samples: int, workers, scatters: dict):
+    """The loop's ``stop`` for LM: a start whose last ``ROUNDOFF_CHECK_AFTER`` steps were rejected
+    is converged when its remaining Gauss–Newton step lies within the run's round-off scatter, as
+    the verdict judges it (``roundoff_limit``): no run can resolve a better point. The scatter is
+    measured once per start (``model_scatter``, ``samples`` perturbed runs; 0: never) and kept in
+    ``scatters`` as {start: (θ, scatter)}, for the verdict to reuse at the same point."""
+    n = len(objective.keys)
+
+    def stop(state):
+        check = ~state.done & (state.rejections == ROUNDOFF_CHECK_AFTER) if samples >= 2 else []
+        done, message, c = state.done.copy(), state.message.copy(), state.current
+        for i in np.flatnonzero(check):
+            if i not in scatters and np.all(np.isfinite(c.jacobian[i])):
+                scatter = model_scatter(objective, c.theta[i], c.residuals[i], c.jacobian[i], samples=samples,
+                                        workers=workers)
+                scatters[i] = (np.array(c.theta[i]), scatter)
+            scatter = scatters.get(i, (None, None))[1]
+            if scatter is None:
+                continue
+            distance, limit = scatter.gauss_newton_distance(c.jacobian[i], c.residuals[i]), roundoff_limit(
+                n, scatter.samples)
+            if distance <= limit:
+                done[i] = True
+                message[i] = (f"converged within the run's round-off: the remaining Gauss–Newton step is "
+                              f"{distance:.2g} standard deviations of the scatter {scatter.samples} perturbed runs "
+                              f"show (limit {limit:.2g})")
+        return state._replace(done=done, message=message)
+
+    return stop
+
+
+def measured_at(scatters: dict, start: int, theta):
+    """The scatter ``roundoff_stop`` measured for ``start`` if it was measured at ``theta``, else None."""
+    theta0, scatter = scatters.get(start, (None, None))
+    return scatter if theta0 is not None and np.array_equal(theta0, theta) else None
 
 
 def file_header(objective, options: FitOptions, judge: JudgeOptions, meta) -> dict[str, Any]:
@@ -278,7 +279,8 @@ def _progress(keys, history, options: FitOptions, progress: bool, callback):
             bar.close()
 
 
-def _result(objective, state, history, method: str, start_note: str, judge: JudgeOptions, workers) -> FitResult:
+def _result(objective, state, history, method: str, start_note: str, judge: JudgeOptions, workers,
+            scatters: dict) -> FitResult:
     """The fit's result: its best valid iterate (LM's accepted point, with its run; else run again
     for its Jacobian), judged (``judge_point``)."""
     keys = objective.keys
@@ -299,7 +301,7 @@ def _result(objective, state, history, method: str, start_note: str, judge: Judg
         loss_b = float(np.sum(r_b * r_b))
     converged = done and message.startswith("converged")
     verdict, unc = judge_point(objective, r_b, J_b, theta_best, converged=converged, message=message,
-                               workers=workers, **judge.kwargs())
+                               workers=workers, scatter=measured_at(scatters, 0, theta_best), **judge.kwargs())
     return FitResult(keys=keys, theta={k: float(v) for k, v in zip(keys, theta_best)}, loss=float(loss_b),
                      iterations=len(hist["loss"]), wall_s=float(hist["wall_s"][-1]) if len(hist["wall_s"]) else 0.0,
                      method=method, converged=converged, message=message, history=hist, residuals=r_b, jacobian=J_b,

@@ -1,18 +1,10 @@
 """The history of a fit: one row per iteration (model evaluation) and start, saved and resumed.
 
-A ``History`` records, per start, the fields ``FIELDS`` (θ, z, loss, gradient norm |dloss/dθ|,
-status, accepted flag, LM's λ, wall time). With a ``path`` (one start) it writes the whole
-history after every iteration, with the file's attributes (keys, method, options, the
-objective's ``describe()`` and ``fingerprint``, meta, the message) and what the optimiser needs
-to continue (``snapshot(state)``: named arrays, and whether the fit is done), to a temporary file
-that is then renamed (``atomic_h5``), so a kill never leaves a partial file.
-
-``History.resume`` reads such a file (``read_history``) and continues it; it refuses a file of
-another method or keys, other optimiser options, or another problem: the objective's
-``fingerprint`` (the data's content, the scene and every option that changes the loss) must be
-the same, and the error names what differs and the command-line option that sets it.
-``check_out`` applies the rules for the file before any work: a resume needs an existing file,
-and an existing file is never replaced by a new fit unless asked to.
+A ``History`` records, per start, the fields ``FIELDS``; with a ``path`` (one start) it rewrites
+the whole file atomically after every iteration, with what the optimiser needs to continue.
+``History.resume`` continues such a file and refuses one of another method, keys, optimiser
+options or problem (``fingerprint``), naming what differs. ``check_out`` applies the rules for the
+file before any work.
 """
 
 from __future__ import annotations
@@ -33,8 +25,6 @@ __all__ = ["FIELDS", "read_history", "check_out", "History"]
 
 
 FIELDS = ("theta", "z", "loss", "grad_norm", "status", "accepted", "lam", "wall_s")
-
-
 
 
 class _NotAHistory(Exception):
@@ -108,17 +98,14 @@ _FINGERPRINT_OPTIONS = {
 
 
 def _flatten(value, prefix="") -> dict[str, Any]:
+    """Nested dicts (and lists of dicts) as {"a.b[0].c": leaf}."""
     if isinstance(value, dict):
-        out = {}
-        for k, v in value.items():
-            out.update(_flatten(v, f"{prefix}.{k}" if prefix else str(k)))
-        return out
-    if isinstance(value, list) and value and all(isinstance(v, dict) for v in value):
-        out = {}
-        for i, v in enumerate(value):
-            out.update(_flatten(v, f"{prefix}[{i}]"))
-        return out
-    return {prefix: value}
+        items = [(f"{prefix}.{k}" if prefix else str(k), v) for k, v in value.items()]
+    elif isinstance(value, list) and value and all(isinstance(v, dict) for v in value):
+        items = [(f"{prefix}[{i}]", v) for i, v in enumerate(value)]
+    else:
+        return {prefix: value}
+    return {key: leaf for name, v in items for key, leaf in _flatten(v, name).items()}
 
 
 def _fingerprint_differences(saved: dict, now: dict) -> list[str]:

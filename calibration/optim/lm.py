@@ -1,41 +1,12 @@
 """Levenberg–Marquardt in the unconstrained variables z, for a batch of starts, as an ``(init, update)`` pair.
 
-``fit`` (one start: a batch of one) and ``search`` (k starts at once) both run
-``levenberg_marquardt(options)`` through ``calibration.optim.loop.run``, so both take exactly the same
-steps and stop by exactly the same rules:
-
-- ``propose(r, Jz, lam)``: the damped Gauss–Newton step with Marquardt's diagonal scaling,
-  (JᵀJ + λ diag JᵀJ) δ = −Jᵀr, shortened to at most ``MAX_STEP`` in every z (the bounds'
-  sigmoid saturates beyond |z| ≈ 5: one long step would land where dθ/dz ≈ 0 and the Jacobian
-  vanishes, a point no later step can leave), and the loss decrease the linear model promises
-  at its own minimum (the undamped Gauss–Newton step's: what is left to gain, whatever λ);
-- ``judge(...)``: accept a trial when its run has no status bits and its loss is lower; λ falls
-  by 3 after a success and rises by 4 after a failure; and the stopping tests: *converged* when
-  the promised decrease is below ``stat_tol`` × n σ² (σ² = loss / (m − n), what fitting pure
-  noise would promise), when an accepted step lowers the loss by less than ``ftol`` (relative)
-  or moves θ by less than ``xtol`` (relative), or when rejected steps are shorter than ``xtol``;
-  *stopped* (not a verified minimum) after ``max_rejections`` rejected steps in a row.
-
-The state (``LMState``) holds the accepted point and its evaluation, λ, the rejections in a
-row and the next trial. Its first evaluation is at the starts themselves: a start whose run
-fails (status bits, a non-finite loss) is done with a message that begins "stopped".
-
-Arrays carry a leading batch axis k; everything is numpy (the model runs are the cost).
-
-Written here rather than taken from optimistix (``LevenbergMarquardt``, measured against this one
-by ``docs/scripts/library_check.py``): optimistix differentiates the residual function inside
-its own jitted loop, so a run compiled apart or spread over worker processes could only enter
-through a per-step linear surrogate or a callback; it damps with λ·I (no Marquardt scaling, no
-step cap for the sigmoid bounds), accepts a failed run at the start, and has neither the
-statistical stop nor ``max_rejections`` nor a converged/stopped verdict. On five test problems it
-took 1.2–2.3 times the model evaluations of this one to reach the same minimum.
-
-The statistical stop judges the undamped step's promise, not the damped step's: after rejected
-steps λ is large, the damped step short, and its promise small wherever the minimum is. Judged
-on the damped promise, Osborne 1 (MGH 17, in ``docs/scripts/library_check.py``) stopped 1.29
-standard errors from its minimum with a loss 1.83 σ² above it, where the rule allows 0.5 σ²;
-judged on the Gauss–Newton promise it stops 0.34 standard errors away, 0.29 σ² above (24 runs
-instead of 15), and the four other problems stop where they did.
+``fit`` (a batch of one) and ``search`` (k starts) both run ``levenberg_marquardt(options)``
+through ``calibration.optim.loop.run``, so both take the same steps and stop by the same rules:
+``propose`` gives the damped, Marquardt-scaled step and the loss decrease the linear model
+promises; ``judge`` accepts or rejects the trials, adapts λ and applies the stopping tests. A start
+whose first run fails is done with a message that begins "stopped". Arrays carry a leading batch
+axis k; everything is numpy (the model runs are the cost). The rules, and why this is not
+optimistix's ``LevenbergMarquardt``: docs/fitting.md.
 """
 
 from __future__ import annotations
@@ -56,10 +27,6 @@ __all__ = ["LAM0", "LMOptions", "propose", "judge", "LMState", "levenberg_marqua
 LAM0 = 1e-3
 
 
-#: The longest step in any unconstrained variable z: 2 moves a value at the middle of its bounds
-#: to 12 % of the range from a bound, and never into the sigmoid's flat tail in one step.
-
-
 @dataclasses.dataclass(frozen=True)
 class LMOptions:
     xtol: float = 1e-6
@@ -72,7 +39,9 @@ def propose(r, Jz, lam):
     """Steps δ (k, n) and promised decreases (k,) from residuals r (k, m), their Jacobian in z,
     Jz (k, m, n), and the damping λ (k,). The promise is the linear model's decrease at its
     minimum (the undamped Gauss–Newton step, by least squares where JᵀJ is singular), not the
-    damped step's (module docstring)."""
+    damped step's: after rejected steps λ is large and the damped promise small wherever the
+    minimum is. The step is capped at ``MAX_STEP`` in every z, so that no step lands in the
+    bounds' flat sigmoid tail (dθ/dz ≈ 0), which no later step could leave."""
     r, Jz, lam = np.asarray(r, float), np.asarray(Jz, float), np.asarray(lam, float)
     A = np.einsum("kmi,kmj->kij", Jz, Jz)
     diag = np.diagonal(A, axis1=1, axis2=2)

@@ -1,21 +1,13 @@
 """One driver loop for the optimisers of ``calibration.optim.lm`` and ``.adam``, on a batch of starts.
 
 An optimiser is an ``(init, update)`` pair in the style of ``optax.GradientTransformation``, on
-k starts at once in the unconstrained variables z (``calibration.problem.bounds``):
-
-- ``init(z) -> state``: z (k, n) the starts;
-- ``update(evaluation, state) -> state``: ``evaluation`` holds the model runs at
-  ``state.z_next``, the points the state asks for next.
-
-Every state carries, per start, ``z_next``, ``accepted`` (the last evaluation was taken),
-``done`` and ``message`` (empty while a start goes on; a finished start's begins with
-"converged", a verified minimum, or "stopped"). ``run`` owns the rest: it evaluates the starts
-that are not done in one call (``fit``: a batch of one; ``search``: the active starts, which
-``search`` pads to its compiled batch sizes), updates them, records every iteration in a
-``calibration.optim.history.History`` (which saves itself after each) and stops when every start is
-done or the history holds ``steps`` iterations (model evaluations per start).
-
-Everything is numpy with a leading batch axis (the model runs are the cost).
+k starts at once in the unconstrained z: ``init(z) -> state`` from the starts z (k, n), and
+``update(evaluation, state) -> state`` from the runs at ``state.z_next``. Every state carries, per
+start, ``z_next``, ``accepted`` (the last evaluation was taken), ``done`` and ``message`` (empty
+while a start goes on; a finished start's begins with "converged", a verified minimum, or
+"stopped"). ``run`` owns the rest: evaluating the starts that are not done, recording every
+iteration in a ``calibration.optim.history.History``, and stopping. Everything is numpy with a
+leading batch axis (the model runs are the cost).
 """
 
 from __future__ import annotations
@@ -31,8 +23,6 @@ from jaxmpm import describe_status
 from .evaluate import Evaluation
 
 __all__ = ["Optimiser", "status_text", "where_rows", "run"]
-
-
 
 
 class Optimiser(NamedTuple):
@@ -73,15 +63,16 @@ def _put(state, rows, part):
 
 def run(optimiser: Optimiser, state, evaluate: Callable[[np.ndarray], Evaluation], history, *, steps: int,
         check_start: Callable[[Evaluation], None] | None = None,
-        report: Callable[[Any, np.ndarray], None] | None = None):
+        report: Callable[[Any, np.ndarray], None] | None = None, stop: Callable[[Any], Any] | None = None):
     """Evaluate and update the starts of ``state`` until every one is done or ``history``
     holds ``steps`` iterations; returns the final state, in which a start that ran out of
     iterations has the message "stopped after N iterations (steps = ...)".
 
     ``evaluate(z)``: the model at the rows z (b, n) of the starts that are not done.
     ``check_start(evaluation)``: called with the first evaluation of an empty history before
-    it is recorded (it raises to refuse the starts). ``report(state, rows)``: called after
-    each iteration is recorded and saved, with the rows that took part."""
+    it is recorded (it raises to refuse the starts). ``stop(state) -> state``: after each update,
+    may end starts the optimiser would go on with (``done``, with their message). ``report(state,
+    rows)``: called after each iteration is recorded and saved, with the rows that took part."""
     while history.iterations < steps and not state.done.all():
         rows = np.flatnonzero(~state.done)
         z = state.z_next[rows]
@@ -89,6 +80,8 @@ def run(optimiser: Optimiser, state, evaluate: Callable[[np.ndarray], Evaluation
         if check_start is not None and not history.iterations:
             check_start(evaluation)
         state = _put(state, rows, optimiser.update(evaluation, _take(state, rows)))
+        if stop is not None:
+            state = stop(state)
         history.record(rows, z, evaluation, state)
         if report is not None:
             report(state, rows)

@@ -24,10 +24,8 @@ GRAD_MODES = ("fwd", "rev")
 class FitOptions:
     """How a fit runs. ``method``: "lm" (Levenberg–Marquardt) or "adam"; ``steps``: the most
     iterations (model evaluations), counted over resumes; ``learning_rate``, ``clip``,
-    ``grad_mode`` ("fwd" or "rev"): Adam's; LM stops when the decrease its linearised model
-    promises is below ``stat_tol`` × n σ², when an accepted step lowers the loss by less than
-    ``ftol`` or moves θ by less than ``xtol`` (relative), or after ``max_rejections`` rejected
-    steps in a row (``calibration.optim.fit.fit`` says more)."""
+    ``grad_mode`` ("fwd" or "rev"): Adam's; ``xtol``, ``ftol``, ``stat_tol``, ``max_rejections``:
+    LM's stopping tests (``calibration.optim.lm``, docs/fitting.md)."""
 
     method: str = "lm"
     steps: int = 30

@@ -1,10 +1,8 @@
 """A fit's end point kept in its file, for the commands that come after it.
 
-``write_record(path, result)`` adds to a fit's HDF5 file (its history, ``calibration.optim.history``)
-what the checks beyond Gauss–Newton need of the fit: its point, residuals and interval (the
-noise by block, the covariance, the standard errors and the grid term) and the fit's JSON.
-``read_record(path)`` gives it back as a ``FitRecord``, with the file's header (the setup the
-objective was built from, its fingerprint): what ``python -m calibration posterior`` reads.
+``write_record(path, result)`` adds to a fit's HDF5 history file what the checks beyond
+Gauss–Newton need of the fit; ``read_record(path)`` gives it back as a ``FitRecord``, with the
+file's header: what ``python -m calibration posterior`` reads.
 """
 
 from __future__ import annotations

@@ -19,10 +19,9 @@ __all__ = ["fit_report", "PosteriorChecks", "PosteriorOptions", "posterior_check
 
 def fit_report(objective: ObjectiveLike, result, search=None) -> dict[str, Any]:
     """The JSON of a fit (``FitResult``) or of a search (``SearchResult``, whose best point is
-    ``result``): the result's own fields, the residuals in metres (RMS of the profiles and of
-    every block), the front residuals' correlation where a front history was fitted, the notes on
-    the bounds and a warning for any key that ended at a bound. What ``python -m calibration fit``
-    prints, less the command's own fields (scene, files, outputs)."""
+    ``result``): the result's own fields, the residuals in metres, the front residuals'
+    correlation, the notes on the bounds and a warning for any key that ended at a bound. What
+    ``python -m calibration fit`` prints, less the command's own fields (scene, files, outputs)."""
     out = search.to_json() if search is not None else result.to_json()
     metres = objective.in_metres(result.residuals)
     profile = [v for name, v in metres.items() if "profile" in name]
@@ -45,15 +44,14 @@ def fit_report(objective: ObjectiveLike, result, search=None) -> dict[str, Any]:
 @dataclasses.dataclass(frozen=True)
 class PosteriorOptions:
     """Which checks beyond Gauss–Newton to run on a fit's point (each 0: off), validated once:
-    ``profiles`` points per key of the profile likelihood (>= 3), ``posterior`` points per key of
-    the grid posterior of one or two keys (>= 3), ``nuts`` draws per chain of the NUTS posterior
-    (>= 4) on ``chains`` chains, ``emulated`` model runs checking the emulated posterior (>= 30;
-    it compares ``chains`` >= 2 chains) with its ``emulator`` (``EMULATORS``); ``model_error``:
-    the model's own error in every check's likelihood from that many particle draws and the grid
-    term's coarse runs at the point (0 or >= 2; ``calibration.inference.likelihood.model_error``,
-    on the grid ``grid_ratio`` times coarser, 1.5 where that is off); ``prior``: {key:
-    (mean, sd)}, keys measured elsewhere, a normal prior of the NUTS and emulated posteriors;
-    ``grid_ratio`` (None: off) and ``grid_levels``: those posteriors' grid term."""
+    ``profiles`` points per key of the profile likelihood, ``posterior`` points per key of the
+    grid posterior of one or two keys, ``nuts`` draws per chain of the NUTS posterior on
+    ``chains`` chains, ``emulated`` model runs checking the emulated posterior with its
+    ``emulator``; ``model_error``: particle draws measuring the model's own error at the point
+    (``calibration.inference.likelihood.model_error``, at ``grid_ratio``, 1.5 where that is off);
+    ``prior``: {key: (mean, sd)}, a normal prior of the NUTS and emulated posteriors;
+    ``grid_ratio`` (None: off) and ``grid_levels``: those posteriors' grid term. The least values
+    are checked in ``__post_init__``."""
 
     profiles: int = 0
     posterior: int = 0
@@ -102,15 +100,11 @@ class PosteriorChecks:
 def posterior_checks(objective, result, options: PosteriorOptions, *, noise=None, workers=None,
                      progress: bool = False) -> PosteriorChecks:
     """The checks of ``options`` around ``result``, a fit of ``objective`` (``noise``: the data's
-    known noise, None: the fit's, given or estimated). The profile likelihoods, the grid posterior
-    and NUTS need the point's interval: without one they are skipped, with the reason in the
-    report; the grid posterior also for more than two keys. The emulated posterior needs no
-    interval, so it runs where the verdict refuses one too, centred on the point. The model's own
-    error at the point (``options.model_error``) is added in quadrature to the noise of every
-    check's likelihood (reported as "model_error" and "posterior_noise"; where it cannot be
-    measured, "model_error_skipped" says why). The emulated posterior carries its ``prior_sensitivity`` where a key's
-    box spans decades. The profile likelihood's and the grid posterior's intervals get the fit's
-    own grid term where it carries one (``ci95_profile_with_grid``, ``ci95_with_grid``). What
+    known noise, None: the fit's). The profile likelihoods, the grid posterior and NUTS need the
+    point's interval and are skipped without one, with the reason in the report; the emulated
+    posterior needs none and runs centred on the point. The model's own error at the point
+    (``options.model_error``) is added in quadrature to the noise of every check's likelihood, and
+    the fit's grid term to the profile and grid-posterior intervals where it carries one. What
     ``python -m calibration posterior`` runs."""
     if not options.any:
         return PosteriorChecks()

@@ -1,26 +1,12 @@
 """Global search: multi-start Levenberg–Marquardt with every start in one vmapped batch.
 
 ``search(objective, starts=8)`` draws k starts from a space-filling design over the bounded box
-(scrambled Sobol points, seeded, or scipy's Latin hypercube; rows that break the engine's rules,
-e.g. μ1 > μ2, are skipped), and runs LM from all of them at once, in the unconstrained variables
-z of ``calibration.problem.bounds``: one ``jit(vmap(...))`` call per iteration evaluates the residuals
-and their forward-mode Jacobian dr/dz of every active start (the bounds map is inside the traced
-function, so autodiff applies its chain rule). The optimiser is ``calibration.optim.lm``'s
-``levenberg_marquardt`` and the loop ``calibration.optim.loop.run``, the same as the single-start
-``fit`` uses, here on a batch of k starts with a ``calibration.optim.history.History`` of k rows and
-no file; a start that has stopped is frozen and leaves the batch, which shrinks to the next
-power of two that holds the active starts (at most log2 k + 1 compilations).
-
-The endpoints are then clustered: two are the same minimum when their values differ by at most
-``cluster_tol`` of the bound range in every parameter. Every distinct minimum is reported, with
-Δχ² against the best (σ given, or estimated from the best point's residual structure, see
-``calibration.inference.noise.structural_noise``), and called *within the noise of the best* when
-Δχ² is below the 95 % quantile of χ² with n (the number of fitted parameters) degrees of freedom.
-Several minima within the noise mean the data do not pick one: the answer is that set. The best
-point is judged by ``calibration.inference.verdict.assess_fit`` and gets a Gauss–Newton interval only
-when it is a fit of the data.
-
-scipy (the ``sampling`` extra) provides the designs.
+and runs ``calibration.optim.lm`` from all of them at once through ``calibration.optim.loop.run``
+(the same steps and stops as ``fit``); a start that has stopped leaves the batch, which shrinks to
+the next power of two that holds the active starts. The end points are clustered into distinct
+minima, each with its Δχ² against the best and whether it lies within the noise; the best point
+is judged as a fit's is. ``coarse_to_fine`` places the starts on a coarser grid first. How and
+why: docs/fitting.md ("The global search"). scipy (the ``sampling`` extra) provides the designs.
 """
 
 from __future__ import annotations
@@ -43,7 +29,7 @@ from ..inference.scatter import ROUNDOFF_SAMPLES
 from ..inference.verdict import judge_point
 from ..problem.protocol import ObjectiveLike
 from .evaluate import BatchEvaluator
-from .fit import FitResult, save_start, start_theta
+from .fit import FitResult, measured_at, roundoff_stop, save_start, start_theta
 from .history import History, check_out
 from .lm import LMOptions, levenberg_marquardt
 from .loop import run
@@ -68,6 +54,10 @@ WITHIN_NOISE_P = 0.95
 
 #: The coarse stage of ``coarse_to_fine``: a few iterations, stopped at 0.1 % steps or 0.01 % gains.
 COARSE_OPTIONS = {"steps": 12, "xtol": 1e-3, "ftol": 1e-4}
+
+
+#: ``dominated_stop``'s allowance for a loss falling further than its linearised model promises.
+DOMINATED_MARGIN = 10.0
 
 
 #: Starts are drawn this fraction of the range inside the bounds (the sigmoid's flat tails).
@@ -243,8 +233,34 @@ def _minima(objective: ObjectiveLike, cur, messages, order, i_best: int, noise, 
     return minima, limit
 
 
+def dominated_stop(n: int):
+    """The loop's ``stop`` for a search: a start is dropped ("stopped: dominated") once its loss,
+    less ``DOMINATED_MARGIN`` times the decrease its linearised model still promises, stays above
+    the best start's loss by more than the noise allows (Δχ² at ``WITHIN_NOISE_P`` of χ²_n, σ² the
+    best loss over m − n for m residuals, as LM's statistical stop estimates it): it cannot become
+    the best."""
+    limit = chi2_quantile(WITHIN_NOISE_P, n)
+
+    def stop(state):
+        loss = state.current.loss
+        if not np.isfinite(loss).any():
+            return state
+        best, m = int(np.nanargmin(loss)), state.current.residuals.shape[1]
+        bar = loss[best] * (1.0 + limit / max(m - n, 1))
+        with np.errstate(invalid="ignore"):
+            drop = ~state.done & (np.arange(loss.size) != best) & (loss - DOMINATED_MARGIN * state.promised > bar)
+        message = state.message.copy()
+        for i in np.flatnonzero(drop):
+            message[i] = (f"stopped: dominated by start {best}: its loss {loss[i]:.3g}, less {DOMINATED_MARGIN:g} "
+                          f"times the decrease its linearised model promises, stays above {loss[best]:.3g} by more "
+                          f"than the noise allows")
+        return state._replace(done=state.done | drop, message=message)
+
+    return stop
+
+
 def _run_starts(objective: ObjectiveLike, thetas, evaluate, steps: int, lm_options: LMOptions, progress: bool,
-                clock0: float):
+                clock0: float, stop=None):
     """LM from every row of ``thetas`` at once through ``calibration.optim.loop.run``: the final
     state and the history of k rows."""
     k = len(thetas)
@@ -262,7 +278,8 @@ def _run_starts(objective: ObjectiveLike, thetas, evaluate, steps: int, lm_optio
 
     history = History(k, t0=clock0)
     Z = np.stack([objective.bounds.to_unconstrained(t) for t in thetas])
-    state = run(optimiser, optimiser.init(Z), evaluate, history, steps=steps, check_start=check_start, report=report)
+    state = run(optimiser, optimiser.init(Z), evaluate, history, steps=steps, check_start=check_start, report=report,
+                stop=stop)
     return state, history
 
 
@@ -272,22 +289,21 @@ def search(objective: ObjectiveLike, starts: int | np.ndarray = DEFAULT_STARTS, 
            noise: Mapping[str, float] | float | None = None, uncertainty: bool = True, shrink: bool = True,
            roundoff_samples: int = ROUNDOFF_SAMPLES, sampling_seeds: int = 0, reference_noise: float = 0.01,
            threshold: float = 0.1, grid_ratio: float | None = None, grid_draws: int = GRID_DRAWS,
-           grid_levels: int = 1,
+           grid_levels: int = 1, drop_dominated: bool = False,
            progress: bool = False, workers=None) -> SearchResult:
     """Multi-start LM from ``starts`` design points (an int k) or from given physical starts
     ((k, n) array). ``init`` (physical values by key, as for ``fit``): one more start, placed
     first. ``steps``: the maximum number of model evaluations per start, as in ``fit``.
     ``cluster_tol``: endpoints closer than this fraction of every bound range are one minimum.
-    ``noise``: the known noise per block (None: estimated from the best point's residual
-    structure). ``shrink``: evaluate only the active starts (padded to a power of two).
-    ``roundoff_samples``, ``sampling_seeds``, ``reference_noise``, ``threshold``, ``grid_ratio``,
-    ``grid_draws``, ``grid_levels``: for the best point's verdict and uncertainty, as in ``fit``.
-    ``workers`` (an integer or a ``calibration.batch.workers.Workers``): with more than one, every
-    iteration's forward-mode passes (each active start's, one per key) run in that many
-    single-threaded processes instead of one vmapped batch, and so do the verdict's extra runs."""
-    judge = JudgeOptions(noise=noise, uncertainty=uncertainty, roundoff_samples=roundoff_samples,  # validated once,
+    ``shrink``: evaluate only the active starts (padded to a power of two). ``drop_dominated``:
+    stop starts that cannot become the best (``dominated_stop``; for starts already in their basins,
+    as ``coarse_to_fine``'s are, where the linearised model says what is left). ``noise`` and the
+    options from ``roundoff_samples`` on: the best point's verdict and uncertainty, as in ``fit``
+    (``JudgeOptions``). ``workers``: with more than one, every iteration's forward-mode passes run
+    in that many single-threaded processes instead of one vmapped batch, and so do the verdict's."""
+    judge = JudgeOptions(noise=noise, uncertainty=uncertainty, roundoff_samples=roundoff_samples,
                          sampling_seeds=sampling_seeds, reference_noise=reference_noise, threshold=threshold,
-                         grid_ratio=grid_ratio, grid_draws=grid_draws, grid_levels=grid_levels)  # as for fit
+                         grid_ratio=grid_ratio, grid_draws=grid_draws, grid_levels=grid_levels)
     with using(workers) as workers:
         clock0 = time.perf_counter()
         steps = _check_int("steps", steps, 1)
@@ -301,7 +317,11 @@ def search(objective: ObjectiveLike, starts: int | np.ndarray = DEFAULT_STARTS, 
         thetas, start_note = _starts(objective, starts, init, seed, design)
         evaluate = BatchEvaluator(objective, len(thetas), shrink, workers)
         lm_options = LMOptions(xtol=xtol, ftol=ftol, stat_tol=stat_tol, max_rejections=max_rejections)
-        state, history = _run_starts(objective, thetas, evaluate, steps, lm_options, progress, clock0)
+        scatters: dict = {}
+        dominated = dominated_stop(len(keys)) if drop_dominated and len(thetas) > 1 else None
+        at_roundoff = roundoff_stop(objective, roundoff_samples if uncertainty else 0, workers, scatters)
+        state, history = _run_starts(objective, thetas, evaluate, steps, lm_options, progress, clock0,
+                                     stop=lambda s: at_roundoff(dominated(s) if dominated else s))
         cur, messages = state.current, list(state.message)
         valid = np.flatnonzero(np.isfinite(cur.loss))
         order = valid[np.argsort(cur.loss[valid], kind="stable")]
@@ -312,6 +332,7 @@ def search(objective: ObjectiveLike, starts: int | np.ndarray = DEFAULT_STARTS, 
                                      roundoff_samples=roundoff_samples if uncertainty else 0,
                                      grid_ratio=grid_ratio if uncertainty else None)
         verdict, unc = judge_point(objective, r_b, J_b, theta_b, converged=converged, message=messages[i_best],
+                                   scatter=measured_at(scatters, i_best, theta_b),
                                    workers=workers, **judged.kwargs())
         wall = time.perf_counter() - clock0
         histories = [history.arrays(i) for i in range(len(thetas))]
@@ -334,20 +355,14 @@ def coarse_to_fine(objective: ObjectiveLike, coarse: ObjectiveLike, starts: int 
                    design: str = "sobol", init: Mapping[str, float] | None = None,
                    coarse_options: Mapping[str, Any] | None = None, progress: bool = False, workers=None,
                    **options) -> SearchResult:
-    """A global search in two stages: ``search`` on ``coarse`` (the same keys, bounds and data
-    on a cheaper resolution) finds the basins; the best ``refine`` distinct minima it reports
-    (by loss; every one within the noise of its best is kept if there are more; endpoints that break
-    a rule of the engine, such as μ1 > μ2, are replaced by the last valid point on the line from
-    their start) are then refined by a batched ``search`` on ``objective`` from those points.
-    ``options`` (steps, noise, ...) go to the fine stage; ``coarse_options`` override
-    ``COARSE_OPTIONS`` for the coarse one, whose
-    loose tolerances stop it once it knows the basin (its own model error, not the data's noise,
-    limits how well it can place a minimum). The result is the fine stage's, with the coarse one
-    as ``.coarse``.
-
-    The coarse stage only places the starts of the fine one, so nothing it gets wrong by its
-    resolution survives into the answer, except a basin it never found: the fine stage sees
-    only the basins the coarse one reached."""
+    """A global search in two stages: ``search`` on ``coarse`` (the same keys, bounds and data on
+    a cheaper resolution, with ``COARSE_OPTIONS`` overridden by ``coarse_options``) finds the
+    basins; the best ``refine`` distinct minima it reports (all within the noise of the best if
+    there are more; one that breaks a rule of the engine, such as μ1 > μ2, replaced by the last
+    valid point on the line from its start) start a batched ``search`` on ``objective`` with
+    ``options`` (steps, noise, ...). The result is the fine stage's, with the coarse one as
+    ``.coarse``: nothing the coarse stage gets wrong survives into it, except a basin it never
+    found."""
     refine = _check_int("refine", refine, 1)
     if tuple(coarse.keys) != tuple(objective.keys):
         raise ValueError(f"coarse: fits {tuple(coarse.keys)}, the objective {tuple(objective.keys)}; they must agree")
@@ -358,6 +373,7 @@ def coarse_to_fine(objective: ObjectiveLike, coarse: ObjectiveLike, starts: int 
     with using(workers) as workers:  # one pool for both stages
         first = search(coarse, starts, seed=seed, design=design, init=init, uncertainty=False,
                        noise=options.get("noise"), progress=progress, workers=workers, **opts)
+
         def valid(theta):  # an LM endpoint may break a rule of the engine's (μ1 > μ2): not a start
             try:
                 objective.check_thetas(theta[None], "coarse minimum")
@@ -386,7 +402,8 @@ def coarse_to_fine(objective: ObjectiveLike, coarse: ObjectiveLike, starts: int 
         if progress:
             print(f"coarse_to_fine: refining {len(thetas)} of {len(first.minima)} coarse minima", file=sys.stderr,
                   flush=True)
-        result = search(objective, thetas, seed=seed, design=design, progress=progress, workers=workers, **options)
+        result = search(objective, thetas, seed=seed, design=design, drop_dominated=True, progress=progress,
+                        workers=workers, **options)
         result.coarse = first
         if moved:
             note = (f"{moved} coarse minimum(s) broke a rule of the engine's (such as mu1 <= mu2) and were "
@@ -400,14 +417,13 @@ def fit_from_starts(objective, init: Mapping[str, float] | None = None, *, start
                     options: FitOptions | None = None, judge: JudgeOptions | None = None, coarse=None, refine: int = 2,
                     seed: int = 0, out=None, resume: bool = False, overwrite: bool = False, progress: bool = False,
                     meta: Mapping[str, Any] | None = None, workers=None) -> tuple[FitResult, SearchResult | None]:
-    """The judged fit of ``objective`` from ``starts`` starts: one start (``calibration.optim.fit.fit``
-    from ``init``, with its history ``out``, ``resume``, ``overwrite`` and ``meta``), else the
-    global search (``search``, ``init`` one more start, ``seed`` its design's), in two stages
-    (``coarse_to_fine``, refining ``refine`` minima) when ``coarse`` (the objective on a coarser
-    grid) is given. ``options`` (``FitOptions``; the search takes its ``steps``) and ``judge``
-    (``JudgeOptions``) as for ``fit``. Returns the best point and the search (None for one
-    start): what ``calibration.optim.report.fit_report`` reports. A search's ``out`` is its best
-    start's file (``save_start``: its history and record, a resume goes on from it as one start)."""
+    """The judged fit of ``objective`` from ``starts`` starts: one start (``fit`` from ``init``,
+    with its history ``out``, ``resume``, ``overwrite`` and ``meta``), else the global search
+    (``init`` one more start, ``seed`` its design's), in two stages (``coarse_to_fine``) when
+    ``coarse`` (the objective on a coarser grid) is given. ``options`` and ``judge`` as for
+    ``fit`` (the search takes only ``steps``). Returns the best point and the search (None for
+    one start). A search's ``out`` is its best start's file (``save_start``), which a resume
+    continues as one start."""
     options, judge = options or FitOptions(), judge or JudgeOptions()
     if _check_int("starts", starts, 1) == 1:
         from .fit import fit  # looked up at the call: the fit that runs is the module's

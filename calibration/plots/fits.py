@@ -25,8 +25,12 @@ def _plt():
     return plt
 
 
-def _save(plt, fig, path, dpi: int) -> pathlib.Path:
-    """Lay out, write and close ``fig``; the written path."""
+def _save(fig, path, dpi: int, title: str | None = None) -> pathlib.Path:
+    """Title (where given), lay out, write and close ``fig``; the written path."""
+    import matplotlib.pyplot as plt
+
+    if title:
+        fig.suptitle(title, fontsize=10)
     fig.tight_layout()
     path = pathlib.Path(path)
     fig.savefig(path, dpi=dpi)
@@ -34,57 +38,40 @@ def _save(plt, fig, path, dpi: int) -> pathlib.Path:
     return path
 
 
-def plot_fit(objective: ObjectiveLike, result, path, *, initial_prediction=None, truth_label: str = "data",
-             title: str | None = None):
+def plot_fit(objective: ObjectiveLike, result, path, *, title: str | None = None):
     """Modelled against measured profiles (one panel per profile time) and the front history."""
     plt = _plt()
     members = [part for part, _, _ in objective.parts]
     preds = result.prediction.get("members", [result.prediction]) if isinstance(result.prediction, dict) else [
         result.prediction]
-    inits = None
-    if initial_prediction is not None:
-        inits = initial_prediction.get("members", [initial_prediction])
-    panels = []
+    panels = []  # (member, x or t, data, model, the profile's time or None for the front)
     for i, (obj, pred) in enumerate(zip(members, preds)):
         offset, obs, h_all = 0, obj.observations, np.asarray(obj.data["h"], float)
         for x, t in zip(obs.profile_x, obs.profile_times):
             sl = slice(offset, offset + x.size)
             offset += x.size
-            init = None if inits is None else np.asarray(inits[i]["h"])[sl]
-            panels.append(("profile", i, x, h_all[sl], np.asarray(pred["h"])[sl], init, t))
+            panels.append((i, x, h_all[sl], np.asarray(pred["h"])[sl], t))
         if obs.front_times is not None:
-            init = None if inits is None else np.asarray(inits[i]["front"])
-            panels.append(("front", i, obs.front_times, np.asarray(obj.data["front"], float),
-                           np.asarray(pred["front"]), init, None))
+            panels.append((i, obs.front_times, np.asarray(obj.data["front"], float), np.asarray(pred["front"]), None))
     n = len(panels)
     cols = min(n, 4)
     rows = -(-n // cols)
     fig, axes = plt.subplots(rows, cols, figsize=(3.6 * cols, 2.9 * rows), squeeze=False)
-    for ax, (kind, i, x, data, model, init, t) in zip(axes.flat, panels):
-        scale = 100.0  # cm
-        if kind == "profile":
-            ax.plot(x * scale, data * scale, "o", ms=3, color="0.3", label=truth_label)
-            if init is not None:
-                ax.plot(x * scale, init * scale, ":", color="tab:gray", label="start")
-            ax.plot(x * scale, model * scale, "-", color="tab:red", label="fit")
-            ax.set_xlabel("x (cm)")
-            ax.set_ylabel("h (cm)")
-            ax.set_title(f"profile at t = {t:.3g} s" + (f" [{i}]" if len(members) > 1 else ""), fontsize=9)
-        else:
-            ax.plot(x, data * scale, "o", ms=3, color="0.3", label=truth_label)
-            if init is not None:
-                ax.plot(x, init * scale, ":", color="tab:gray", label="start")
-            ax.plot(x, model * scale, "-", color="tab:red", label="fit")
-            ax.set_xlabel("t (s)")
-            ax.set_ylabel("front x_f (cm)")
-            ax.set_title("front position" + (f" [{i}]" if len(members) > 1 else ""), fontsize=9)
+    for ax, (i, x, data, model, t) in zip(axes.flat, panels):
+        front = t is None
+        x = x if front else 100 * x  # lengths in cm
+        ax.plot(x, 100 * data, "o", ms=3, color="0.3", label="data")
+        ax.plot(x, 100 * model, "-", color="tab:red", label="fit")
+        ax.set_xlabel("t (s)" if front else "x (cm)")
+        ax.set_ylabel("front x_f (cm)" if front else "h (cm)")
+        what = "front position" if front else f"profile at t = {t:.3g} s"
+        ax.set_title(what + (f" [{i}]" if len(members) > 1 else ""), fontsize=9)
         ax.grid(alpha=0.3)
     for ax in list(axes.flat)[n:]:
         ax.axis("off")
     axes.flat[0].legend(fontsize=8)
     params = ", ".join(f"{k} = {v:.4g}" for k, v in result.theta.items())
-    fig.suptitle(title or f"fit: {params}", fontsize=10)
-    return _save(plt, fig, path, dpi=110)
+    return _save(fig, path, dpi=110, title=title or f"fit: {params}")
 
 
 def plot_history(history, keys, path, *, truth=None, title: str | None = None):
@@ -113,9 +100,7 @@ def plot_history(history, keys, path, *, truth=None, title: str | None = None):
         ax.set_xlabel("iteration")
         ax.set_title(key, fontsize=10)
         ax.grid(alpha=0.3)
-    if title:
-        fig.suptitle(title, fontsize=10)
-    return _save(plt, fig, path, dpi=110)
+    return _save(fig, path, dpi=110, title=title)
 
 
 def plot_landscape(xs, ys, loss, key_x, key_y, path, *, marks=None, failed=None, title: str | None = None):
@@ -131,20 +116,19 @@ def plot_landscape(xs, ys, loss, key_x, key_y, path, *, marks=None, failed=None,
               {"marker": "o", "color": "w", "mfc": "none", "ms": 14, "mew": 2}, {"marker": "s", "color": "m", "ms": 8})
     items = list(zip((marks or {}).items(), styles))
     for (label, (mx, my)), style in reversed(items):  # the first mark (the truth) on top
-        ax.plot(mx, my, ls="none", label=label, mec=style.pop("mec", "k") if "mfc" not in style else style["color"],
-                **style)
+        ax.plot(mx, my, ls="none", label=label, mec=style["color"] if "mfc" in style else "k", **style)
     if items:
         handles, labels = ax.get_legend_handles_labels()
         order = [labels.index(label) for (label, _), _ in items]
         ax.legend([handles[i] for i in order], [labels[i] for i in order], fontsize=8)
     if failed is not None and len(failed[0]):
         ax.plot(failed[0], failed[1], "kx", ms=6, label="failed run")
-    if failed is not None and len(failed[0]) and not items:
-        ax.legend(fontsize=8)
+        if not items:
+            ax.legend(fontsize=8)
     ax.set_xlabel(key_x)
     ax.set_ylabel(key_y)
     ax.set_title(title or f"loss landscape over ({key_x}, {key_y})", fontsize=10)
-    return _save(plt, fig, path, dpi=110)
+    return _save(fig, path, dpi=110)
 
 
 def plot_loss_curve(xs, loss, key, path, *, best=None, title: str | None = None):
@@ -156,17 +140,18 @@ def plot_loss_curve(xs, loss, key, path, *, best=None, title: str | None = None)
     xs, loss = xs[order], loss[order]
     fig, ax = plt.subplots(figsize=(5.0, 3.6))
     ok = np.isfinite(loss) & (loss > 0)
+    failed = ~np.isfinite(loss)
     ax.semilogy(xs[ok], loss[ok], "o-", ms=4)
-    if np.any(~np.isfinite(loss)):
+    if failed.any():
         floor = float(np.min(loss[ok])) if ok.any() else 1.0
-        ax.plot(xs[~np.isfinite(loss)], np.full(int((~np.isfinite(loss)).sum()), floor), "kx", ms=7, label="failed run")
+        ax.plot(xs[failed], np.full(int(failed.sum()), floor), "kx", ms=7, label="failed run")
         ax.legend(fontsize=8)
     if best is not None:
         ax.axvline(best, color="r", lw=1, ls="--")
     ax.set_xlabel(key)
     ax.set_ylabel("loss")
     ax.set_title(title or f"loss over {key}", fontsize=10)
-    return _save(plt, fig, path, dpi=110)
+    return _save(fig, path, dpi=110)
 
 
 def plot_runout_law(cases, path, *, law, title: str | None = None):
@@ -193,7 +178,7 @@ def plot_runout_law(cases, path, *, law, title: str | None = None):
     ax.grid(alpha=0.3, which="both")
     ax.legend(fontsize=8)
     ax.set_title(title or "runout against aspect ratio", fontsize=10)
-    return _save(plt, fig, path, dpi=110)
+    return _save(fig, path, dpi=110)
 
 
 def plot_coverage(result, path, *, title: str | None = None):
@@ -223,9 +208,9 @@ def plot_coverage(result, path, *, title: str | None = None):
         ax.set_yticks(range(len(result.rows)))
         ax.set_yticklabels([str(r.seed) for r in result.rows], fontsize=7)
     axes[0][0].set_ylabel("noise seed")
-    fig.suptitle(title or f"95 % intervals over {len(result.rows)} seeds, {100 * result.noise:.3g} % noise "
-                 "(grey: true noise given; x: not a fit, no interval)", fontsize=10)
-    return _save(plt, fig, path, dpi=120)
+    title = title or (f"95 % intervals over {len(result.rows)} seeds, {100 * result.noise:.3g} % noise (grey: true "
+                      "noise given; x: not a fit, no interval)")
+    return _save(fig, path, dpi=120, title=title)
 
 
 def plot_design(result, path, *, title: str | None = None, data_only: bool = False):
@@ -260,7 +245,7 @@ def plot_design(result, path, *, title: str | None = None, data_only: bool = Fal
     ax.set(xlabel=keys[0], ylabel=keys[1] if len(keys) > 1 else "",
            title=title or f"expected 95 % regions of ({keys[0]}, {keys[1]}) before measuring")
     ax.legend(fontsize=7, loc="best")
-    return _save(plt, fig, path, 120)
+    return _save(fig, path, dpi=120)
 
 
 # ---- the figure sets of the command line's studies ----------------------------------------------
@@ -270,11 +255,11 @@ def _folder(directory) -> pathlib.Path:
     return d
 
 
-def fit_figures(directory, objective, result, *, prefix: str = "fit", truth=None, initial=None) -> list[str]:
+def fit_figures(directory, objective, result, *, prefix: str = "fit", truth=None) -> list[str]:
     """A fit's figures in ``directory`` (made if missing): ``PREFIX_profiles.png`` (``plot_fit``)
     and ``PREFIX_history.png`` (``plot_history``, ``truth`` drawn where given); their paths."""
     d = _folder(directory)
-    figs = [plot_fit(objective, result, d / f"{prefix}_profiles.png", initial_prediction=initial),
+    figs = [plot_fit(objective, result, d / f"{prefix}_profiles.png"),
             plot_history(result.history, result.keys, d / f"{prefix}_history.png", truth=truth)]
     return [str(f) for f in figs]
 
@@ -289,11 +274,10 @@ def sweep_figures(directory, result, keys) -> list[str]:
         return [str(plot_loss_curve(result.thetas[:, 0], result.loss, keys[0], d / "loss.png",
                                     best=best[keys[0]] if best else None))]
     xs, ys, loss = result.landscape(keys[0], keys[1])
-    failed = list(result.failed)
-    fx = np.asarray(result.thetas)[failed, 0] if failed else np.zeros(0)
-    fy = np.asarray(result.thetas)[failed, 1] if failed else np.zeros(0)
+    failed = np.asarray(result.thetas)[list(result.failed)]
     marks = {"lowest": (best[keys[0]], best[keys[1]])} if best else None
-    return [str(plot_landscape(xs, ys, loss, keys[0], keys[1], d / "landscape.png", marks=marks, failed=(fx, fy)))]
+    return [str(plot_landscape(xs, ys, loss, keys[0], keys[1], d / "landscape.png", marks=marks,
+                               failed=(failed[:, 0], failed[:, 1])))]
 
 
 def twin_landscape_figure(directory, landscape) -> pathlib.Path:

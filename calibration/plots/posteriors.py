@@ -43,28 +43,38 @@ def plot_profile_likelihoods(profiles, path, *, truth=None, posterior=None):
             twin.set_ylim(bottom=0)
         ax.set_xlabel(prof.key)
         ax.set_ylabel(r"$\Delta\chi^2$")
-        ax.set_ylim(0, max(3 * DELTA_CHI2_95, 1.1 * float(np.nanmax(prof.delta_chi2[np.isfinite(prof.delta_chi2)]))
-                           if np.any(np.isfinite(prof.delta_chi2)) else 3 * DELTA_CHI2_95))
+        finite = prof.delta_chi2[np.isfinite(prof.delta_chi2)]
+        ax.set_ylim(0, max(3 * DELTA_CHI2_95, 1.1 * float(finite.max()) if finite.size else 0.0))
         ax.legend(fontsize=7, loc="upper center")
     if n > len(profiles):
         ax = axes[0][-1]
-        # The grid is structured (regular in the whitened coordinates): contour it as a curvilinear grid.
-        a, b = (posterior.points[:, i].reshape(posterior.shape) for i in (0, 1))
+        a, b = _region95(ax, posterior, color="k", lw=0.8)
         w = np.ma.masked_invalid(np.where(np.isfinite(posterior.chi2), posterior.weight, np.nan).reshape(
             posterior.shape))
         ax.contourf(a, b, w / w.max(), levels=12, cmap="Greens")
-        dchi2 = np.ma.masked_invalid((posterior.chi2 - np.nanmin(posterior.chi2)).reshape(posterior.shape))
-        ax.contour(a, b, dchi2, levels=[2 * np.log(1 / 0.05)], colors="k", linewidths=0.8)  # 95 % (2 dof)
         ax.plot(a.ravel(), b.ravel(), ".", color="0.6", ms=1)
-        ax.plot(posterior.theta_hat[posterior.keys[0]], posterior.theta_hat[posterior.keys[1]], "r+", ms=10,
-                label="fit")
-        if truth is not None:
-            ax.plot(truth.get(posterior.keys[0], np.nan), truth.get(posterior.keys[1], np.nan), "kx", label="truth")
-        ax.set_xlabel(posterior.keys[0])
-        ax.set_ylabel(posterior.keys[1])
+        _mark_pair(ax, posterior.keys, posterior.theta_hat, truth)
         ax.set_title("posterior (flat prior), 95 % region", fontsize=9)
-        ax.legend(fontsize=7)
-    return _save(plt, fig, path, dpi=120)
+    return _save(fig, path, dpi=120)
+
+
+def _region95(ax, grid, *, color, lw):
+    """The 95 % region (2 dof) of a two-key ``GridPosterior`` contoured on ``ax``; the grid's
+    coordinates (it is regular in the whitened coordinates: a curvilinear grid here)."""
+    a, b = (grid.points[:, i].reshape(grid.shape) for i in (0, 1))
+    dchi2 = np.ma.masked_invalid((grid.chi2 - np.nanmin(grid.chi2)).reshape(grid.shape))
+    ax.contour(a, b, dchi2, levels=[2 * np.log(1 / 0.05)], colors=color, linewidths=lw)
+    return a, b
+
+
+def _mark_pair(ax, keys, theta_hat, truth) -> None:
+    """The fit's point (and ``truth``'s, where given) on a panel of two keys, axes labelled."""
+    ax.plot(theta_hat[keys[0]], theta_hat[keys[1]], "r+", ms=10, label="fit")
+    if truth is not None:
+        ax.plot(truth.get(keys[0], np.nan), truth.get(keys[1], np.nan), "kx", label="truth")
+    ax.set_xlabel(keys[0])
+    ax.set_ylabel(keys[1])
+    ax.legend(fontsize=7)
 
 
 def plot_heldout(heldout, path, *, title: str | None = None):
@@ -85,9 +95,7 @@ def plot_heldout(heldout, path, *, title: str | None = None):
         ax.set_title(f"{name}: RMS {1000 * heldout.rms[name]:.2g} mm, {100 * heldout.inside[name]:.0f} % inside",
                      fontsize=9)
         ax.legend(fontsize=7)
-    if title:
-        fig.suptitle(title, fontsize=10)
-    return _save(plt, fig, path, dpi=120)
+    return _save(fig, path, dpi=120, title=title)
 
 
 def plot_nuts(posterior, path, *, grid=None, truth=None):
@@ -129,25 +137,18 @@ def plot_nuts(posterior, path, *, grid=None, truth=None):
     if pair:
         ax = axes[1][-1]
         if grid is not None and grid.keys == keys:
-            a, b = (grid.points[:, i].reshape(grid.shape) for i in (0, 1))
-            dchi2 = np.ma.masked_invalid((grid.chi2 - np.nanmin(grid.chi2)).reshape(grid.shape))
-            ax.contour(a, b, dchi2, levels=[2 * np.log(1 / 0.05)], colors="C2", linewidths=1.0)
+            _region95(ax, grid, color="C2", lw=1.0)
         flat = posterior.flat()
         ax.plot(flat[:, 0], flat[:, 1], ".", ms=2, alpha=0.6, color="C0")
-        ax.plot(posterior.theta_hat[keys[0]], posterior.theta_hat[keys[1]], "r+", ms=10, label="fit")
-        if truth is not None:
-            ax.plot(truth.get(keys[0], np.nan), truth.get(keys[1], np.nan), "kx", label="truth")
-        ax.set_xlabel(keys[0])
-        ax.set_ylabel(keys[1])
+        _mark_pair(ax, keys, posterior.theta_hat, truth)
         ax.set_title("draws; grid posterior's 95 % region (green)", fontsize=9)
-        ax.legend(fontsize=7)
         axes[0][-1].axis("off")
         div = sum(posterior.divergences)
         axes[0][-1].text(0.0, 0.5, f"{posterior.chains} chains x {posterior.draws.shape[1]} draws\n"
                          f"(warm-up {posterior.warmup})\ndivergences {div}\nleapfrog steps/draw "
                          f"{np.mean(posterior.steps):.1f}\n{posterior.gradient_evaluations} Jacobians, "
                          f"{posterior.wall_s / 60:.0f} min", fontsize=9, va="center")
-    return _save(plt, fig, path, dpi=120)
+    return _save(fig, path, dpi=120)
 
 
 def plot_emulated(posterior, path, *, truth=None, reference=None, title: str | None = None):
@@ -208,9 +209,7 @@ def plot_emulated(posterior, path, *, truth=None, reference=None, title: str | N
     else:
         axes[0][0].legend(fontsize=6)
         axes[0][0].set_xlabel(text, fontsize=7)
-    if title:
-        fig.suptitle(title, fontsize=10)
-    return _save(plt, fig, path, dpi=110)
+    return _save(fig, path, dpi=110, title=title)
 
 
 def plot_grid_term(posterior, path, *, truth=None, title: str | None = None):
@@ -244,7 +243,7 @@ def plot_grid_term(posterior, path, *, truth=None, title: str | None = None):
     axes[0][0].legend(fontsize=6, loc="upper left")
     if title:
         fig.suptitle(title, fontsize=9)
-    return _save(plt, fig, path, dpi=110)
+    return _save(fig, path, dpi=110)
 
 
 def plot_posterior_predictive(predictive, path, *, title: str | None = None, split: float | None = None):
@@ -273,9 +272,7 @@ def plot_posterior_predictive(predictive, path, *, title: str | None = None, spl
         ax.set_xlabel("t (s)" if front else "x (cm)")
         ax.set_ylabel("front x (m)" if front else "h (cm)")
         ax.legend(fontsize=7)
-    if title:
-        fig.suptitle(title, fontsize=10)
-    return _save(plt, fig, path, dpi=120)
+    return _save(fig, path, dpi=120, title=title)
 
 
 def likelihood_figures(directory, profiles, *, posterior=None) -> list[str]:

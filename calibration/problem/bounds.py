@@ -62,8 +62,7 @@ def dphysical_dz(z, lower, upper):
 
 def log_jacobian(z, lower, upper):
     """log |dθ/dz| summed over the keys: the density of a flat prior in θ sampled in z."""
-    s = jax.nn.sigmoid(z)
-    return jnp.sum(jnp.log((upper - lower) * s * (1 - s)))
+    return jnp.sum(jnp.log(dphysical_dz(z, lower, upper)))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -143,8 +142,5 @@ class Bounds:
     def near_bound(self, theta, rel: float = 1e-3) -> list[str]:
         """Keys whose value sits within ``rel`` of the bound range of a bound."""
         theta = np.asarray(theta, float)
-        out = []
-        for k, v, lo, hi in zip(self.keys, theta, self.lower, self.upper):
-            if min(v - lo, hi - v) < rel * (hi - lo):
-                out.append(k)
-        return out
+        return [k for k, v, lo, hi in zip(self.keys, theta, self.lower, self.upper)
+                if min(v - lo, hi - v) < rel * (hi - lo)]

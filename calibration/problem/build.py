@@ -1,12 +1,7 @@
 """A fit's objective built from where its data come from: a scene with measured profiles and a
 front history, or experiment files (``jaxmpm.Experiment``) with theirs; several make one joint
-objective. What ``python -m calibration fit`` and ``sweep`` fit.
-
-``FitSetup`` is that description as data: the experiments (a named scene with the command line's
-data files is one too), the keys, how the data are read and weighed, and which keys the
-experiments share. ``setup.objective()`` builds the objective; ``to_json`` and ``from_json``
-record it in a fit's file, so that the same objective is built again by a later command
-(``python -m calibration posterior``) or on another machine (a cluster's workers).
+objective. ``FitSetup`` is that description as data, which ``to_json`` and ``from_json`` record
+in a fit's file so that a later command or another machine builds the same objective.
 """
 
 from __future__ import annotations
@@ -64,12 +59,12 @@ def objective_of(sources: Sequence, keys: Sequence[str], data: Sequence[tuple], 
 
 @dataclasses.dataclass(frozen=True)
 class FitSetup:
-    """What a fit's objective is built from (see the module's text). ``experiments``: one or more
-    ``jaxmpm.Experiment`` with their measurements ([[profile]], [front]); ``keys``: the fitted
-    keys; ``options``: how the data are read and weighed; ``shared`` and ``labels``: with several
-    experiments, the keys they share and the names of each one's own (``objective_of``);
-    ``sort``, ``clip_noise``: how the measurement files are read (``load_profile``); ``dtype``:
-    the float type the runs compute in (the caller enables it: ``jaxmpm.precision.use_dtype``)."""
+    """What a fit's objective is built from. ``experiments``: one or more ``jaxmpm.Experiment``
+    with their measurements; ``keys``: the fitted keys; ``options``: how the data are read and
+    weighed; ``shared`` and ``labels``: with several experiments, the keys they share and the
+    names of each one's own (``objective_of``); ``sort``, ``clip_noise``: how the measurement
+    files are read (``load_profile``); ``dtype``: the float type the runs compute in (the caller
+    enables it)."""
 
     experiments: tuple[Experiment, ...]
     keys: tuple[str, ...]

@@ -11,14 +11,6 @@ from typing import Any
 __all__ = ["CompileCache", "MODEL_FUNCTIONS", "BATCHES", "content_key"]
 
 
-#: Compiled (configuration, observations, keys) kept at once; each holds a compiled rollout.
-CACHE_SIZE = 4
-
-
-#: Compiled batches (a sweep's chunk shape in a mode, a search's vmapped Jacobians) kept at once.
-BATCH_CACHE_SIZE = 16
-
-
 class CompileCache:
     """Compiled functions by a hashable content key, the least recently used dropped beyond
     ``size`` (each entry may hold a compiled rollout: they are large). ``get(key, build)``
@@ -47,16 +39,14 @@ class CompileCache:
     def __len__(self) -> int:
         return len(self._entries)
 
-    def clear(self) -> None:
-        self._entries.clear()
+
+#: The ``ModelFunctions`` of each (configuration, observations, keys): few, each holds a compiled rollout.
+MODEL_FUNCTIONS = CompileCache(4)
 
 
-#: The ``ModelFunctions`` of each (configuration, observations, keys).
-MODEL_FUNCTIONS = CompileCache(CACHE_SIZE)
-
-
-#: The compiled batches of sweeps and searches, by ``content_key`` and the batch's description.
-BATCHES = CompileCache(BATCH_CACHE_SIZE)
+#: The compiled batches of sweeps and searches (a chunk shape in a mode, a search's vmapped
+#: Jacobians), by ``content_key`` and the batch's description.
+BATCHES = CompileCache(16)
 
 
 def content_key(model) -> str | None:

@@ -31,29 +31,20 @@ def _shared_layout(members, shared: tuple[str, ...], labels) -> tuple[tuple[str,
         missing = [k for k in shared if k not in m.keys]
         if missing:
             raise ValueError(f"shared: {missing} are not fitted by members[{i}] ({labels[i]}: {list(m.keys)})")
-    keys = list(shared)
-    index = []
-    for m, label in zip(members, labels):
-        idx = []
-        for k in m.keys:
-            if k not in shared:
-                keys.append(f"{k}@{label}")
-            idx.append(keys.index(k if k in shared else f"{k}@{label}"))
-        index.append(np.asarray(idx, int))
+    keys = list(shared) + [f"{k}@{label}" for m, label in zip(members, labels) for k in m.keys if k not in shared]
+    index = [np.asarray([keys.index(k if k in shared else f"{k}@{label}") for k in m.keys], int)
+             for m, label in zip(members, labels)]
     return tuple(keys), index
 
 
 class CompositeObjective:
-    """Several objectives fitted together (e.g. one scene per aspect ratio): the residuals are
-    concatenated, so the loss is the sum of the members' losses (a
-    ``calibration.problem.protocol.ObjectiveLike``).
+    """Several objectives fitted together (e.g. one scene per aspect ratio), their residuals
+    concatenated, so the loss is the sum of theirs (a ``calibration.problem.protocol.ObjectiveLike``).
 
-    By default the members fit the same keys, one value each for all. ``shared`` (with
-    ``labels``, one per member) lets keys differ by experiment: a key in ``shared`` is one value
-    for every member; any other key a member fits is that member's own, named ``key@label`` in
-    the composite's keys (``CompositeObjective.sharing``), and its residual blocks are named
-    ``label/block`` (else ``i/block``). The members' Jacobians are scattered into the
-    composite's columns; a member's column for another member's own key is zero."""
+    By default the members fit the same keys. With ``shared`` (and ``labels``, one per member) a
+    key in ``shared`` is one value for every member, and any other key a member fits is its own,
+    named ``key@label`` (its column zero for the other members); the residual blocks are named
+    ``label/block`` (else ``i/block``)."""
 
     def __init__(self, members: Sequence[Objective], shared: Sequence[str] | None = None,
                  labels: Sequence[str] | None = None):
@@ -84,7 +75,7 @@ class CompositeObjective:
         self.bounds = Bounds(self.keys, tuple(float(v) for v in lower), tuple(float(v) for v in upper))
         self.bound_notes = tuple(note for m in members for note in m.bound_notes)
         self.dtype = members[0].dtype
-        offsets = np.cumsum([0] + [m.n_residuals for m in members])
+        self._offsets = offsets = np.cumsum([0] + [m.n_residuals for m in members])
         self.n_residuals = int(offsets[-1])
         self._prefix = tuple(labels) if labels is not None else tuple(str(i) for i in range(len(members)))
         self.blocks = {f"{self._prefix[i]}/{name}": slice(offsets[i] + s.start, offsets[i] + s.stop)
@@ -208,8 +199,7 @@ class CompositeObjective:
 
     def in_metres(self, r) -> dict[str, np.ndarray]:
         """The residuals in metres by block (``Objective.in_metres`` of each member)."""
-        r = np.asarray(r, float)
-        offsets = np.cumsum([0] + [m.n_residuals for m in self.members])
+        r, offsets = np.asarray(r, float), self._offsets
         return {f"{self._prefix[i]}/{name}": v for i, m in enumerate(self.members)
                 for name, v in m.in_metres(r[offsets[i]:offsets[i + 1]]).items()}
 
@@ -230,8 +220,6 @@ class CompositeObjective:
         outs = [m.value_and_grad(self._member_theta(theta, i)) for i, m in enumerate(self.members)]
         loss = sum(o[0][0] for o in outs)
         status = jnp.bitwise_or.reduce(jnp.stack([o[0][1]["status"] for o in outs]))
-        if self.shared is None:
-            return (loss, {"status": status}), sum(o[1] for o in outs)
         grad = jnp.zeros(len(self.keys), jnp.result_type(outs[0][1]))
         for (_, g), idx in zip(outs, self._index):
             grad = grad.at[idx].add(g)

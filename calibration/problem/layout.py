@@ -13,13 +13,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .options import WEIGHTINGS
 from .targets import FrontTarget, ProfileTarget, _check_array, _check_front_plausible, _check_profile_plausible
 
 __all__ = ["ProfileBlock", "FrontBlock", "ResidualLayout", "residual_layout"]
-
-
-#: How a block's weight is shared by its rows (``Objective``'s ``weighting``).
-WEIGHTINGS = ("block", "row")
 
 
 def _checked_weights(weights, weighting: str, profile: bool, front: bool) -> dict[str, float]:
@@ -88,8 +85,8 @@ class ResidualLayout:
                               + [np.zeros(0)])
 
     def data(self, dtype) -> dict[str, jax.Array]:
-        """The measured values and scales as the arrays ``calibration.problem.observe``'s functions take
-        (``ModelFunctions``' ``data``), in ``dtype``."""
+        """The measured values and scales as the arrays the model functions take (``ModelFunctions``'
+        ``data``), in ``dtype``."""
         front = self.front
         as_array = lambda a: jnp.asarray(a, dtype)  # noqa: E731
         return {

@@ -1,31 +1,10 @@
 """The calibration objective: a scene, the parameters to fit, and the data the run must match.
 
-An ``Objective`` turns a vector θ of physical parameter values (ordered as ``keys``) into a
-vector of residuals, one rollout per evaluation:
-
-- the deposit profile h(x) at the data's own x points, at the profile's time (one profile or
-  several at different times), divided by the data's peak height, so a residual of 0.01 is 1 %
-  of the peak (data may be noisy, even slightly negative; ``calibration.data`` validates
-  measured files);
-- the front position at each of the data's times, divided by the initial column length.
-
-Each block is weighted by sqrt(w / m) (m its number of points), so that the loss
-Σ r² = w_h mean(r_h²) + w_f mean(r_f²) is a weighted sum of mean squares that does not depend on
-how densely the data were sampled. A squared residual has a zero derivative at zero, so an
-exact fit has a finite (zero) gradient.
-
-The rollout records only what the residuals need (h at the data points and the front, at the
-data times), with the checkpointed blocks of ``jaxmpm.make_rollout``, so reverse-mode memory
-stays bounded. ``residuals_and_jacobian`` uses forward mode, one Jacobian column per tangent
-pass (``jacobian_by_columns``): on the CPU a ``jax.jacfwd`` batch of n tangents costs more than
-n single passes (docs/calibration.md, "Cost").
-
-What is observed (``objective.observations``: the profile's points and times, the front's
-times, the kernel and the mirror; ``calibration.problem.observe``) is kept apart from what was measured
-(``objective.data``: heights, fronts and the residuals' scales). The jitted pure functions
-(``objective.functions``, ``calibration.problem.observe.model_functions``) take the data as arguments,
-so objectives that observe the same run the same way share one compilation; their z-variants
-map the unconstrained variables through the bounds inside the traced run.
+An ``Objective`` turns physical parameter values θ (ordered as ``keys``) into weighted residuals
+of the deposit profile(s) and the front history, one rollout per evaluation (docs/fitting.md,
+"The residuals"). What is observed (``objective.observations``) is kept apart from what was
+measured (``objective.data``), so objectives that observe the same run the same way share one
+compilation.
 """
 
 from __future__ import annotations
@@ -87,14 +66,6 @@ def _engine_bounds(bounds: Bounds, params) -> tuple[Bounds, tuple[str, ...]]:
     return Bounds(keys, tuple(lower), tuple(upper)), tuple(notes)
 
 
-def _valid(values) -> bool:
-    try:
-        validate_params(values)
-    except ValueError:
-        return False
-    return True
-
-
 class Objective:
     """Residuals of one scene against a profile and/or a front history (a
     ``calibration.problem.protocol.ObjectiveLike``).
@@ -106,24 +77,19 @@ class Objective:
     profile: a ``ProfileTarget`` (or the loader's ``Profile``), or a list of them at several times.
     front: a ``FrontTarget`` (or the loader's ``FrontHistory``).
     weights: ``{"profile": w_h, "front": w_f}`` (default 1 each).
-    weighting: how the rows of a block share its weight: "block" (the default) gives each block
-        (a profile, a front history) its weight in total, whatever its length (row scale
-        sqrt(w / n)); "row" gives every row the weight (row scale sqrt(w)): the noise-weighted,
-        most efficient fit when every row's relative noise is the same, where "block" lets a
-        short block (a few top heights) count as much as a long profile.
+    weighting: "block" (the default) gives each block (a profile, a front history) its weight in
+        total, whatever its length (row scale sqrt(w / n)); "row" gives every row the weight (row
+        scale sqrt(w)), the efficient fit when every row's relative noise is the same.
     sigma: the width of the profile's smoothing kernel (m; default: the particle spacing).
     front_threshold: the height (m) below which the deposit counts as ended, for the front
         (default: half a particle spacing, below the height of one isolated particle).
     x_ref: where the front is measured from (default: the back wall, x = 0).
     mirror: the x where the profile's kernel is mirrored (``deposit_profile``): "back-wall"
-        (the default) takes the scene's ``back_face`` (x = 0 for a collapse with a back wall;
-        none for one without); None turns the mirror off (the kernel then reads half the height
-        at the wall).
+        (the default) takes the scene's ``back_face`` (none for a scene without one); None turns
+        the mirror off.
     bounds: overrides of ``calibration.problem.bounds.DEFAULT_BOUNDS`` by key.
-    check_data: refuse data that cannot come from ``scene`` (a deposit taller than 1.5 columns or
-        lower than 1 % of one, more than twice the column's area, material or a front outside the
-        grid, values beyond the run's float range), naming the target's ``source``. Turn it off
-        only for placeholder targets (the model's own predictions are wanted, not a fit).
+    check_data: refuse data that cannot come from ``scene`` (``calibration.problem.targets``'
+        plausibility limits), naming the target's ``source``; off only for placeholder targets.
     """
 
     def __init__(self, scene, keys: Sequence[str], *, profile=None, front=None,
@@ -179,7 +145,6 @@ class Objective:
         front = self.layout.front
         # Uniform points for the front integral: from x_ref to the far edge of the grid.
         upper = config.grid.origin[0] + config.grid.cells[0] * config.grid.dx
-        # Where and when the run is observed (no measured value), and what was measured.
         self.observations = Observations(
             profile_x=tuple(p.x for p in self.layout.profiles),
             profile_times=tuple(p.time for p in self.layout.profiles),
@@ -221,7 +186,7 @@ class Objective:
 
     def column_task(self, z, tangent, bounds: Bounds) -> tuple:
         """One forward-mode pass at z (mapped with ``bounds``) along ``tangent``, as a task
-        ``(fn, args)`` for ``calibration.batch.workers``: (r, dr/dz · t, dr/dθ · t, prediction)."""
+        ``(fn, args)`` (``residuals.column_pass``)."""
         lower, upper = (np.asarray(b, self.dtype) for b in (bounds.lower, bounds.upper))
         args = jax.tree.map(np.asarray, self.arguments())
         return column_pass, (*self.problem.static, np.asarray(self.as_theta(z, "z")), tangent, lower, upper, *args)
@@ -239,8 +204,7 @@ class Objective:
 
     def batched_jacobian_z(self) -> Callable:
         """``Z (k, n) -> (r, dr/dz, dr/dθ, prediction)`` stacked over the rows of Z: the model
-        functions' ``batched_jacobian_z`` (compiled once per configuration, observations and
-        keys, ``calibration.problem.cache.MODEL_FUNCTIONS``) at this objective's bounds and data."""
+        functions' ``batched_jacobian_z`` at this objective's bounds and data."""
         lower, upper = self.lower_upper()
         args = self.arguments()
         functions = self.functions
@@ -279,12 +243,11 @@ class Objective:
     @classmethod
     def from_experiment(cls, experiment, keys: Sequence[str] | None = None, *,
                         front_correlation_time: float | None = None, **options) -> Objective:
-        """The objective of a ``jaxmpm.Experiment``: its scene, its measurements
-        (``calibration.data.measurements.load_measurements``; ``profile=``/``front=`` replace them), the keys of
-        its [fit] table (or ``keys``) and its blocks' weights (``weights=`` over them, block by
-        block: a block given None keeps the file's); the front's correlation time is the file's
-        unless ``front_correlation_time`` is given; ``options`` as for ``Objective``. What
-        ``python -m calibration fit EXPERIMENT.toml`` fits."""
+        """The objective of a ``jaxmpm.Experiment``: its scene, its measurements (``profile=`` and
+        ``front=`` replace them), the keys of its [fit] table (or ``keys``) and its blocks' weights
+        (``weights=`` over them, block by block: a block given None keeps the file's); the front's
+        correlation time is the file's unless ``front_correlation_time`` is given; ``options`` as
+        for ``Objective``."""
         from ..data.measurements import load_measurements
 
         spec = experiment.fit
@@ -303,14 +266,12 @@ class Objective:
         if filed or given:
             options["weights"] = {k: given[k] if given.get(k) is not None else filed.get(k, 1.0)
                                   for k in ("profile", "front")}
-        front = options.get("front")
-        if front is not None and front_correlation_time is not None:
+        front, tau = options.get("front"), front_correlation_time
+        if tau is None and experiment.front is not None and not isinstance(front, FrontTarget):
+            tau = experiment.front.correlation_time  # the file's, unless the target carries its own
+        if front is not None and tau is not None:
             target = front if isinstance(front, FrontTarget) else FrontTarget.of(front)
-            options["front"] = dataclasses.replace(target, correlation_time=front_correlation_time)
-        elif (front is not None and experiment.front is not None and experiment.front.correlation_time is not None
-              and not isinstance(front, FrontTarget)):
-            options["front"] = dataclasses.replace(FrontTarget.of(front),
-                                                   correlation_time=experiment.front.correlation_time)
+            options["front"] = dataclasses.replace(target, correlation_time=tau)
         return cls(experiment.scene(), keys, **options)
 
     @property
@@ -340,15 +301,14 @@ class Objective:
     def residuals_and_jacobian(self, theta, jacobian: str | None = None):
         """(r, J, prediction) at θ, with J = dr/dθ (m × n) from forward-mode autodiff
         (``jacobian="ad"``, the default) or from central differences with relative steps
-        ``fd_step`` (``"fd"``: 2n + 1 runs in one vmapped batch). Autodiff is exact for the
-        discrete run; in long, violent flows (tall columns) that derivative can be dominated by
-        the run's chaotic sensitivity and no longer describe the trend over finite steps: then
-        use "fd" (``check_jacobian`` compares the two)."""
+        ``fd_step`` (``"fd"``: 2n + 1 runs in one vmapped batch), for flows whose exact derivative
+        no longer follows the trend over finite steps (docs/fitting.md, "Gradients")."""
         theta = self.as_theta(theta)
         if (jacobian or self.jacobian) == "ad":
             J, (r, pred) = self.functions.jacobian(theta, *self.arguments())
             return r, J, pred
-        steps = self._fd_steps(theta)
+        lower, upper = self.lower_upper()
+        steps = self.fd_step * jnp.maximum(jnp.abs(theta), 0.01 * (upper - lower))
         n = len(self.keys)
         eye = jnp.eye(n, dtype=self.dtype) * steps[None, :]
         batch = jnp.concatenate([theta[None, :], theta[None, :] + eye, theta[None, :] - eye])
@@ -363,14 +323,9 @@ class Objective:
         and front positions."""
         e = np.asarray(r, float) / self.row_scale
         if self.layout.front is not None:  # the front's rows are whitened (FrontTarget.correlation_time): undo it
-            e = e.copy()
             e[self.blocks["front"]] = unwhiten_front(e[self.blocks["front"]], self.layout.front.phi)
         metres = e * self.layout.scales()
         return {name: metres[sl] for name, sl in self.blocks.items()}
-
-    def _fd_steps(self, theta):
-        span = jnp.asarray(self.bounds.upper, self.dtype) - jnp.asarray(self.bounds.lower, self.dtype)
-        return self.fd_step * jnp.maximum(jnp.abs(theta), 0.01 * span)
 
     def check_jacobian(self, theta) -> dict[str, Any]:
         """Autodiff against central differences (relative step ``fd_step``) at θ: both Jacobians
@@ -410,9 +365,8 @@ class Objective:
 
     def check_thetas(self, thetas, name: str = "thetas") -> None:
         """Raise ``ValueError`` unless every row of ``thetas`` (B, n), with the scene's values for
-        the other keys, passes ``jaxmpm.validate_params`` (the rules ``python -m jaxmpm run --set``
-        applies): a member with β < 0 or μ2 < μ1 is not a parameter set of the model, and a loss
-        computed for it must not be reported. Names up to three offending rows."""
+        the other keys, passes ``jaxmpm.validate_params`` (a member with β < 0 or μ2 < μ1 is not a
+        parameter set of the model). Names up to three offending rows."""
         thetas = np.asarray(thetas, float)
         if thetas.ndim == 1:
             thetas = thetas[None, :]
@@ -431,21 +385,15 @@ class Objective:
                 validate_params({k: v[i] for k, v in values.items()})
             except ValueError as err:
                 bad.append((i, err))
-                if len(bad) == 3:
-                    break
-        count = sum(1 for i in range(thetas.shape[0]) if not _valid({k: v[i] for k, v in values.items()}))
         rows = "; ".join(f"member {i} ({', '.join(f'{k} = {thetas[i, j]:g}' for j, k in enumerate(self.keys))}): "
-                         f"{err}" for i, err in bad)
-        what = "the member is" if thetas.shape[0] == 1 else f"{count} of {thetas.shape[0]} members are"
+                         f"{err}" for i, err in bad[:3])
+        what = "the member is" if thetas.shape[0] == 1 else f"{len(bad)} of {thetas.shape[0]} members are"
         raise ValueError(f"{name}: {what} not a valid parameter set: {rows}")
 
     def fingerprint(self) -> dict[str, Any]:
-        """What this objective's loss and its optimiser steps depend on, as a JSON-able dict: the
-        data's content (a hash; file names do not matter), the scene and its geometry, the fixed
-        parameters, weights, smoothing, front threshold, bounds, dtype, the Jacobian's kind, the
-        initial particles and the whole run configuration (hashed). Two objectives with equal
-        fingerprints compute the same residuals; ``fit`` refuses to resume a history made for
-        another one."""
+        """What this objective's loss and its optimiser steps depend on, as a JSON-able dict (the
+        data and the run configuration by content hash, file names aside): equal fingerprints
+        compute equal residuals; ``fit`` refuses to resume a history made for another one."""
         data = [a for p in self.layout.profiles for a in (p.x, p.h, [p.time])]
         if self.layout.front is not None:
             data += [self.layout.front.t, self.layout.front.x_front]

@@ -1,11 +1,5 @@
-"""What a calibration run observes, kept apart from what was measured.
-
-``Observations`` says where and when a run is looked at: the x points of each deposit profile
-and its time, the times of the front, and how both are read (the kernel width σ, the mirror at
-the back wall, the front's threshold and reference point). It holds no measured value.
-
-A front's residuals may be exponentially correlated in time (``FrontTarget.correlation_time``):
-``whiten_front`` turns them into independent ones inside the residual function.
+"""What a calibration run observes (``Observations``: where, when and how; no measured value),
+and the whitening of a front's exponentially correlated residuals (``whiten_front``).
 """
 
 from __future__ import annotations
@@ -67,14 +61,6 @@ class Observations:
         """Every observation time, sorted, each once: the run's frame times."""
         front = () if self.front_times is None else tuple(float(t) for t in self.front_times)
         return tuple(sorted(set(self.profile_times) | set(front)))
-
-    @property
-    def n_profile(self) -> int:
-        return int(sum(x.size for x in self.profile_x))
-
-    @property
-    def n_front(self) -> int:
-        return 0 if self.front_times is None else int(self.front_times.size)
 
     def _key(self):
         arrays = self.profile_x + ((self.front_times,) if self.front_times is not None else ()) + (self.front_points,)

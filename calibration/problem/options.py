@@ -26,7 +26,6 @@ class OptionError(ValueError):
         self.field, self.what = field, what
 
 
-
 def _is_int(value) -> bool:
     return isinstance(value, int) and not isinstance(value, bool)
 

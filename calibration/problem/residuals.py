@@ -1,20 +1,13 @@
 """The pure core of a fit: a ``Problem`` and its residuals.
 
 A ``Problem`` is what a fit solves, apart from the measured numbers: a run (its static
-``config``, its initial particles ``state``, the scene's parameters ``base``, which hold the
-values of the keys not fitted), where and when that run is looked at (``observations``), the
-fitted ``keys`` and their ``bounds``. The measured numbers are a pytree of arrays beside it
-(``ResidualLayout.data``: heights, fronts and the residuals' scales). ``make_residuals(problem)``
-returns the one pure map ``residuals(z, data) -> (r, prediction)`` with θ = the bounds' map of z
-inside the trace, as ``jaxmpm.make_step(config)`` returns the engine's step: jit, vmap, jvp and
-grad it.
-
-Its compiled calls (``ModelFunctions``: residuals, Jacobians by forward mode, the reverse-mode
-gradient, vmapped batches, one Jacobian column) are built once per distinct (run configuration,
-observations, fitted keys) in the process and kept in ``calibration.problem.cache.MODEL_FUNCTIONS``:
-the data, the state, the base parameters and the bounds are arguments, not constants of the
-trace, so a twin's generator and its fit, the seeds of a coverage study or two problems of the
-same experiment against different files share one compiled run.
+``config``, its initial particles ``state``, the scene's parameters ``base``), where and when that
+run is looked at (``observations``), the fitted ``keys`` and their ``bounds``. The measured numbers
+are a pytree of arrays beside it (``ResidualLayout.data``). ``make_residuals(problem)`` returns the
+one pure map ``residuals(z, data) -> (r, prediction)``, as ``jaxmpm.make_step(config)`` returns the
+engine's step. Its compiled calls (``ModelFunctions``) are built once per distinct (run
+configuration, observations, fitted keys) and kept in ``calibration.problem.cache.MODEL_FUNCTIONS``:
+the data, state, base parameters and bounds are arguments, not constants of the trace.
 """
 
 from __future__ import annotations
@@ -41,8 +34,7 @@ __all__ = ["ModelFunctions", "Problem", "column_pass", "jacobian_by_columns", "m
 @dataclasses.dataclass(frozen=True, eq=False)
 class Problem:
     """What a fit solves, apart from the measured numbers (see the module's text). ``config``
-    is the scene's; the compiled calls run it with the observation times as its frame times.
-    ``replace(state=...)`` is the same problem on another draw of the particles."""
+    is the scene's; the compiled calls run it with the observation times as its frame times."""
 
     config: Config
     state: Any
@@ -70,16 +62,11 @@ class Problem:
         """The bounds as arrays of the run's dtype (the ``lower, upper`` of the z-calls)."""
         return jnp.asarray(self.bounds.lower, self.dtype), jnp.asarray(self.bounds.upper, self.dtype)
 
-    def replace(self, **changes) -> Problem:
-        return dataclasses.replace(self, **changes)
-
 
 def make_residuals(problem: Problem) -> Callable:
-    """The pure ``residuals(z, data) -> (r, prediction)`` of ``problem``: θ = the bounds' map of
-    the unconstrained ``z`` inside the trace, the run of ``problem.config`` from ``problem.state``
-    observed at ``problem.observations``, r the weighted misfit against ``data``
-    (``ResidualLayout.data``). Unjitted: ``jax.jit``, ``jax.vmap``, ``jax.jvp`` and ``jax.grad``
-    take it."""
+    """The pure, unjitted ``residuals(z, data) -> (r, prediction)`` of ``problem``: θ = the
+    bounds' map of the unconstrained ``z`` inside the trace, r the weighted misfit against
+    ``data`` (``ResidualLayout.data``)."""
     residual = problem.functions.residual
     lower, upper = problem.lower_upper()
 
@@ -93,10 +80,8 @@ def jacobian_by_columns(fn, x):
     """Forward-mode Jacobian of ``fn(x) -> (y, aux)`` (x a vector): ``(dy/dx, (y, aux))``.
 
     The columns are ``jax.jvp`` passes in a ``lax.map``, one after the other, not ``jax.jacfwd``'s
-    vmapped batch: on the CPU the batch carries every tangent through each scatter and gather of
-    the step together and costs more than the passes one at a time (at the S4 fit of docs/performance.md,
-    dx = 4 mm, two parameters: jacfwd 7.2 forward runs, two passes 3.7). Each pass recomputes
-    the primal, so the residuals come from the first."""
+    vmapped batch, which costs more on the CPU (docs/cost.md). Each pass recomputes the
+    primal, so the residuals come from the first."""
     def column(tangent):
         y, dy, aux = jax.jvp(fn, (x,), (tangent,), has_aux=True)
         return dy, y, aux
@@ -120,9 +105,8 @@ class ModelFunctions(NamedTuple):
     - ``value_and_grad``: jit, ((Σ r², prediction), dΣr²/dθ);
     - ``batched``: jit(vmap(residual)) over rows of θ; ``batched_jacobian_z``: over rows of z;
     - ``column_z(z, tangent, lower, upper, state, base, data)``: jit, (r, dr/dz · tangent,
-      dr/dθ · tangent, prediction) for a unit ``tangent`` (a key's column): one forward-mode
-      pass, the unit of work that ``calibration.batch.workers`` spreads over processes (a Jacobian
-      column, a start's column in a search)."""
+      dr/dθ · tangent, prediction) for a unit ``tangent``: one forward-mode pass, the unit of
+      work that ``calibration.batch.workers`` spreads over processes."""
 
     config: Config
     predict: Callable

@@ -34,14 +34,10 @@ class ProfileTarget:
 class FrontTarget:
     """Front positions ``x_front`` (m) at times ``t`` (s); ``source`` as for ``ProfileTarget``.
 
-    ``correlation_time`` (s): the errors of a front history are not independent (the front one
-    frame later is mostly where it was, and a model error in its speed persists over frames).
-    None (default) treats them as independent; a time τ assumes an exponentially correlated
-    (Ornstein–Uhlenbeck, AR(1) at equal spacing) error, corr(e_i, e_j) = exp(−|t_i − t_j|/τ),
-    whose precision matrix factorises exactly into the whitened residuals
-    (e_i − φ_i e_{i−1}) / sqrt(1 − φ_i²), φ_i = exp(−(t_i − t_{i−1})/τ) (``observe.whiten_front``).
-    The fit, its interval and every χ² then use them; ``uncertainty.front_correlation`` estimates
-    τ from a fit's residuals (feasible generalised least squares: fit, estimate, refit)."""
+    ``correlation_time`` (s): None (default) treats the front's errors as independent; a time τ
+    assumes an exponentially correlated error, corr(e_i, e_j) = exp(−|t_i − t_j|/τ), whose
+    residuals the fit whitens (``observe.whiten_front``; docs/verdict.md, "Correlated front
+    errors")."""
 
     t: np.ndarray
     x_front: np.ndarray
@@ -67,8 +63,7 @@ def _check_profile_plausible(label: str, x: np.ndarray, h: np.ndarray, scene, x_
     """Refuse a profile that cannot be a deposit of ``scene`` (units off by 10^3, another scene's
     data, numbers beyond the run's precision), naming ``label`` (the file)."""
     info = scene.info
-    if not (_representable(x, dtype) and _representable(h, dtype)):
-        raise ValueError(f"{label}: values beyond the range of {np.dtype(dtype).name}, in which the run computes")
+    _check_representable(label, dtype, x, h)
     h_max = float(h.max())
     height, length = info.height, info.length
     where = f"scene {scene.name}'s column (H = {height:g} m)" if height else ""
@@ -99,14 +94,14 @@ def _check_profile_plausible(label: str, x: np.ndarray, h: np.ndarray, scene, x_
                          f"zero (x = {shown} m): enlarge the scene or trim the data")
 
 
-def _representable(values, dtype) -> bool:
+def _check_representable(label: str, dtype, *arrays) -> None:
     with np.errstate(over="ignore"):
-        return bool(np.all(np.isfinite(np.asarray(values, dtype))))
+        if not all(np.all(np.isfinite(np.asarray(a, dtype))) for a in arrays):
+            raise ValueError(f"{label}: values beyond the range of {np.dtype(dtype).name}, in which the run computes")
 
 
 def _check_front_plausible(label: str, t: np.ndarray, xf: np.ndarray, scene, x_lo: float, x_hi: float, dtype):
-    if not (_representable(xf, dtype) and _representable(t, dtype)):
-        raise ValueError(f"{label}: values beyond the range of {np.dtype(dtype).name}, in which the run computes")
+    _check_representable(label, dtype, xf, t)
     outside = (xf < x_lo) | (xf > x_hi)
     if np.any(outside):
         k = int(np.argmax(outside))

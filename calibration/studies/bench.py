@@ -1,12 +1,8 @@
-"""Cost of one calibration evaluation: the run alone, forward mode (residuals and the whole
-Jacobian, by the objective's column passes and, for comparison, by jax.jacfwd's vmapped batch)
-and reverse mode (the loss gradient), with compile time apart from run time and the
-memory XLA plans for each. ``bench(...)`` returns a ``BenchResult``;
-``python -m calibration bench --json`` prints its ``to_json()``, one JSON object.
-
-This is the measurement behind ``Objective``'s choice of forward mode for Levenberg–Marquardt
-(it needs the m × n Jacobian; reverse mode would need m passes) and the ``grad_mode`` option of
-Adam (one reverse pass against one batched forward pass with n tangents).
+"""Cost of one calibration evaluation: the run alone, forward mode (the residuals and the whole
+Jacobian, by the objective's column passes and by jax.jacfwd's vmapped batch) and reverse mode
+(the loss gradient), with compile time apart from run time and the memory XLA plans for each.
+``bench(...)`` returns a ``BenchResult``, what ``python -m calibration bench --json`` prints
+(docs/cost.md).
 """
 
 from __future__ import annotations

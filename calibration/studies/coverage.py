@@ -1,14 +1,10 @@
 """Do the intervals contain the truth as often as they claim? Twins over many noise seeds.
 
-``coverage(seeds, noise, keys)`` runs the twin experiment (``calibration.studies.twin``: the S4 cohesive
-collapse, profiles at 0.1, 0.2 and 0.5 s and the front at 10 times, Gaussian noise of ``noise`` ×
-the peak height and × the column length) once per noise seed, each fit starting from the twin's
-perturbed start, and counts how often each 95 % interval holds the true value, under the noise
-the fit estimates from its residuals (what a user gets) and under the true noise given. A seed
-whose verdict is "not a fit of the data" gives no interval and is counted apart, never as a hit.
-The rates carry Clopper–Pearson 95 % intervals: with 20 seeds a nominal 95 % rate is consistent
-with 15-20 hits, so a study of this size detects gross under-coverage (intervals too narrow by a
-factor of two or more), not a few per cent.
+``coverage(seeds, noise, keys)`` runs the twin experiment (``calibration.studies.twin``) once per
+noise seed and counts how often each 95 % interval holds the true value, under the noise the fit
+estimates (what a user gets) and under the true noise given. A seed whose verdict is "not a fit of
+the data" gives no interval and is counted apart, never as a hit. The rates carry Clopper–Pearson
+95 % intervals (docs/twin.md, "Coverage, measured").
 """
 
 from __future__ import annotations
@@ -36,6 +32,11 @@ def clopper_pearson(hits: int, n: int, level: float = 0.95) -> tuple[float, floa
     lo = 0.0 if hits == 0 else float(beta.ppf(a / 2, hits, n - hits + 1))
     hi = 1.0 if hits == n else float(beta.ppf(1 - a / 2, hits + 1, n - hits))
     return lo, hi
+
+
+def _rate(hits: int, n: int) -> dict[str, Any]:
+    lo, hi = clopper_pearson(hits, n)
+    return {"hits": hits, "of": n, "rate": hits / n if n else None, "rate_ci95": [lo, hi]}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -76,15 +77,10 @@ class CoverageResult:
         """Hits of ``key``'s 95 % interval over the seeds that gave one, with its 95 % interval."""
         field = "in_ci95_given" if given else "in_ci95"
         judged = [getattr(r, field)[key] for r in self.rows if getattr(r, field) is not None]
-        hits = int(sum(judged))
-        lo, hi = clopper_pearson(hits, len(judged))
-        return {"hits": hits, "of": len(judged), "rate": hits / len(judged) if judged else None,
-                "rate_ci95": [lo, hi]}
+        return _rate(int(sum(judged)), len(judged))
 
     def joint_rate(self) -> dict[str, Any]:
-        hits = sum(r.truth_in_joint_95 for r in self.rows)
-        lo, hi = clopper_pearson(hits, len(self.rows))
-        return {"hits": int(hits), "of": len(self.rows), "rate": hits / len(self.rows), "rate_ci95": [lo, hi]}
+        return _rate(int(sum(r.truth_in_joint_95 for r in self.rows)), len(self.rows))
 
     def to_json(self) -> dict[str, Any]:
         withheld = [r.seed for r in self.rows if r.in_ci95 is None]

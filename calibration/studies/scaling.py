@@ -1,15 +1,10 @@
 """Fitting the runout against aspect ratio (docs/scenes.md S5) to a scaling law.
 
-One S5 collapse per aspect ratio a (a column L0 × a L0 released against a back wall); the datum
-of each is its final front, x_f = L0 (1 + ΔL/L0 (a)) from the law, and the residual is the
-normalised runout error (ΔL/L0)_model − (ΔL/L0)_law. The members are fitted together
-(``CompositeObjective``) and then run at aspect ratios the fit did not use, to see whether the
-fitted parameters predict them. The glass-bead law (Lajeunesse et al. 2005, quoted by K. Kumar)
-is a secondary source: the comparison tests the model against a quoted trend, not a
-measurement.
-
-``fit_runout_law(...)`` returns a ``LawResult`` (the ``FitResult`` and one ``LawCase`` per aspect
-ratio); its ``to_json()`` is what ``python -m calibration law --json`` prints.
+One S5 collapse per aspect ratio a, whose datum is its final front from the law; the members are
+fitted together (``CompositeObjective``) and then run at aspect ratios the fit did not use, to see
+whether the fitted parameters predict them. The quoted laws are secondary sources: the comparison
+tests the model against a quoted trend, not a measurement. ``fit_runout_law(...)`` returns a
+``LawResult``; its ``to_json()`` is what ``python -m calibration law --json`` prints.
 """
 
 from __future__ import annotations
@@ -68,9 +63,9 @@ def runout_objective(a: float, keys: Sequence[str], law: Callable = runout_law, 
                      dx: float | None = None, ppc: float | None = None, values: Mapping[str, float] | None = None,
                      dtype=None, jacobian: str = "fd", fd_step: float = 0.05):
     """The S5 objective at aspect ratio ``a``: the final front against ``law(a)``. The Jacobian
-    defaults to central differences over ±5 %: in the tall, violent columns (a ≥ 4) the final
-    front scatters by ~0.1 L0 between neighbouring parameter values, and the autodiff
-    derivative of the discrete run measures that scatter, not the trend (docs/calibration.md)."""
+    defaults to central differences over ±5 %: in tall columns the final front scatters between
+    neighbouring parameter values, and autodiff would measure that scatter, not the trend
+    (docs/calibration.md)."""
     scene = aspect_ratio_collapse(a, L0=L0, dx=dx, ppc=ppc, dtype=dtype, **dict(values or {}))
     t_end = scene.config.t_end
     target = FrontTarget(np.array([t_end]), np.array([L0 * (1.0 + float(law(a)))]))
@@ -114,8 +109,7 @@ class LawResult:
     wall_s: float
 
     def to_json(self) -> dict[str, Any]:
-        """The fit's JSON plus ``warning`` (if any), ``start``, ``cases``, ``wall_s``, ``law``,
-        ``L0`` and ``dx``: what ``python -m calibration law --json`` prints."""
+        """The fit's JSON and every case: what ``python -m calibration law --json`` prints."""
         out = self.fit.to_json()
         if self.warning:
             out["warning"] = self.warning

@@ -1,23 +1,11 @@
 """The twin experiment: fit data that the model itself made, with known parameters.
 
-A synthetic S4 cohesive collapse is run with the true parameters (β = 0.25, μ1 = tan 20.9°,
-ξ = 50, the rest of docs/scenes.md S4). Its deposit profiles at 0.1, 0.2 and 0.5 s (50 points from
-the back wall to 1.3× the final front) and its front position at 10 times become the data,
-optionally with Gaussian noise: σ = ``noise`` × the profile's peak height on every profile
-point, and σ = ``noise`` × the column length on every front position. The fit starts from a
-perturbed point (β × 0.6, μ1 × 1.2, ξ × 0.6) and must find the truth again; the uncertainty
-analysis at the optimum says which parameters the data constrain, and whether the 95 %
-intervals contain the true values. With noise, ``delta_chi2_truth`` is the likelihood-ratio
-distance of the truth from the fit (no linearisation) and ``truth_in_joint_95`` compares it with
-the 95 % quantile of χ² with n degrees of freedom.
-
-``quick=True`` uses a coarse grid (dx = L/8, 576 particles); the default dx = L/16 (2,304
-particles) is the project's default S4 resolution.
-
-``twin(...)`` returns a ``TwinResult`` (the ``FitResult``, the ``Objective`` and the comparison
-with the truth; ``to_json()`` is what ``python -m calibration twin --json`` prints);
-``twin_landscape(result, n)`` sweeps its loss on an n × n grid over the first two keys
-(``--landscape N``) and returns a ``TwinLandscape``.
+A synthetic S4 cohesive collapse is run with the true parameters (``TWIN_TRUTH`` over the scene's);
+its deposit profiles at ``PROFILE_TIMES`` and its front at ``FRONT_TIMES`` become the data,
+optionally with Gaussian noise, and the fit from a perturbed start (``TWIN_START_FACTORS``) must
+find the truth again and say which parameters the data constrain. ``twin(...)`` returns a
+``TwinResult``; ``twin_landscape(result, n)`` sweeps its loss over the first two keys. The set-up
+and what it shows: docs/twin.md.
 """
 
 from __future__ import annotations
@@ -35,6 +23,7 @@ from jaxmpm.scenes.collapse import S4_SIDE
 from ..batch.sweep import SweepResult, grid_points, sweep
 from ..inference.scatter import ROUNDOFF_SAMPLES
 from ..optim.fit import FitResult, fit
+from ..optim.options import cli_steps
 from ..problem.objective import Objective
 from ..problem.targets import FrontTarget, ProfileTarget
 
@@ -123,22 +112,14 @@ class TwinResult:
         return {k: [float(lo), float(hi)] for k, (lo, hi) in zip(self.keys, unc.ci95)}
 
     def to_json(self) -> dict[str, Any]:
-        """The fit's JSON plus ``true``, the twin's ``start``, ``rel_error``, ``in_ci95``, with noise
-        ``delta_chi2_truth`` and ``truth_in_joint_95``, and the run's ``noise``, ``seed``, ``dx`` and
-        ``n_particles``: what ``python -m calibration twin --json`` prints."""
+        """The fit's JSON and the comparison with the truth: what ``python -m calibration twin --json`` prints."""
         out = self.fit.to_json()
-        out["wall_s"] = round(self.wall_s, 3)
-        out["true"] = dict(self.truth)
-        out["start"] = dict(self.start)
-        out["rel_error"] = dict(self.rel_error)
-        out["in_ci95"] = None if self.in_ci95 is None else dict(self.in_ci95)
+        out.update({"wall_s": round(self.wall_s, 3), "true": dict(self.truth), "start": dict(self.start),
+                    "rel_error": dict(self.rel_error),
+                    "in_ci95": None if self.in_ci95 is None else dict(self.in_ci95)})
         if self.delta_chi2_truth is not None:
-            out["delta_chi2_truth"] = self.delta_chi2_truth
-            out["truth_in_joint_95"] = self.truth_in_joint_95
-        out["noise"] = self.noise
-        out["seed"] = self.seed
-        out["dx"] = self.dx
-        out["n_particles"] = self.n_particles
+            out.update(delta_chi2_truth=self.delta_chi2_truth, truth_in_joint_95=self.truth_in_joint_95)
+        out.update({"noise": self.noise, "seed": self.seed, "dx": self.dx, "n_particles": self.n_particles})
         return out
 
 
@@ -165,14 +146,12 @@ def twin(*, quick: bool = False, noise: float = 0.0, keys: Sequence[str] = ("bet
     profiles, front = twin_data(scene, keys, truth, noise=noise, seed=seed)
     objective = Objective(scene, keys, profile=profiles, front=front)
     # Identifiability at the stated reference noise (or the twin's own noise when larger).
-    steps = (25 if method == "lm" else 150) if steps is None else steps
-    result = fit(objective, start, method=method, steps=steps, out=out,
+    result = fit(objective, start, method=method, steps=cli_steps(method, steps), out=out,
                  resume=resume, overwrite=overwrite, progress=progress, noise=None,
                  reference_noise=max(reference_noise, noise), threshold=threshold, roundoff_samples=roundoff_samples,
                  meta={"twin": True, "noise": noise, "seed": seed, "true": dict(zip(keys, truth.tolist()))})
     wall_s = time.perf_counter() - t0
     unc = result.uncertainty
-    # No interval (None) when the verdict says the fit is not a fit of the data.
     in_ci95 = (None if unc.withheld else
                {k: bool(lo <= v <= hi) for k, v, (lo, hi) in zip(keys, truth, unc.ci95)})
     delta = None
