@@ -10,7 +10,7 @@ from importlib import metadata as _metadata
 
 from . import io, scenes, tables
 from ._version import __version__ as __version__  # the one source of the version (pyproject.toml reads it)
-from .boundary import Terrain, Wall
+from .boundary import SideWalls, Terrain, Wall
 from .config import Config, Grid
 from .experiment import Experiment, ExperimentError
 from .materials import CriticalState, Hencky, Material, hencky_stress, invariants
@@ -55,7 +55,7 @@ __all__ = [
     "Hencky", "J_NONPOSITIVE",
     "LEFT_GRID", "Material", "MATERIAL_KEYS", "NONFINITE", "PARAM_KEYS", "PARAMS", "Params", "ParamSpec", "Result",
     "SAMPLINGS",
-    "SimulationError", "State", "Terrain", "Wall",
+    "SideWalls", "SimulationError", "State", "Terrain", "Wall",
     "compiled_rollout", "describe_status", "frame_observer", "hencky_stress", "init_state",
     "invariants", "io", "make_rollout", "make_step", "scenes", "seed_box", "simulate", "tables", "validate_params",
 ]

@@ -47,7 +47,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-__all__ = ["Wall", "Terrain", "KINDS", "KIND_ALIASES", "apply_walls"]
+__all__ = ["Wall", "Terrain", "SideWalls", "KINDS", "KIND_ALIASES", "apply_walls", "side_wall_friction"]
 
 KINDS = ("no-slip", "non-separable", "separable")
 #: The reference code's names for the same types.
@@ -95,6 +95,46 @@ def _check_friction(owner, friction):
     if not (math.isfinite(value) and value >= 0):
         raise ValueError(f"{owner}.friction must be finite and >= 0, got {friction!r}")
     return value
+
+
+@dataclasses.dataclass(frozen=True)
+class SideWalls:
+    """The two side walls of a channel ``width`` apart (m), across a 2D (plane-strain) run.
+
+    Their Coulomb friction ``friction`` (μ_w), averaged over the width, acts on every grid node
+    against its velocity with magnitude 2 μ_w K p / W per unit volume: p ≥ 0 is the material's
+    pressure at the node, K = ``lateral_pressure_ratio`` the ratio of the walls' normal stress to
+    p, W the width. It is applied implicitly (``side_wall_friction``): it can stop a node, never
+    reverse it. The plug-flow and K p assumptions, and where they fail: docs/model.md §5."""
+
+    width: float
+    friction: float
+    lateral_pressure_ratio: float = 1.0
+
+    def __post_init__(self):
+        for name, low, value in (("width", 0.0, self.width), ("friction", None, self.friction),
+                                 ("lateral_pressure_ratio", None, self.lateral_pressure_ratio)):
+            try:
+                number = float(value)
+            except (TypeError, ValueError):
+                raise ValueError(f"SideWalls.{name} must be a number, got {value!r}") from None
+            if not (math.isfinite(number) and (number > low if low is not None else number >= 0)):
+                raise ValueError(f"SideWalls.{name} must be finite and {'> 0' if low is not None else '>= 0'}, "
+                                 f"got {value!r}")
+            object.__setattr__(self, name, number)
+
+
+def side_wall_friction(side: SideWalls, v, pressure, mass, dt):
+    """Node velocities ``v`` (dim, n) after the side walls' friction over ``dt``: |v| <- max(|v| - c,
+    0), the direction kept, with c = 2 μ_w K dt P / (W m), P = Σ_p w_ip V_p max(p_p, 0) the node's
+    pressure times its volume and m its mass (c = 0 where m = 0). Finite derivatives at v = 0."""
+    from .linalg import safe_div
+
+    c = (2.0 * side.friction * side.lateral_pressure_ratio * dt / side.width) * safe_div(pressure, mass)
+    speed2 = jnp.sum(v * v, axis=0)
+    moving = speed2 > 0
+    speed = jnp.sqrt(jnp.where(moving, speed2, 1.0))
+    return v * jnp.where(moving & (speed > c), 1.0 - c / speed, 0.0)
 
 
 @dataclasses.dataclass(frozen=True)

@@ -11,7 +11,7 @@ import math
 
 import numpy as np
 
-from .boundary import Terrain, Wall
+from .boundary import SideWalls, Terrain, Wall
 from .materials.base import Material
 from .materials.hencky import Hencky
 
@@ -144,6 +144,8 @@ class Config:
         records when the quiet began). No particle moved faster than ``rest_speed`` during
         the last ``rest_duration``; one creeping at that speed would have gone on by at most
         ``rest_speed`` × the time skipped.
+      side_walls: None (default), or ``boundary.SideWalls``: the friction of a channel's two side
+        walls on a 2D run, averaged over its width (2D only).
     """
 
     grid: Grid
@@ -162,6 +164,7 @@ class Config:
     active_nodes: int | None = None
     rest_speed: float | None = None
     rest_duration: float = 0.0
+    side_walls: SideWalls | None = None
 
     def __post_init__(self):
         set_ = lambda k, v: object.__setattr__(self, k, v)  # noqa: E731 (frozen dataclass)
@@ -221,6 +224,11 @@ class Config:
         if not (math.isfinite(duration) and duration >= 0):
             raise ValueError(f"rest_duration must be >= 0 and finite (s), got {self.rest_duration!r}")
         set_("rest_duration", duration)
+        if self.side_walls is not None:
+            if not isinstance(self.side_walls, SideWalls):
+                raise ValueError(f"side_walls must be a SideWalls or None, got {type(self.side_walls).__name__}")
+            if dim != 2:
+                raise ValueError("side_walls is the 2D model of a channel's walls; a 3D run has the walls themselves")
         if self.grid.n_nodes >= 2**31 - 1:
             raise ValueError(f"the grid has {self.grid.n_nodes} nodes; node numbers must fit in int32 (< 2**31 - 1)")
 

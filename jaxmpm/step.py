@@ -6,8 +6,8 @@
    time or the end time; after t_end the step returns the state unchanged, and once the
    material is at rest (``Config.rest_speed``) it only moves the time on to the next stop;
 2. APIC P2G of mass, momentum and internal force (stress from the previous step: USL);
-3. grid update with gravity, then the walls (each one's impulse from the material accumulates
-   in ``state.impulse``);
+3. grid update with gravity, the side walls' friction of a 2D channel (``Config.side_walls``),
+   then the walls (each one's impulse from the material accumulates in ``state.impulse``);
 4. G2P (PIC/APIC/AFLIP), positions advected with the PIC velocity;
 5. F_e,trial = (I + dt ∇v) F_e and the material update (new F_e, τ, internal variables);
 6. status bits: particle left the grid, non-finite state, det F_e,trial <= 0.
@@ -22,7 +22,7 @@ from jax.custom_batching import custom_vmap
 
 from . import sparse
 from . import state as st
-from .boundary import apply_walls
+from .boundary import apply_walls, side_wall_friction
 from .config import Config
 from .kernels import make_stencil
 from .linalg import det_planes, mm_planes, planes, unplanes
@@ -136,8 +136,14 @@ def make_step(config: Config):
         mass = params.rho * state.vol0
         v = list(jnp.unstack(state.v, axis=-1))  # unstack: its transpose is a stack (linalg.planes)
         F = planes(state.F)
-        fields = p2g(stencil, mass, v, planes(state.C), state.vol0, planes(state.tau), n_grid)
+        tau = planes(state.tau)
+        pressure = None
+        if config.side_walls is not None:  # V_p max(p_p, 0), p = -tr(τ)/dim (Kirchhoff: V0 τ = V σ)
+            pressure = state.vol0 * jnp.maximum(-sum(tau[a][a] for a in range(dim)) / dim, 0.0)
+        fields = p2g(stencil, mass, v, planes(state.C), state.vol0, tau, n_grid, pressure)
         v_old, v_new = grid_velocities(fields, dt, jnp.asarray(config.gravity, dtype))
+        if config.side_walls is not None:
+            v_new = side_wall_friction(config.side_walls, v_new, fields.pressure, fields.mass, dt)
         v_new, impulse = apply_walls(config.walls, v_new, node_x, state.t, dt, params, mass=fields.mass)
         v_flip = v
         if config.xpic and config.transfer == "aflip" and alpha != 0.0:

@@ -29,6 +29,7 @@ class GridFields(NamedTuple):
     mass: jnp.ndarray  # (n_nodes,)
     momentum: jnp.ndarray  # (dim, n_nodes)
     force: jnp.ndarray  # (dim, n_nodes) internal force
+    pressure: jnp.ndarray | None = None  # (n_nodes,) Σ w V p, where asked for (side walls)
 
 
 class Transferred(NamedTuple):
@@ -48,9 +49,10 @@ def _matrix_planes(a):
     return planes(a)
 
 
-def p2g(stencil: Stencil, mass, v, C, vol0, tau, n_nodes: int) -> GridFields:
+def p2g(stencil: Stencil, mass, v, C, vol0, tau, n_nodes: int, pressure=None) -> GridFields:
     """Scatter mass, APIC momentum and internal force to the grid. ``v`` (N, dim) and ``C``,
-    ``tau`` (N, dim, dim) are arrays or planes."""
+    ``tau`` (N, dim, dim) are arrays or planes. ``pressure`` (N,), if given, is scattered too
+    (``GridFields.pressure``: Σ_p w_ip pressure_p)."""
     v = _vector_planes(v) if hasattr(v, "shape") else v
     C = _matrix_planes(C) if hasattr(C, "shape") else C
     tau = _matrix_planes(tau) if hasattr(tau, "shape") else tau
@@ -72,7 +74,9 @@ def p2g(stencil: Stencil, mass, v, C, vol0, tau, n_nodes: int) -> GridFields:
         return empty.at[index].add(jnp.stack(planes).reshape(-1))
 
     return GridFields(scatter(mass_ch), jnp.stack([scatter(c) for c in momentum_ch]),
-                      jnp.stack([scatter(c) for c in force_ch]))
+                      jnp.stack([scatter(c) for c in force_ch]),
+                      None if pressure is None else scatter([pressure * stencil.weight_plane(s)
+                                                             for s in range(n_stencil)]))
 
 
 def grid_velocities(fields: GridFields, dt, gravity):

@@ -23,7 +23,7 @@ from .base import Scene
 from .collapse import G, floor_lift
 from .info import SceneInfo
 
-__all__ = ["incline", "S1_DEPTH", "S1_PARAMS", "bagnold_velocity"]
+__all__ = ["incline", "S1_DEPTH", "S1_PARAMS", "bagnold_velocity", "side_wall_velocity"]
 
 #: S1's layer depth h (docs/scenes.md S1), m.
 S1_DEPTH = 0.038
@@ -50,11 +50,35 @@ def bagnold_velocity(z, depth, slope_deg, params):
     return scale * (depth**1.5 - (depth - z) ** 1.5)
 
 
+def side_wall_velocity(z, depth, slope_deg, params, side_walls, points: int = 4001):
+    """The steady flow between side walls (docs/model.md §6): at depth ζ below the surface the
+    walls take 2 μ_w K p ζ / W of the shear stress, so μ(I(ζ)) = tan θ − μ_w K ζ / W, the flow
+    stops below ζ* = W (tan θ − μ1) / (μ_w K), and v(z) integrates γ̇ = I(ζ) sqrt(p / ρ_s) / d
+    (p = ρ g cos θ ζ) up from the no-slip bed. Returns (v at the heights ``z`` above the bed, ζ*
+    (inf without friction)). ``params``: as for ``bagnold_velocity``."""
+    import numpy as np
+
+    get = (lambda k: float(params[k])) if isinstance(params, dict) else (lambda k: float(getattr(params, k)))
+    theta = math.radians(slope_deg)
+    tan, mu1, mu2 = math.tan(theta), get("mu1"), get("mu2")
+    if not mu1 < tan < mu2:
+        raise ValueError(f"slope_deg must lie between atan(mu1) and atan(mu2) for a steady flow, got {slope_deg!r}")
+    drag = side_walls.friction * side_walls.lateral_pressure_ratio / side_walls.width
+    stop = (tan - mu1) / drag if drag > 0 else math.inf
+    height = np.linspace(0.0, depth, points)
+    zeta = depth - height
+    mu = np.maximum(tan - drag * zeta, mu1)
+    rate = (get("I0") * (mu - mu1) / (mu2 - mu)
+            * np.sqrt(get("rho") * G * math.cos(theta) * zeta / get("rho_s")) / get("d"))
+    v = np.concatenate([[0.0], np.cumsum(0.5 * (rate[1:] + rate[:-1]) * np.diff(height))])
+    return np.interp(np.clip(np.asarray(z, float), 0.0, depth), height, v), stop
+
+
 def incline(slope_deg: float = 24.0, dx: float | None = None, ppc: int = 2, depth: float = S1_DEPTH,
             length_cells: int = 4, t_end: float = 2.0, frames: int = 0, max_steps: int | None = None,
             start_from_analytic: bool = True, critical_start: bool = False, transfer: str = "aflip",
             alpha: float = 0.95, dtype=None, sampling: str = "lattice", seed: int = 0,
-            wall_gap: float | None = None, **param_values) -> Scene:
+            wall_gap: float | None = None, side_walls=None, **param_values) -> Scene:
     """S1 at ``slope_deg`` with layer ``depth`` (default 0.038 m) and grid spacing ``dx``
     (default depth/16), periodic over ``length_cells`` cells along the slope.
 
@@ -69,7 +93,8 @@ def incline(slope_deg: float = 24.0, dx: float | None = None, ppc: int = 2, dept
     it is stronger than μ(I) p there and shears only as dilation softens it. The offset lives in
     ε_v^p, so ``particle_volumes`` counts it as a plastic volume change: divide by
     exp(ε_v^p(t = 0)) for volumes relative to the start. ``start_from_analytic=False`` starts
-    from rest (the approach to the steady state, ``validate bagnold --from-rest``)."""
+    from rest (the approach to the steady state, ``validate bagnold --from-rest``). ``side_walls``
+    (``jaxmpm.SideWalls``): the chute's walls (docs/model.md §6, ``side_wall_velocity``)."""
     dx = dx if dx is not None else depth / 16
     if wall_gap is not None and not (isinstance(wall_gap, (int, float)) and math.isfinite(wall_gap)
                                      and 0.0 <= wall_gap <= 2.0 * dx):
@@ -90,7 +115,7 @@ def incline(slope_deg: float = 24.0, dx: float | None = None, ppc: int = 2, dept
         grid=grid, t_end=t_end, max_steps=max_steps, material=CriticalState(),
         walls=(Wall((0.0, 0.0), (0.0, 1.0), "no-slip"),), gravity=(G * math.sin(theta), -G * math.cos(theta)),
         transfer=transfer, alpha=alpha,
-        frame_times=tuple(t_end * (k + 1) / frames for k in range(frames)),
+        frame_times=tuple(t_end * (k + 1) / frames for k in range(frames)), side_walls=side_walls,
     )
     x, vol = seed_box((0.0, 0.0), (length_cells * dx, depth), dx, ppc, sampling=sampling, seed=seed)
     z = x[:, 1].copy()
@@ -98,7 +123,9 @@ def incline(slope_deg: float = 24.0, dx: float | None = None, ppc: int = 2, dept
     x[:, 1] += gap
     v = None
     if start_from_analytic:
-        v = [[vx, 0.0] for vx in bagnold_velocity(z, depth, slope_deg, params)]
+        vx = (bagnold_velocity(z, depth, slope_deg, params) if side_walls is None
+              else side_wall_velocity(z, depth, slope_deg, params, side_walls)[0])
+        v = [[u, 0.0] for u in vx]
     info = SceneInfo(dim=2, dx=dx, ppc=ppc, sampling=sampling, seed=seed, front0=float(length_cells * dx),
                      length=length_cells * dx, height=depth, slope_deg=slope_deg, wall_gap=gap,
                      critical_start=bool(critical_start))

@@ -1,0 +1,116 @@
+"""The side walls of a 2D channel (``jaxmpm.SideWalls``): their friction on the grid nodes, the
+steady flow between them against its analytic solution, and their gradient (float64)."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from jax.test_util import check_grads
+
+import jaxmpm as jm
+from jaxmpm import SideWalls, scenes
+from jaxmpm.boundary import side_wall_friction
+from jaxmpm.scenes.incline import S1_DEPTH, side_wall_velocity
+
+
+@pytest.mark.parametrize("kwargs, message", [
+    (dict(width=-0.02, friction=0.25), "SideWalls.width must be finite and > 0"),
+    (dict(width=0.0, friction=0.25), "SideWalls.width must be finite and > 0"),
+    (dict(width=0.02, friction=-0.1), "SideWalls.friction must be finite and >= 0"),
+    (dict(width=0.02, friction=0.2, lateral_pressure_ratio=math.nan), "lateral_pressure_ratio must be finite"),
+    (dict(width="wide", friction=0.2), "SideWalls.width must be a number"),
+])
+def test_bad_side_walls_are_refused(kwargs, message):
+    with pytest.raises(ValueError, match=message):
+        SideWalls(**kwargs)
+
+
+def test_side_walls_are_refused_in_3d():
+    grid = jm.Grid((4, 4, 4), 0.1)
+    with pytest.raises(ValueError, match="side_walls is the 2D model"):
+        jm.Config(grid=grid, t_end=1.0, max_steps=10, side_walls=SideWalls(0.02, 0.2))
+
+
+def test_node_friction_stops_a_node_but_never_reverses_it():
+    side = SideWalls(width=0.1, friction=0.4, lateral_pressure_ratio=0.5)
+    v = jnp.array([[3.0, 0.1, 0.0, -2.0], [4.0, 0.0, 0.0, 0.0]])
+    mass = jnp.array([2.0, 2.0, 0.0, 1.0])
+    pressure = jnp.array([50.0, 50.0, 50.0, 10.0])
+    dt = 1e-2
+    out = np.asarray(side_wall_friction(side, v, pressure, mass, dt))
+    c = 2 * 0.4 * 0.5 * dt / 0.1 * np.array([25.0, 25.0, 0.0, 10.0])  # 2 μ K dt P / (W m)
+    np.testing.assert_allclose(out[:, 0], np.array([3.0, 4.0]) * (1 - c[0] / 5.0), rtol=1e-12)  # the direction kept
+    np.testing.assert_array_equal(out[:, 1], 0.0)  # slower than c: stopped, not reversed
+    np.testing.assert_array_equal(out[:, 2], 0.0)  # an empty node
+    np.testing.assert_allclose(out[:, 3], [-2.0 + c[3], 0.0], rtol=1e-12)
+    # At rest the derivative is finite (zero), not NaN; elsewhere it is the differences'.
+    grad = jax.grad(lambda u: jnp.sum(side_wall_friction(side, u, pressure, mass, dt)))(jnp.zeros_like(v))
+    assert np.all(np.isfinite(np.asarray(grad)))
+    sliding = (jnp.array([[3.0, -2.0], [4.0, 0.5]]), jnp.array([50.0, 10.0]), jnp.array([2.0, 1.0]))
+    check_grads(lambda u, p, m: side_wall_friction(side, u, p, m, dt), sliding, order=1, modes=("fwd", "rev"))
+
+
+def _strip(slope, side_walls, t_end=0.5, division=16, frames=4):
+    return scenes.incline(slope, dx=S1_DEPTH / division, t_end=t_end, frames=frames, critical_start=True,
+                          side_walls=side_walls)
+
+
+@pytest.mark.slow  # 9 s: two critical-state compiles; side_walls=None is the engine's own code path
+def test_frictionless_side_walls_change_nothing():
+    """μ_w = 0 multiplies every node's velocity by exactly 1: the run is the one without side
+    walls (``side_walls=None``, the engine's code path unchanged) to round-off. Not bit for bit:
+    the extra operations change how XLA fuses the grid update (1e-9 m after 20 steps here)."""
+    plain = _strip(26.0, None, t_end=0.02, frames=0)
+    walls = _strip(26.0, SideWalls(0.05, 0.0), t_end=0.02, frames=0)
+    a, b = jm.simulate(*plain).state, jm.simulate(*walls).state
+    assert int(a.steps) > 20
+    np.testing.assert_allclose(a.x, b.x, rtol=0, atol=1e-8)
+    np.testing.assert_allclose(a.v, b.v, rtol=0, atol=1e-6 * float(np.abs(a.v).max()))
+
+
+def test_the_steady_flow_between_side_walls_is_the_analytic_one():
+    """S1 at 28° between walls 5 cm apart (μ_w = 0.3): the flow stops 25 mm below the surface
+    of the 38 mm layer and the surface runs at 0.85 m/s, against 2.6 m/s without walls. Started
+    on that profile, the strip holds it: after 0.5 s the surface velocity is within 3 % of it and
+    the profile within 3 % of it (RMS over the particles, of the surface velocity)."""
+    side = SideWalls(width=0.05, friction=0.3)
+    scene = _strip(28.0, side)
+    _, stop = side_wall_velocity(0.0, S1_DEPTH, 28.0, scene.params, side)
+    assert stop == pytest.approx(0.05 * (math.tan(math.radians(28.0)) - float(scene.params.mu1)) / 0.3)
+    result = jm.simulate(*scene, observer=lambda s, p: {"vx": s.v[:, 0], "y": s.x[:, 1]})
+    assert result.status == 0
+    vx, z = np.asarray(result.frames["vx"][-1]), np.asarray(result.frames["y"][-1]) - scene.info.wall_gap
+    analytic, _ = side_wall_velocity(z, S1_DEPTH, 28.0, scene.params, side)
+    top = np.argsort(z)[-scene.config.grid.cells[0] * scene.info.ppc:]
+    v_max = side_wall_velocity(S1_DEPTH, S1_DEPTH, 28.0, scene.params, side)[0]
+    assert vx[top].mean() == pytest.approx(analytic[top].mean(), rel=0.03)
+    assert np.sqrt(np.mean((vx - analytic) ** 2)) < 0.03 * v_max
+    assert np.all(np.abs(vx[z < S1_DEPTH - stop - scene.info.dx]) < 0.03 * v_max)  # below ζ*: at rest
+    assert scenes.bagnold_velocity(S1_DEPTH, S1_DEPTH, 28.0, scene.params) > 3 * v_max
+
+
+@pytest.mark.slow  # 27 s: a reverse-mode compile of the critical-state rollout; the node rule's own
+def test_the_side_walls_gradient_matches_finite_differences():  # derivatives are checked by default
+    """d(mean velocity along the slope after 40 steps)/d(μ1, ρ) with side walls, float64,
+    against central differences (relative step 1e-6), to 1e-5."""
+    scene = _strip(28.0, SideWalls(0.05, 0.3), t_end=1.0, division=8, frames=0)
+    scene = dataclasses.replace(scene, config=dataclasses.replace(scene.config, max_steps=40))
+    rollout = jm.make_rollout(scene.config, observer=None)
+
+    def mean_speed(params):
+        final, _ = rollout(scene.state, params)
+        return jnp.mean(final.v[:, 0])
+
+    grads = jax.jit(jax.grad(mean_speed))(scene.params)
+    f = jax.jit(mean_speed)
+    for key in ("mu1", "rho"):
+        value = getattr(scene.params, key)
+        h = 1e-6 * value
+        fd = (f(scene.params.replace(**{key: value + h})) - f(scene.params.replace(**{key: value - h}))) / (2 * h)
+        assert np.isfinite(getattr(grads, key))
+        np.testing.assert_allclose(getattr(grads, key), fd, rtol=1e-5, err_msg=key)
