@@ -32,7 +32,7 @@ from ..observables import deposit_profile, front_from_profile, particle_volumes
 from ..precision import x64, x64_enabled
 from ..scenes import S1_DEPTH, S3_LENGTH, S4_SIDE, S5_LENGTH
 from ..simulate import simulate
-from . import fidelity
+from . import channel, fidelity
 
 __all__ = ["STUDIES", "run_study", "bagnold", "convergence", "aspect_ratio", "cohesion", "speed_accuracy",
            "stability", "avalanche"]
@@ -421,7 +421,8 @@ def avalanche(quick=False, plot_dir=None) -> dict:
 
 STUDIES = {"bagnold": bagnold, "bagnold-from-rest": bagnold_from_rest, "convergence": convergence,
            "aspect-ratio": aspect_ratio, "cohesion": cohesion, "speed-accuracy": speed_accuracy, "stability": stability,
-           "resolution": fidelity.resolution, "cross-code": fidelity.cross_code, "avalanche": avalanche}
+           "resolution": fidelity.resolution, "cross-code": fidelity.cross_code, "avalanche": avalanche,
+           "side-walls": channel.side_walls}
 
 
 def run_study(name: str, quick: bool = False, plot_dir=None, alpha: float | None = None, **options) -> dict:
