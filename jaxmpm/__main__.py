@@ -104,6 +104,7 @@ def _run(args) -> int:
 def _avalanche_options(args) -> dict:
     """The avalanche builder's keyword arguments from ``run avalanche``'s options."""
     for option, value in (("--dim", args.dim not in (None, 2)), ("--width", args.width is not None),
+                          ("--side-walls", args.side_walls is not None),
                           ("--slope", args.slope is not None), ("--aspect", args.aspect is not None),
                           ("--sampling", args.sampling not in (None, "lattice"))):
         if value:
@@ -274,7 +275,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     validate = sub.add_parser("validate", help="run a validation study (docs/validation.md)")
     validate.add_argument("study", choices=("bagnold", "bagnold-from-rest", "convergence", "aspect-ratio", "cohesion",
-                                            "speed-accuracy", "stability", "resolution", "cross-code", "avalanche"))
+                                            "speed-accuracy", "stability", "resolution", "cross-code", "avalanche",
+                                            "side-walls"))
     validate.add_argument("--quick", action="store_true", help="a reduced, faster version")
     validate.add_argument("--json", action="store_true", help="print one JSON object")
     validate.add_argument("--plot", default=None, metavar="DIR", help="write the study's figure into DIR")

@@ -16,7 +16,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from ._toml import TIME, ExperimentError, key_name
+from ._toml import LENGTH, PURE, TIME, ExperimentError, Table, key_name
+from .boundary import SideWalls
 from .config import TRANSFERS
 from .params import DEFAULTS, LENGTH_UNITS, PARAM_KEYS, RELATIONS, param_help, param_problem
 from .precision import DTYPES
@@ -26,10 +27,12 @@ from .scenes.collapse import DEFAULT_SAMPLING, FLOORS
 if TYPE_CHECKING:
     from .experiment import Experiment
 
-__all__ = ["GATES", "Invalid", "check_experiment"]
+__all__ = ["GATES", "SIDE_WALLS", "Invalid", "check_experiment", "side_walls_of"]
 
 #: The gates of ``[boundaries] gate`` (``Experiment.gate_speeds``).
 GATES = ("none", "front", "back", "both")
+#: ``[boundaries] side_walls``, the walls of a 2D channel (``jaxmpm.SideWalls``): its entries.
+SIDE_WALLS = Table({"width": LENGTH, "friction": PURE, "lateral_pressure_ratio": PURE})
 
 
 class Invalid(ExperimentError):
@@ -74,7 +77,8 @@ def check_experiment(e: Experiment) -> None:
         _positive("geometry", "width", e.width, "m")
     else:
         _need(e.width is None, "geometry", "width", "applies to dim = 3 (a 2D run has no width); set "
-                                                    "[numerics] dim = 3 or drop it")
+                                                    "[numerics] dim = 3 or drop it (a 2D channel's walls are "
+                                                    "[boundaries] side_walls = { width = ..., friction = ... })")
     _need(-60.0 < e.slope < 60.0, "geometry", "slope", f"must be in (-60, 60) degrees, got {e.slope}")
     _check_boundaries(e)
     _check_material(e)
@@ -105,6 +109,25 @@ def _check_boundaries(e: Experiment) -> None:
         _positive("boundaries", "gate_speed", e.gate_speed, "m/s")
     _need(not (e.gate in ("back", "both") and e.back_wall), "boundaries", "back_wall",
           "a back gate stands where the back wall would: set back_wall = false")
+    if e.side_walls is not None:
+        _need(isinstance(e.side_walls, SideWalls), "boundaries", "side_walls",
+              f"must be a jaxmpm.SideWalls, got {type(e.side_walls).__name__}")
+        _need(e.dim == 2, "boundaries", "side_walls", "the side walls of a 2D channel; a 3D run (dim = 3) has the "
+                                                      "channel's walls themselves ([geometry] width): drop side_walls")
+
+
+def side_walls_of(values: Mapping[str, float]) -> SideWalls:
+    """The ``SideWalls`` of ``[boundaries] side_walls`` (its entries read, in SI units); raises
+    ``Invalid`` naming what is missing or out of range."""
+    for entry, what in (("width", "the channel's width, e.g. \"20 mm\""),
+                        ("friction", "the walls' Coulomb friction coefficient mu_w, e.g. 0.25")):
+        _need(entry in values, "boundaries", "side_walls", f"missing {entry}: {what}")
+    width, friction = values["width"], values["friction"]
+    ratio = values.get("lateral_pressure_ratio", 1.0)
+    _need(width > 0, "boundaries", "side_walls", f"width must be > 0 m, got {width:g} m")
+    _need(friction >= 0, "boundaries", "side_walls", f"friction must be >= 0, got {friction:g}")
+    _need(ratio >= 0, "boundaries", "side_walls", f"lateral_pressure_ratio must be >= 0, got {ratio:g}")
+    return SideWalls(width, friction, ratio)
 
 
 def _check_material(e: Experiment) -> None:

@@ -18,8 +18,8 @@ from typing import Any, NamedTuple
 
 from .params import LENGTH_UNITS, PURE_UNITS
 
-__all__ = ["ANGLE", "LENGTH", "PURE", "SPEED", "TIME", "ExperimentError", "Units", "Where", "key_name", "number",
-           "plain", "provenance", "read_section", "relative", "toml_entry"]
+__all__ = ["ANGLE", "LENGTH", "PURE", "SPEED", "TIME", "ExperimentError", "Table", "Units", "Where", "inline_table",
+           "key_name", "number", "plain", "provenance", "read_section", "relative", "toml_entry"]
 
 
 class ExperimentError(ValueError):
@@ -39,6 +39,14 @@ TIME = Units(types.MappingProxyType({"s": 1.0, "ms": 1e-3}), "s")
 SPEED = Units(types.MappingProxyType({"m/s": 1.0, "cm/s": 1e-2, "mm/s": 1e-3}), "m/s")
 ANGLE = Units(types.MappingProxyType({"deg": 1.0, "rad": 180.0 / math.pi}), "deg")
 PURE = Units(PURE_UNITS, "-")
+
+
+class Table(NamedTuple):
+    """An inline table of numbers, ``key = { entry = number, ... }``: each entry's units (an
+    entry may itself be a number with its unit or a ``{value, unit, source, note}`` table)."""
+
+    entries: Mapping[str, Units]
+
 
 @dataclasses.dataclass(frozen=True)
 class Where:
@@ -144,6 +152,29 @@ def number(value, units: Units, where: Where, section, key, index=None) -> tuple
     if unit != units.si:
         meta["unit"] = unit
     return value, meta
+class _Entry(NamedTuple):
+    """A ``Where`` whose errors name the entry of an inline table: ``[section] key: entry: what``."""
+
+    where: Where
+    entry: str
+
+    def error(self, section, key, what, index=None) -> ExperimentError:
+        return self.where.error(section, key, f"{self.entry}: {what}", index)
+
+
+def inline_table(value, kind: Table, where: Where, section, key, index=None) -> tuple[dict, dict]:
+    """(entry -> value in SI units, entry -> provenance) of an inline table of numbers."""
+    if not isinstance(value, dict):
+        raise where.error(section, key, f"expected a table {{ {', '.join(e + ' = ...' for e in kind.entries)} }}, "
+                                        f"got {value!r}", index)
+    values, meta = {}, {}
+    for entry, item in value.items():
+        if entry not in kind.entries:
+            raise where.error(section, key, f"unknown entry {entry!r}; {key} takes {', '.join(kind.entries)}", index)
+        values[entry], meta[entry] = number(item, kind.entries[entry], _Entry(where, entry), section, key, index)
+    return values, {k: v for k, v in meta.items() if v}
+
+
 def plain(value, kind: str, where: Where, section, key, index=None):
     """A value of ``kind``: "str", "path", "int", "bool", "strings" (a list of names, or a
     comma-separated string) or "numbers" (a table of key = number)."""
@@ -197,6 +228,8 @@ def read_section(raw: dict, name: str, schema: Mapping[str, Any], where: Where, 
         kind = schema[key]
         if isinstance(kind, Units):
             values[key], meta = number(value, kind, where, name, key, index)
+        elif isinstance(kind, Table):
+            values[key], meta = inline_table(value, kind, where, name, key, index)
         elif kind == "numbers":
             values[key], meta = plain(value, kind, where, name, key, index), None
         else:
@@ -228,15 +261,24 @@ def _toml_value(value) -> str:
     raise TypeError(f"cannot write {value!r} as TOML")
 
 
-def toml_entry(key: str, value, meta: Mapping[str, str] | None) -> str:
+def _with_meta(value, meta: Mapping[str, str] | None):
+    """``value``, or a ``{value, source, ...}`` table where it has a provenance (its value in SI
+    units: the unit it was written in is kept as a note, not applied)."""
+    if not meta:
+        return value
+    entries = {"value": value, **{k: v for k, v in meta.items() if k != "unit"}}
+    if "unit" in meta:
+        entries["note"] = (entries.get("note", "") + f" (given in {meta['unit']})").strip()
+    return entries
+
+
+def toml_entry(key: str, value, meta: Mapping[str, Any] | None) -> str:
     """``key = value``, as a ``{value, source, ...}`` table where the value has a provenance (its
-    value in SI units: the unit it was written in is kept as a note, not applied)."""
-    if meta:
-        table = {"value": value, **{k: v for k, v in meta.items() if k != "unit"}}
-        if "unit" in meta:
-            table["note"] = (table.get("note", "") + f" (given in {meta['unit']})").strip()
-        return f"{key} = {_toml_value(table)}"
-    return f"{key} = {_toml_value(value)}"
+    value in SI units: the unit it was written in is kept as a note, not applied). An inline
+    table of numbers (a dict ``value``) takes its entries' provenance, entry -> meta."""
+    if isinstance(value, dict):
+        return f"{key} = {_toml_value({k: _with_meta(v, (meta or {}).get(k)) for k, v in value.items()})}"
+    return f"{key} = {_toml_value(_with_meta(value, meta))}"
 
 
 def relative(file: pathlib.Path, base: pathlib.Path | None) -> str:

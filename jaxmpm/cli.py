@@ -27,19 +27,21 @@ from .threads import THREAD_CHOICES
 
 __all__ = ["OPTION_FIELDS", "add_scene_arguments", "add_threads_argument", "check_figure_file", "check_output_dir",
            "check_output_file", "check_repeated_keys", "check_run_outputs", "check_scene_args", "experiment_from_args",
-           "json_safe", "output_writer", "parse_set", "print_json", "scene_dtype", "scene_from_args"]
+           "json_safe", "output_writer", "parse_set", "print_json", "scene_dtype", "scene_from_args",
+           "side_walls_argument"]
 
 
 # ---- the scene options -------------------------------------------------------------------------
 #: The command line's scene options -> the ``Experiment`` field each sets.
 OPTION_FIELDS = {"--dx": "dx", "--ppc": "ppc", "--sampling": "sampling", "--seed": "seed", "--dim": "dim",
-                 "--width": "width", "--slope": "slope", "--t-end": "t_end", "--dtype": "dtype", "--frames": "frames"}
+                 "--width": "width", "--slope": "slope", "--t-end": "t_end", "--dtype": "dtype", "--frames": "frames",
+                 "--side-walls": "side_walls"}
 
 
 def add_scene_arguments(parser, scene_choices: bool = True) -> None:
     """The scene options shared by ``python -m jaxmpm run`` and ``python -m calibration``:
-    SCENE (positional, optional), --set, --dx, --ppc, --sampling, --seed, --dim, --width, --slope,
-    --aspect, --t-end, --dtype."""
+    SCENE (positional, optional), --set, --dx, --ppc, --sampling, --seed, --dim, --width,
+    --side-walls, --slope, --aspect, --t-end, --dtype."""
     if scene_choices:
         parser.add_argument("scene", type=_scene_argument, metavar="SCENE|EXPERIMENT.toml",
                             help=f"a scene ({', '.join(SCENE_NAMES)}) or an experiment file")
@@ -55,11 +57,37 @@ def add_scene_arguments(parser, scene_choices: bool = True) -> None:
     parser.add_argument("--dim", type=int, default=None, choices=(2, 3), help="2 or 3 (default: the experiment's, "
                         "else 2)")
     parser.add_argument("--width", type=float, default=None, help="channel width for --dim 3, m")
+    parser.add_argument("--side-walls", type=side_walls_argument, default=None, metavar="WIDTH,FRICTION[,K]",
+                        help="the side walls of a 2D channel: its width (m), the walls' Coulomb friction and the "
+                             "lateral pressure ratio K (default 1), e.g. 0.02,0.25 (default: the experiment's, "
+                             "else none)")
     parser.add_argument("--slope", type=float, default=None, help="bed angle for slope-collapse, degrees")
     parser.add_argument("--aspect", type=float, default=None, help="aspect ratio H0/L0 for aspect-ratio")
     parser.add_argument("--t-end", type=float, default=None, help="end time, s (default: the scene's)")
     parser.add_argument("--dtype", choices=DTYPES, default=None,
                         help="default: the experiment's, else float32")
+
+
+def side_walls_argument(text: str):
+    """argparse type of ``--side-walls WIDTH,FRICTION[,K]``: a ``jaxmpm.SideWalls`` (width in m)."""
+    import argparse
+
+    from .boundary import SideWalls
+
+    parts = [p.strip() for p in str(text).split(",")]
+    try:
+        numbers = [float(p) for p in parts]
+    except ValueError:
+        numbers = []
+    if len(numbers) not in (2, 3) or not all(math.isfinite(n) for n in numbers):
+        raise argparse.ArgumentTypeError(f"expected WIDTH,FRICTION[,K]: finite numbers, the width in m (e.g. "
+                                         f"0.02,0.25), got {text!r}")
+    width, friction, ratio = numbers[0], numbers[1], (numbers[2] if len(numbers) == 3 else 1.0)
+    for name, value, ok, rule in (("width", width, width > 0, "> 0 m"), ("friction", friction, friction >= 0, ">= 0"),
+                                  ("K", ratio, ratio >= 0, ">= 0")):
+        if not ok:
+            raise argparse.ArgumentTypeError(f"the {name} must be {rule}, got {value:g}")
+    return SideWalls(*numbers)
 
 
 #: Scene options that take a number (``add_scene_arguments``): argparse's float() accepts
@@ -77,7 +105,11 @@ def check_scene_args(args) -> None:
             raise ValueError(f"--{name.replace('_', '-')} must be a finite number, got {value}")
     experiment = is_experiment_file(getattr(args, "scene", None) or "") or bool(getattr(args, "experiments", None))
     if getattr(args, "width", None) is not None and getattr(args, "dim", None) != 3 and not experiment:
-        raise ValueError(f"--width applies to --dim 3 (a 3D channel), got --width {args.width} with --dim {args.dim}")
+        raise ValueError(f"--width applies to --dim 3 (a 3D channel), got --width {args.width} with --dim {args.dim} "
+                         "(a 2D channel's walls: --side-walls WIDTH,FRICTION)")
+    if getattr(args, "side_walls", None) is not None and getattr(args, "dim", None) == 3:
+        raise ValueError("--side-walls is the 2D model of a channel's walls; a 3D run (--dim 3) has the walls "
+                         "themselves: give --width instead")
     check_repeated_keys(getattr(args, "set", []), "--set")
 
 
@@ -141,8 +173,8 @@ def scene_from_args(args, name: str | None = None, frames: int = 0):
     frames = 0 if frames is None else frames
     return build_scene(name or args.scene, dx=args.dx, ppc=args.ppc, dim=args.dim, width=args.width,
                        t_end=args.t_end, frames=frames, slope=args.slope, aspect=args.aspect,
-                       dtype=args.dtype or "float32",
-                       values=values, sampling=args.sampling, seed=args.seed)
+                       dtype=args.dtype or "float32", values=values, sampling=args.sampling, seed=args.seed,
+                       side_walls=getattr(args, "side_walls", None))
 
 
 def _scene_argument(text: str) -> str:

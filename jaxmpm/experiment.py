@@ -9,6 +9,7 @@ measurements taken and what to fit (docs/experiments.md).
     [boundaries]
     gate = "front"                       # "front", "back", "both" or "none" (released at t = 0)
     gate_speed = "1.5 m/s"               # or gate_lift_time = "40 ms" (to clear the column's height)
+    side_walls = { width = "20 mm", friction = 0.25 }   # a 2D channel's walls (lateral_pressure_ratio = 1)
     [material]
     beta = 0.1
     pc0 = { value = 0.4, unit = "kPa", source = "shear-box test, 12 May" }
@@ -44,8 +45,9 @@ if sys.version_info >= (3, 11):
 else:  # pragma: no cover - Python 3.10
     import tomli as tomllib
 
-from ._experiment_checks import GATES, Invalid, check_experiment
+from ._experiment_checks import GATES, SIDE_WALLS, Invalid, check_experiment, side_walls_of
 from ._toml import ANGLE, LENGTH, PURE, SPEED, TIME, ExperimentError, Units, Where, read_section, relative, toml_entry
+from .boundary import SideWalls
 from .params import DEFAULTS, PARAM_KEYS, PARAMS, Params, param_help, validate_params
 from .scenes.collapse import aspect_column, collapse, default_runout
 
@@ -61,7 +63,7 @@ _SCHEMA: dict[str, dict[str, Any]] = {
     "experiment": {"name": "str", "title": "str", "source": "str", "note": "str"},
     "geometry": {"length": LENGTH, "height": LENGTH, "width": LENGTH, "slope": ANGLE},
     "boundaries": {"floor": "str", "floor_friction": PURE, "back_wall": "bool", "gate": "str", "gate_speed": SPEED,
-                   "gate_lift_time": TIME},
+                   "gate_lift_time": TIME, "side_walls": SIDE_WALLS},
     "material": {key: Units(spec.units, spec.unit) for key, spec in PARAMS.items()},
     "numerics": {"dim": "int", "dx": LENGTH, "ppc": PURE, "sampling": "str", "seed": "int", "dtype": "str",
                  "t_end": TIME, "frames": "int", "runout": LENGTH, "backward_runout": LENGTH, "transfer": "str",
@@ -123,6 +125,8 @@ class Experiment:
     back_wall: bool = True
     gate: str = "none"
     gate_speed: float | None = None
+    #: The side walls of a 2D channel (``jaxmpm.SideWalls``: width m, friction, lateral pressure ratio).
+    side_walls: SideWalls | None = None
     material: Mapping[str, float] = dataclasses.field(default_factory=dict)
     dim: int = 2
     dx: float | None = None
@@ -260,7 +264,8 @@ class Experiment:
                     sampling=self.sampling, seed=self.seed, dim=self.dim, width=self.width, slope_deg=self.slope,
                     back_wall=self.back_wall, front_gate_speed=front, back_gate_speed=back, runout=runout,
                     backward_runout=backward, t_end=self.t_end, frames=self.frames, transfer=self.transfer,
-                    alpha=self.alpha, cfl=self.cfl, dtype=self.dtype, floor=self.floor, base_params=material)
+                    alpha=self.alpha, cfl=self.cfl, dtype=self.dtype, floor=self.floor, side_walls=self.side_walls,
+                    base_params=material)
 
     def scene(self):
         """The ready-to-run ``Scene`` (``jaxmpm.scenes.collapse``); it keeps this experiment
@@ -329,6 +334,8 @@ def _parse(raw: dict, where: Where, check_files: bool) -> Experiment:
         if key in sections["experiment"]:
             sources[f"experiment.{key}"] = {key: sections["experiment"][key]}
     try:
+        if "side_walls" in boundaries:
+            kwargs["side_walls"] = side_walls_of(boundaries["side_walls"])
         return Experiment(**kwargs)
     except Invalid as err:
         raise where.error(err.section, err.key, err.what) from None
@@ -382,7 +389,7 @@ def _write(e: Experiment) -> str:
 
     section("geometry", [("length", e.length), ("height", e.height), ("width", e.width), ("slope", e.slope)])
     section("boundaries", [("floor", e.floor), ("floor_friction", e.floor_friction), ("back_wall", e.back_wall),
-                           ("gate", e.gate), ("gate_speed", e.gate_speed)])
+                           ("gate", e.gate), ("gate_speed", e.gate_speed), ("side_walls", _side_walls_entry(e))])
     section("material", list(e.material.items()))
     section("numerics", [(k, getattr(e, k)) for k in ("dim", "dx", "ppc", "sampling", "seed", "dtype", "t_end",
                                                         "frames", "runout", "backward_runout", "transfer", "alpha",
@@ -407,6 +414,13 @@ def _write(e: Experiment) -> str:
             if getattr(e.fit, key) != 1.0:
                 lines.append(toml_entry(key, getattr(e.fit, key), None))
     return "\n".join(lines) + "\n"
+
+
+def _side_walls_entry(e: Experiment) -> dict[str, float] | None:
+    """``[boundaries] side_walls`` as the inline table it is written as (None: no side walls)."""
+    if e.side_walls is None:
+        return None
+    return {f.name: getattr(e.side_walls, f.name) for f in dataclasses.fields(e.side_walls)}
 
 
 # -- the shipped experiments ----------------------------------------------------------------------------

@@ -312,7 +312,8 @@ def _scene_experiment(args) -> Experiment:
                                          dataset=args.dataset, sort=args.sort, clip_noise=args.clip_noise))
     experiment = named_experiment(args.scene, dx=args.dx, ppc=args.ppc, dim=args.dim, width=args.width, t_end=t_end,
                                   slope=args.slope, aspect=args.aspect, dtype=args.dtype,
-                                  values=parse_pairs(args.set, "--set"), sampling=args.sampling, seed=args.seed)
+                                  values=parse_pairs(args.set, "--set"), sampling=args.sampling, seed=args.seed,
+                                  side_walls=getattr(args, "side_walls", None))
     return _with_data(experiment.replace(fit=None, dtype=experiment.dtype or "float32"), args)
 
 

@@ -95,8 +95,10 @@ def check_command(args) -> None:
             if args.retries < 0:
                 raise ValueError(f"--retries must be >= 0, got {args.retries}")
     elif command == "twin":
-        if args.slope is not None or args.aspect is not None or args.dim not in (None, 2) or args.width is not None:
-            raise ValueError("twin is the 2D S4 cohesive collapse: --slope, --aspect, --dim and --width do not apply")
+        if (args.slope is not None or args.aspect is not None or args.dim not in (None, 2) or args.width is not None
+                or getattr(args, "side_walls", None) is not None):
+            raise ValueError("twin is the 2D S4 cohesive collapse: --slope, --aspect, --dim, --width and --side-walls "
+                             "do not apply")
         if args.sampling is not None or args.seed not in (None, 0):
             raise ValueError("twin uses the S4 scene's default particle sampling: --sampling and --seed do not apply "
                              "(--noise-seed seeds the noise)")

@@ -80,17 +80,21 @@ def is_experiment_file(scene: str) -> bool:
 
 
 def build_scene(name: str, dx=None, ppc=None, dim=None, width=None, t_end=None, frames=0, slope=None, aspect=None,
-                dtype=None, values=None, sampling=None, seed=None):
+                dtype=None, values=None, sampling=None, seed=None, side_walls=None):
     """A scene by its command-line name (``SCENE_NAMES``) with the command line's options:
     ``dx``, ``ppc``, ``sampling``, ``t_end`` None take the scene's defaults, ``values`` are
-    material parameters. The collapses are their shipped experiment files with these options
-    over them (``named_experiment(...).scene()``), as a user's file would be; elastic-block, not
-    a collapse, is ``falling_block``."""
+    material parameters, ``side_walls`` a 2D collapse's channel walls (``jaxmpm.SideWalls``). The
+    collapses are their shipped experiment files with these options over them
+    (``named_experiment(...).scene()``), as a user's file would be; elastic-block, not a collapse,
+    is ``falling_block`` (it takes no side walls)."""
     if name not in SCENE_NAMES:
         raise ValueError(f"scene must be one of {SCENE_NAMES}, got {name!r}")
     if name != "elastic-block":
         return named_experiment(name, dx=dx, ppc=ppc, dim=dim, width=width, t_end=t_end, frames=frames, slope=slope,
-                                aspect=aspect, dtype=dtype, values=values, sampling=sampling, seed=seed).scene()
+                                aspect=aspect, dtype=dtype, values=values, sampling=sampling, seed=seed,
+                                side_walls=side_walls).scene()
+    if side_walls is not None:
+        raise ValueError(f"--side-walls applies to the collapses, not {name} (a block falling in the open)")
     for option, value in (("slope", slope), ("aspect", aspect)):
         if value is not None:
             raise ValueError(f"--{option} applies to {'slope-collapse' if option == 'slope' else 'aspect-ratio'}, "

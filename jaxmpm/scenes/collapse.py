@@ -22,7 +22,7 @@ import sys
 
 import numpy as np
 
-from ..boundary import Wall
+from ..boundary import SideWalls, Wall
 from ..config import Config, Grid
 from ..materials.critical_state import CriticalState
 from ..params import Params
@@ -89,7 +89,7 @@ def collapse(name: str, length: float, height: float, *, dx: float, ppc: float |
              front_gate_speed: float | None = None, back_gate_speed: float | None = None, runout: float,
              backward_runout: float = 0.0, t_end: float, frames: int = 0, max_steps: int | None = None,
              transfer: str = "aflip", alpha: float = 0.95, cfl: float = 0.5, rest: bool = True, dtype=None,
-             base_params: dict | None = None, **param_values: float) -> Scene:
+             side_walls: SideWalls | None = None, base_params: dict | None = None, **param_values: float) -> Scene:
     """The common builder: a column [0, L] × [0, H] on a bed inclined at ``slope_deg``.
 
     ``floor``: the bed's contact (``jaxmpm.boundary``): ``"no-slip"`` (a rough bed, the default), or
@@ -102,14 +102,16 @@ def collapse(name: str, length: float, height: float, *, dx: float, ppc: float |
     each axis (an integral number is kept as an ``int``), the sampler (``jaxmpm.sampling``) and its
     seed. ``wall_gap``: the placement against the walls (default: the lowest particle half a cell
     above the floor; see the module docstring). ``frames``: that many equally spaced frame times,
-    the last at ``t_end``. ``base_params`` and ``param_values``: the material (the latter over the
-    former; unlisted keys take docs/model.md §4's defaults).
+    the last at ``t_end``. ``side_walls``: the friction of a 2D channel's two side walls
+    (``jaxmpm.SideWalls``, ``Config.side_walls``; a 3D run has the walls themselves, ``width``).
+    ``base_params`` and ``param_values``: the material (the latter over the former; unlisted keys
+    take docs/model.md §4's defaults).
     """
     recipe = {k: v for k, v in locals().items() if k != "param_values"}
     recipe.update(param_values)
     sampling, ppc = _checked_column(length, height, dx=dx, ppc=ppc, sampling=sampling, wall_gap=wall_gap, dim=dim,
                                     width=width, slope_deg=slope_deg, floor=floor, runout=runout, t_end=t_end,
-                                    frames=frames)
+                                    frames=frames, side_walls=side_walls)
     params = Params.create(dtype=dtype, **{**(base_params or {}), **param_values})
     # The side walls' gap (0.501: see floor_lift); the floor follows the sample.
     gap = 0.501 * dx if wall_gap is None else wall_gap
@@ -128,7 +130,7 @@ def collapse(name: str, length: float, height: float, *, dx: float, ppc: float |
         # min: t_end (k + 1) / frames can round one ulp above t_end at k + 1 = frames
         frame_times=tuple(min(t_end, t_end * (k + 1) / frames) for k in range(frames)),
         rest_speed=REST_SPEED * math.sqrt(G * height) if rest else None,
-        rest_duration=REST_DURATION * math.sqrt(height / G),
+        rest_duration=REST_DURATION * math.sqrt(height / G), side_walls=side_walls,
     )
     upper = (length, height) + ((width,) if dim == 3 else ())
 
@@ -160,7 +162,7 @@ def collapse(name: str, length: float, height: float, *, dx: float, ppc: float |
 
 
 def _checked_column(length, height, *, dx, ppc, sampling, wall_gap, dim, width, slope_deg, floor, runout, t_end,
-                    frames) -> tuple[str, float]:
+                    frames, side_walls=None) -> tuple[str, float]:
     """``collapse``'s checks, before anything is built; (the sampling, the particles per cell)
     with their defaults filled in."""
     _check_positive(dx=dx, length=length, height=height, runout=runout, t_end=t_end, width=width)
@@ -173,6 +175,12 @@ def _checked_column(length, height, *, dx, ppc, sampling, wall_gap, dim, width, 
         raise ValueError(f"dim must be 2 or 3, got {dim!r}")
     if dim == 3 and width is None:
         raise ValueError("width (the channel width, m) is required when dim=3")
+    if side_walls is not None:
+        if not isinstance(side_walls, SideWalls):
+            raise ValueError(f"side_walls must be a jaxmpm.SideWalls or None, got {type(side_walls).__name__}")
+        if dim == 3:
+            raise ValueError("side_walls is the 2D model of a channel's walls; a 3D run (dim=3) has the channel's "
+                             "walls themselves: give its width instead")
     sampling = DEFAULT_SAMPLING if sampling is None else sampling
     ppc = DEFAULT_PPC if ppc is None else ppc
     if sampling not in SAMPLINGS:

@@ -89,11 +89,12 @@ def aspect_member(experiment: Experiment, a: float, *, length: float | None = No
 # ---- the command line's options over a file ------------------------------------------------------
 
 def named_experiment(name: str, *, dx=None, ppc=None, dim=None, width=None, t_end=None, frames=0, slope=None,
-                     aspect=None, dtype=None, values=None, sampling=None, seed=None) -> Experiment:
+                     aspect=None, dtype=None, values=None, sampling=None, seed=None, side_walls=None) -> Experiment:
     """The ``Experiment`` of the named collapse ``name`` (``SHIPPED_EXPERIMENTS``: gates-collapse,
     slope-collapse, cohesive-collapse, aspect-ratio, aluminium-bars) with the command line's
     options over its shipped file's values: ``dx``, ``ppc``, ``dim``, ``width``, ``t_end``,
-    ``frames``, ``dtype``, ``sampling``, ``seed`` (None: the file's), ``values`` (material keys).
+    ``frames``, ``dtype``, ``sampling``, ``seed``, ``side_walls`` (a 2D channel's,
+    ``jaxmpm.SideWalls``) (None: the file's), ``values`` (material keys).
     slope-collapse is built at ``slope`` degrees (default: its file's, 10), aspect-ratio at the
     aspect ratio ``aspect`` (default: its file's, 1), by their families' rules (``slope_member``,
     ``aspect_member``); a ``t_end`` given overrides the rule's. A value that does not fit is
@@ -113,9 +114,12 @@ def named_experiment(name: str, *, dx=None, ppc=None, dim=None, width=None, t_en
         raise ValueError(f"slope must be a finite number of degrees, got {slope!r}")
     if dim == 3 and width is None:
         raise ValueError("width (the channel width, m) is required when dim=3")
+    if dim == 3 and side_walls is not None:
+        raise ValueError("side_walls is the 2D model of a channel's walls; a 3D run (dim=3) has the walls themselves "
+                         "(width)")
     experiment = _shipped(name)
     options = dict(dx=dx, ppc=ppc, dim=dim, width=width, t_end=t_end, frames=frames, dtype=dtype, sampling=sampling,
-                   seed=seed)
+                   seed=seed, side_walls=side_walls)
     family = {}
     if name == "slope-collapse":
         slope = experiment.slope if slope is None else slope
