@@ -112,8 +112,12 @@ def _check_boundaries(e: Experiment) -> None:
     if e.side_walls is not None:
         _need(isinstance(e.side_walls, SideWalls), "boundaries", "side_walls",
               f"must be a jaxmpm.SideWalls, got {type(e.side_walls).__name__}")
-        _need(e.dim == 2, "boundaries", "side_walls", "the side walls of a 2D channel; a 3D run (dim = 3) has the "
-                                                      "channel's walls themselves ([geometry] width): drop side_walls")
+        if e.dim == 3 and e.width is not None:
+            _need(math.isclose(e.side_walls.width, e.width, rel_tol=1e-9), "boundaries", "side_walls",
+                  f"in 3D the channel's own walls: its width must be [geometry] width ({e.width:g} m), got "
+                  f"{e.side_walls.width:g} m")
+            _need(e.side_walls.lateral_pressure_ratio == 1.0, "boundaries", "side_walls",
+                  "in 3D the walls' normal stress is computed: drop lateral_pressure_ratio")
 
 
 def side_walls_of(values: Mapping[str, float]) -> SideWalls:

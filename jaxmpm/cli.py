@@ -107,9 +107,6 @@ def check_scene_args(args) -> None:
     if getattr(args, "width", None) is not None and getattr(args, "dim", None) != 3 and not experiment:
         raise ValueError(f"--width applies to --dim 3 (a 3D channel), got --width {args.width} with --dim {args.dim} "
                          "(a 2D channel's walls: --side-walls WIDTH,FRICTION)")
-    if getattr(args, "side_walls", None) is not None and getattr(args, "dim", None) == 3:
-        raise ValueError("--side-walls is the 2D model of a channel's walls; a 3D run (--dim 3) has the walls "
-                         "themselves: give --width instead")
     check_repeated_keys(getattr(args, "set", []), "--set")
 
 

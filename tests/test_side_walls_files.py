@@ -91,12 +91,20 @@ def test_side_walls_refusals_name_file_line_and_key(entry, message):
     assert message in str(err.value)
 
 
-def test_side_walls_refused_in_3d():
+def test_side_walls_in_3d_are_the_channel_s_own_walls():
+    """In 3D the key gives the friction of the channel's walls: its width must be the channel's."""
     text = s4_text(geometry='width = "50 mm"\n', numerics="dim = 3\n")
     with pytest.raises(ExperimentError) as err:
         Experiment.from_text(text, "walls.toml")
     assert str(err.value).startswith(f"walls.toml:{line_of(text, 'side_walls')}: [boundaries] side_walls: ")
-    assert "a 3D run (dim = 3) has the channel's walls themselves ([geometry] width)" in str(err.value)
+    assert "in 3D the channel's own walls: its width must be [geometry] width (0.05 m), got 0.02 m" in str(err.value)
+    text = s4_text('side_walls = { width = "50 mm", friction = 0.3, lateral_pressure_ratio = 0.5 }',
+                   geometry='width = "50 mm"\n', numerics="dim = 3\n")
+    with pytest.raises(ExperimentError, match="in 3D the walls' normal stress is computed"):
+        Experiment.from_text(text, "walls.toml")
+    e = Experiment.from_text(s4_text('side_walls = { width = "50 mm", friction = 0.3 }', geometry='width = "50 mm"\n',
+                                     numerics="dim = 3\n"), "walls.toml")
+    assert e.side_walls == jm.SideWalls(0.05, 0.3)
 
 
 def test_width_in_a_2d_file_points_to_side_walls():
@@ -114,20 +122,28 @@ def test_python_side_walls_checked_like_the_file():
     with pytest.raises(ExperimentError, match=r"\[boundaries\] side_walls: must be a jaxmpm.SideWalls"):
         e.replace(side_walls=(0.02, 0.25))
     walls = e.replace(side_walls=jm.SideWalls(0.02, 0.25))
-    with pytest.raises(ExperimentError, match=r"\[boundaries\] side_walls: the side walls of a 2D channel"):
+    with pytest.raises(ExperimentError, match=r"\[boundaries\] side_walls: in 3D the channel's own walls"):
         walls.with_options(dim=3, width=0.05)
 
 
 # ---- the Python API ----------------------------------------------------------------------------------
-def test_collapse_takes_side_walls_in_2d_only():
+def test_collapse_takes_side_walls_as_a_term_in_2d_and_as_the_walls_in_3d():
     walls = jm.SideWalls(0.02, 0.25, 0.8)
     kw = dict(dx=0.01, runout=0.1, t_end=0.01)
     scene = jm.scenes.collapse("c", 0.05, 0.05, side_walls=walls, **kw)
     assert scene.config.side_walls == walls
     assert scene.remake(dx=0.0125).config.side_walls == walls  # a variant keeps them
     assert jm.scenes.collapse("c", 0.05, 0.05, **kw).config.side_walls is None
-    with pytest.raises(ValueError, match="a 3D run \\(dim=3\\) has the channel's walls themselves: give its width"):
+    with pytest.raises(ValueError, match="side_walls in 3D gives the friction of the channel's own walls: its width"):
         jm.scenes.collapse("c", 0.05, 0.05, dim=3, width=0.05, side_walls=walls, **kw)
+    with pytest.raises(ValueError, match="and its lateral_pressure_ratio 1 \\(got 0.8"):
+        jm.scenes.collapse("c", 0.05, 0.05, dim=3, width=0.05, side_walls=jm.SideWalls(0.05, 0.25, 0.8), **kw)
+    scene = jm.scenes.collapse("c", 0.05, 0.05, dim=3, width=0.05, side_walls=jm.SideWalls(0.05, 0.25), **kw)
+    assert scene.config.side_walls is None
+    sides = [w for w in scene.config.walls if w.normal[2] != 0.0]
+    assert len(sides) == 2 and all(w.kind == "separable" and w.friction == 0.25 for w in sides)
+    plain = jm.scenes.collapse("c", 0.05, 0.05, dim=3, width=0.05, **kw)
+    assert all(w.friction == 0.0 for w in plain.config.walls if w.normal[2] != 0.0)
     with pytest.raises(ValueError, match="side_walls must be a jaxmpm.SideWalls or None, got tuple"):
         jm.scenes.collapse("c", 0.05, 0.05, side_walls=(0.02, 0.25), **kw)
 
@@ -144,7 +160,7 @@ def test_named_scenes_refuse_side_walls_where_they_do_not_apply():
     walls = jm.SideWalls(0.02, 0.25)
     with pytest.raises(ValueError, match="--side-walls applies to the collapses, not elastic-block"):
         jm.scenes.build_scene("elastic-block", side_walls=walls)
-    with pytest.raises(ValueError, match="a 3D run \\(dim=3\\) has the walls themselves"):
+    with pytest.raises(ValueError, match="in 3D the channel's own walls: its width must be"):
         jm.scenes.named_experiment("cohesive-collapse", dim=3, width=0.05, side_walls=walls)
 
 
@@ -205,7 +221,7 @@ def test_run_refuses_bad_side_walls(capsys, built, value, message):
 
 def test_run_refuses_side_walls_where_they_do_not_apply(capsys, built, tmp_path):
     refused(capsys, ["run", "cohesive-collapse", *TINY, "--dim", "3", "--width", "0.05", "--side-walls", "0.02,0.25"],
-            "--side-walls is the 2D model of a channel's walls; a 3D run (--dim 3) has the walls themselves")
+            "in 3D the channel's own walls: its width must be")
     refused(capsys, ["run", "elastic-block", *TINY, "--side-walls", "0.02,0.25"],
             "--side-walls applies to the collapses, not elastic-block")
     refused(capsys, ["run", "avalanche", "--side-walls", "0.02,0.25"],
@@ -214,7 +230,7 @@ def test_run_refuses_side_walls_where_they_do_not_apply(capsys, built, tmp_path)
     # a 3D file refuses the flag
     path = s4_file(tmp_path, side_walls=None, geometry='width = "50 mm"\n', numerics="dim = 3\n")
     refused(capsys, ["run", str(path), *TINY, "--side-walls", "0.02,0.25"],
-            "--side-walls the side walls of a 2D channel; a 3D run (dim = 3) has the channel's walls themselves")
+            "in 3D the channel's own walls: its width must be")
 
 
 # ---- python -m calibration fit / sweep ----------------------------------------------------------------------
@@ -253,7 +269,7 @@ def test_calibration_flag_sets_the_side_walls(command, tmp_path):
     (["--side-walls=0.02,-0.25"], "argument --side-walls: the friction must be >= 0"),
     (["--side-walls=-1,0.25"], "argument --side-walls: the width must be > 0 m"),
     (["--side-walls", "0.02;0.25"], "argument --side-walls: expected WIDTH,FRICTION[,K]"),
-    (["--dim", "3", "--width", "0.05", "--side-walls", "0.02,0.25"], "a 3D run (--dim 3) has the walls themselves"),
+    (["--dim", "3", "--width", "0.05", "--side-walls", "0.02,0.25"], "in 3D the channel's own walls"),
 ])
 def test_calibration_refuses_bad_side_walls(argv, message):
     code, err = calibration_call(["fit", "--scene", "cohesive-collapse", "--data", S4_DATA, "--fit", "beta", *argv])

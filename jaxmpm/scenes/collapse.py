@@ -102,8 +102,10 @@ def collapse(name: str, length: float, height: float, *, dx: float, ppc: float |
     each axis (an integral number is kept as an ``int``), the sampler (``jaxmpm.sampling``) and its
     seed. ``wall_gap``: the placement against the walls (default: the lowest particle half a cell
     above the floor; see the module docstring). ``frames``: that many equally spaced frame times,
-    the last at ``t_end``. ``side_walls``: the friction of a 2D channel's two side walls
-    (``jaxmpm.SideWalls``, ``Config.side_walls``; a 3D run has the walls themselves, ``width``).
+    the last at ``t_end``. ``side_walls``: the friction of the channel's two side walls
+    (``jaxmpm.SideWalls``): in 2D the width-averaged term of ``Config.side_walls``; in 3D the
+    channel's walls themselves become Coulomb walls with that friction (its width must be
+    ``width`` and its lateral pressure ratio 1: the walls' normal stress is computed).
     ``base_params`` and ``param_values``: the material (the latter over the former; unlisted keys
     take docs/model.md §4's defaults).
     """
@@ -118,7 +120,8 @@ def collapse(name: str, length: float, height: float, *, dx: float, ppc: float |
     grid, walls, gap_x, channel = _grid_and_walls(length, height, dx, gap, dim=dim, width=width, floor=floor,
                                                   back_wall=back_wall, front_gate_speed=front_gate_speed,
                                                   back_gate_speed=back_gate_speed, runout=runout,
-                                                  backward_runout=backward_runout)
+                                                  backward_runout=backward_runout,
+                                                  wall_friction=side_walls.friction if side_walls else 0.0)
     if max_steps is None:
         # The elastic bound sets dt (flow speeds stay far below the wave speed); 25 % margin.
         max_steps = step_budget(CriticalState(), params, dx, t_end, extra=frames + 10)
@@ -130,7 +133,7 @@ def collapse(name: str, length: float, height: float, *, dx: float, ppc: float |
         # min: t_end (k + 1) / frames can round one ulp above t_end at k + 1 = frames
         frame_times=tuple(min(t_end, t_end * (k + 1) / frames) for k in range(frames)),
         rest_speed=REST_SPEED * math.sqrt(G * height) if rest else None,
-        rest_duration=REST_DURATION * math.sqrt(height / G), side_walls=side_walls,
+        rest_duration=REST_DURATION * math.sqrt(height / G), side_walls=side_walls if dim == 2 else None,
     )
     upper = (length, height) + ((width,) if dim == 3 else ())
 
@@ -178,9 +181,11 @@ def _checked_column(length, height, *, dx, ppc, sampling, wall_gap, dim, width, 
     if side_walls is not None:
         if not isinstance(side_walls, SideWalls):
             raise ValueError(f"side_walls must be a jaxmpm.SideWalls or None, got {type(side_walls).__name__}")
-        if dim == 3:
-            raise ValueError("side_walls is the 2D model of a channel's walls; a 3D run (dim=3) has the channel's "
-                             "walls themselves: give its width instead")
+        if dim == 3 and not (math.isclose(side_walls.width, width, rel_tol=1e-9)
+                             and side_walls.lateral_pressure_ratio == 1.0):
+            raise ValueError(f"side_walls in 3D gives the friction of the channel's own walls: its width must be the "
+                             f"channel's ({width:g} m, got {side_walls.width:g}) and its lateral_pressure_ratio 1 "
+                             f"(got {side_walls.lateral_pressure_ratio:g}; the walls' normal stress is computed)")
     sampling = DEFAULT_SAMPLING if sampling is None else sampling
     ppc = DEFAULT_PPC if ppc is None else ppc
     if sampling not in SAMPLINGS:
@@ -205,7 +210,7 @@ def _checked_column(length, height, *, dx, ppc, sampling, wall_gap, dim, width, 
 
 
 def _grid_and_walls(length, height, dx, gap, *, dim, width, floor, back_wall, front_gate_speed, back_gate_speed,
-                    runout, backward_runout) -> tuple[Grid, tuple[Wall, ...], float, float | None]:
+                    runout, backward_runout, wall_friction=0.0) -> tuple[Grid, tuple[Wall, ...], float, float | None]:
     """(the grid, the walls, the gap between the back wall and the body, the channel's width in
     3D) of ``collapse``'s column, with ``gap`` between the body and the walls around it."""
     margin = 3 * dx
@@ -242,8 +247,8 @@ def _grid_and_walls(length, height, dx, gap, *, dim, width, floor, back_wall, fr
         walls.append(Wall(vec(length + gap_x, 0.0), vec(-1.0, 0.0), "separable",
                           velocity=vec(0.0, front_gate_speed), edge=vec(0.0, 1.0), thickness=2 * dx))
     if dim == 3:
-        walls.append(Wall((0.0, 0.0, -gap_z), (0.0, 0.0, 1.0), "separable"))
-        walls.append(Wall((0.0, 0.0, width + gap_z), (0.0, 0.0, -1.0), "separable"))
+        walls.append(Wall((0.0, 0.0, -gap_z), (0.0, 0.0, 1.0), "separable", friction=wall_friction))
+        walls.append(Wall((0.0, 0.0, width + gap_z), (0.0, 0.0, -1.0), "separable", friction=wall_friction))
     return grid, tuple(walls), gap_x, channel
 
 

@@ -114,9 +114,6 @@ def named_experiment(name: str, *, dx=None, ppc=None, dim=None, width=None, t_en
         raise ValueError(f"slope must be a finite number of degrees, got {slope!r}")
     if dim == 3 and width is None:
         raise ValueError("width (the channel width, m) is required when dim=3")
-    if dim == 3 and side_walls is not None:
-        raise ValueError("side_walls is the 2D model of a channel's walls; a 3D run (dim=3) has the walls themselves "
-                         "(width)")
     experiment = _shipped(name)
     options = dict(dx=dx, ppc=ppc, dim=dim, width=width, t_end=t_end, frames=frames, dtype=dtype, sampling=sampling,
                    seed=seed, side_walls=side_walls)
