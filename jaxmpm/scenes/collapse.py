@@ -226,7 +226,9 @@ def _grid_and_walls(length, height, dx, gap, *, dim, width, floor, back_wall, fr
     cells = [math.ceil(span_x / dx), math.ceil(span_y / dx)]
     origin = [x0, -margin]
     channel = None
-    gap_z = _side_gap(width, gap, dx) if dim == 3 else 0.0
+    # A 3D channel's walls stand on the body's faces: the channel is as wide as asked. A gap there
+    # would widen it, and the material would spread into it (docs/validation.md §9).
+    gap_z = 0.0
     if dim == 3:
         channel = width + 2.0 * gap_z
         cells.append(math.ceil((channel + 2 * margin) / dx))
