@@ -4,6 +4,8 @@ tiny S4 problem the calibration tests fit (its scene, the model's own data, its 
 
 from __future__ import annotations
 
+import contextlib
+import io
 import json
 import pathlib
 import subprocess
@@ -27,6 +29,18 @@ def cli(module: str, *args: str, cwd=None, env=None, timeout: float = 600) -> su
     """``python -m MODULE ARGS...`` in a subprocess: its return code, stdout and stderr (text)."""
     return subprocess.run([sys.executable, "-m", module, *map(str, args)], capture_output=True, text=True, cwd=cwd,
                           env=env, timeout=timeout)
+
+
+def call_main(main, argv) -> tuple[int, str, str]:
+    """``main(argv)`` (a command line's entry point) in this process with its output captured:
+    (exit code, stdout, stderr)."""
+    out, err = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        try:
+            code = main([str(a) for a in argv])
+        except SystemExit as exc:
+            code = exc.code
+    return code, out.getvalue(), err.getvalue()
 
 
 def main_exit(module: str, argv, capsys) -> tuple[int, str]:

@@ -5,9 +5,7 @@ that name the command-line options. Through the real entry point (``calibration.
 on the tiny S4 scene (dx = L/6, 144 particles); cases that must be refused before any work run
 with the model's evaluation replaced by a tripwire."""
 
-import contextlib
 import importlib
-import io
 import json
 import os
 import pathlib
@@ -16,7 +14,7 @@ import shutil
 import h5py
 import numpy as np
 import pytest
-from helpers import ROOT, S4_DATA, TINY_FLAGS, strict_json, tiny_s4
+from helpers import ROOT, S4_DATA, TINY_FLAGS, call_main, strict_json, tiny_s4
 
 from calibration import Bounds, fit, read_history
 from calibration.batch.sweep import SweepResult, write_sweep
@@ -39,13 +37,7 @@ SWEEP = ["sweep", "--scene", "cohesive-collapse"]
 
 def call(argv):
     """main(argv) with stdout captured: (exit code, stdout, stderr)."""
-    out, err = io.StringIO(), io.StringIO()
-    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
-        try:
-            code = main([str(a) for a in argv])
-        except SystemExit as exc:
-            code = exc.code
-    return code, out.getvalue(), err.getvalue()
+    return call_main(main, argv)
 
 
 def refused(argv, message):

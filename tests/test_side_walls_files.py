@@ -2,12 +2,10 @@
 file (read, checked, written back), ``jaxmpm.scenes.collapse(side_walls=)``, the named scenes and
 ``--side-walls WIDTH,FRICTION[,K]`` on both command lines. Scenes are built, never run."""
 
-import contextlib
 import importlib
-import io
 
 import pytest
-from helpers import ROOT, S4_DATA
+from helpers import ROOT, S4_DATA, call_main
 
 import jaxmpm as jm
 from jaxmpm.__main__ import main as jaxmpm_main
@@ -237,13 +235,8 @@ def test_run_refuses_side_walls_where_they_do_not_apply(capsys, built, tmp_path)
 def calibration_call(argv):
     from calibration.cli import main
 
-    out, err = io.StringIO(), io.StringIO()
-    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
-        try:
-            code = main([str(a) for a in argv])
-        except SystemExit as exc:
-            code = exc.code
-    return code, err.getvalue()
+    code, _, err = call_main(main, argv)
+    return code, err
 
 
 @pytest.mark.parametrize("command", ["fit", "sweep"])
