@@ -47,6 +47,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .linalg import safe_div
+
 __all__ = ["Wall", "Terrain", "SideWalls", "KINDS", "KIND_ALIASES", "apply_walls", "side_wall_friction"]
 
 KINDS = ("no-slip", "non-separable", "separable")
@@ -128,8 +130,6 @@ def side_wall_friction(side: SideWalls, v, pressure, mass, dt):
     """Node velocities ``v`` (dim, n) after the side walls' friction over ``dt``: |v| <- max(|v| - c,
     0), the direction kept, with c = 2 μ_w K dt P / (W m), P = Σ_p w_ip V_p max(p_p, 0) the node's
     pressure times its volume and m its mass (c = 0 where m = 0). Finite derivatives at v = 0."""
-    from .linalg import safe_div
-
     c = (2.0 * side.friction * side.lateral_pressure_ratio * dt / side.width) * safe_div(pressure, mass)
     speed2 = jnp.sum(v * v, axis=0)
     moving = speed2 > 0

@@ -5,7 +5,7 @@ file (read, checked, written back), ``jaxmpm.scenes.collapse(side_walls=)``, the
 import importlib
 
 import pytest
-from helpers import ROOT, S4_DATA, call_main
+from helpers import ROOT, S4_DATA, call_main, main_exit
 
 import jaxmpm as jm
 from jaxmpm.__main__ import main as jaxmpm_main
@@ -183,10 +183,8 @@ def run_config(argv):
 
 
 def refused(capsys, argv, message):
-    with pytest.raises(SystemExit) as exc:
-        jaxmpm_main(argv)
-    err = capsys.readouterr().err
-    assert exc.value.code == 2, err
+    code, err = main_exit("jaxmpm", argv, capsys)
+    assert code == 2, err
     assert message in err, err
     return err
 

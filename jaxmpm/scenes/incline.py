@@ -33,15 +33,21 @@ S1_DEPTH = 0.038
 S1_PARAMS = {"rho": 1550.0, "rho_s": 2500.0, "d": 0.7e-3, "beta": 0.0, "pc0": 100.0, "xi": 50.0}
 
 
+def _steady_flow(params, slope_deg):
+    """(a getter of ``params``' floats, θ, tan θ, μ1, μ2) for a steady flow at ``slope_deg``,
+    which must lie between atan(μ1) and atan(μ2). ``params``: a Params or a dict of floats."""
+    get = (lambda k: float(params[k])) if isinstance(params, dict) else (lambda k: float(getattr(params, k)))
+    theta = math.radians(slope_deg)
+    tan, mu1, mu2 = math.tan(theta), get("mu1"), get("mu2")
+    if not mu1 < tan < mu2:
+        raise ValueError(f"slope_deg must lie between atan(mu1) and atan(mu2) for a steady flow, got {slope_deg!r}")
+    return get, theta, tan, mu1, mu2
+
+
 def bagnold_velocity(z, depth, slope_deg, params):
     """docs/model.md §6: v(z) = (2/3) I_θ sqrt(ρ g cos θ / ρ_s) / d (h^{3/2} - (h - z)^{3/2}), with
     I_θ = I0 (tan θ - μ1) / (μ2 - tan θ). ``params`` may be a Params or a dict of floats."""
-    get = (lambda k: float(params[k])) if isinstance(params, dict) else (lambda k: float(getattr(params, k)))
-    theta = math.radians(slope_deg)
-    tan = math.tan(theta)
-    mu1, mu2 = get("mu1"), get("mu2")
-    if not mu1 < tan < mu2:
-        raise ValueError(f"slope_deg must lie between atan(mu1) and atan(mu2) for a steady flow, got {slope_deg!r}")
+    get, theta, tan, mu1, mu2 = _steady_flow(params, slope_deg)
     i_theta = get("I0") * (tan - mu1) / (mu2 - tan)
     scale = (2.0 / 3.0) * i_theta * math.sqrt(get("rho") * G * math.cos(theta) / get("rho_s")) / get("d")
     import numpy as np
@@ -58,11 +64,7 @@ def side_wall_velocity(z, depth, slope_deg, params, side_walls, points: int = 40
     (inf without friction)). ``params``: as for ``bagnold_velocity``."""
     import numpy as np
 
-    get = (lambda k: float(params[k])) if isinstance(params, dict) else (lambda k: float(getattr(params, k)))
-    theta = math.radians(slope_deg)
-    tan, mu1, mu2 = math.tan(theta), get("mu1"), get("mu2")
-    if not mu1 < tan < mu2:
-        raise ValueError(f"slope_deg must lie between atan(mu1) and atan(mu2) for a steady flow, got {slope_deg!r}")
+    get, theta, tan, mu1, mu2 = _steady_flow(params, slope_deg)
     drag = side_walls.friction * side_walls.lateral_pressure_ratio / side_walls.width
     stop = (tan - mu1) / drag if drag > 0 else math.inf
     height = np.linspace(0.0, depth, points)
