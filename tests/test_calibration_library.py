@@ -23,7 +23,7 @@ from calibration.plots import fits as plots
 from calibration.problem.build import member_objective, objective_of
 from calibration.problem.options import DataOptions
 from calibration.studies.scaling import named_law
-from jaxmpm import scenes
+from jaxmpm import SideWalls, scenes
 from jaxmpm.scenes import runout_law
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
@@ -215,7 +215,7 @@ def test_the_twin_landscape_and_law_figures(tmp_path):
               "model_fit": 2.1 * a ** 0.5} for a in (0.5, 1.0, 2.0, 4.0)]
     history = {"loss": np.array([1.0, 0.5, 0.6]), "theta": np.array([[0.4, 0.6], [0.38, 0.62], [0.37, 0.6]]),
                "accepted": np.array([True, True, False])}
-    result = SimpleNamespace(to_json=lambda: {"cases": cases}, law="a law",
+    result = SimpleNamespace(to_json=lambda: {"cases": cases}, law="a law", side_walls=SideWalls(0.1, 0.3),
                              fit=SimpleNamespace(history=history, keys=("mu1", "mu2")))
     figures = plots.law_figures(tmp_path / "law", result, law=lambda a: 2.0 * np.sqrt(a))
     assert [pathlib.Path(f).name for f in figures] == ["law_runout.png", "law_history.png"]

@@ -280,3 +280,18 @@ def test_calibration_design_takes_and_twin_refuses_side_walls():
     code, err = calibration_call(["twin", "--quick", "--side-walls", "0.02,0.25"])
     assert code == 2, err
     assert "--width and --side-walls do not apply" in err, err
+
+
+def test_runout_law_puts_every_column_in_the_channel():
+    from calibration.cli import build_parser
+    from calibration.studies.scaling import runout_objective
+
+    args = build_parser().parse_args(["law", "--side-walls", "0.1,0.3"])
+    assert args.side_walls == jm.SideWalls(0.1, 0.3)
+    assert build_parser().parse_args(["law"]).side_walls is None
+    walls = jm.SideWalls(0.1, 0.3, 0.8)
+    objective = runout_objective(2.0, ("mu1",), dx=0.0125, side_walls=walls)
+    assert objective.scene.config.side_walls == walls
+    assert runout_objective(2.0, ("mu1",), dx=0.0125).scene.config.side_walls is None
+    code, err = calibration_call(["law", "--side-walls", "0.1,-0.3", "--json"])
+    assert code == 2 and "argument --side-walls: the friction must be >= 0" in err, err

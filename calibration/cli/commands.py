@@ -194,7 +194,7 @@ def _law(args) -> int:
                             parse_keys(args.fit), law=law, label=label, dx=args.dx, ppc=args.ppc,
                             values=parse_pairs(args.set, "--set"), steps=args.steps, out=args.out,
                             overwrite=args.overwrite, progress=not args.no_progress, jacobian=args.jacobian,
-                            fd_step=args.fd_step)
+                            fd_step=args.fd_step, side_walls=args.side_walls)
     return _print_with_figures(result.to_json(), args, lambda: law_figures(args.plot, result, law))
 
 

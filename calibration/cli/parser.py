@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import argparse
 
-from jaxmpm.cli import add_scene_arguments, add_threads_argument
+from jaxmpm.cli import add_scene_arguments, add_threads_argument, side_walls_argument
 from jaxmpm.precision import DTYPES
 from jaxmpm.scenes import SCENE_NAMES
 from jaxmpm.scenes.collapse import S4_SIDE
@@ -219,6 +219,9 @@ def _add_law(sub) -> None:
                           "e.g. experiments_data/scaling_laws/runout_glass_beads.csv")
     law.add_argument("--dx", type=float, default=None, help="grid spacing, m (default L0/10)")
     law.add_argument("--ppc", type=float, default=None, help="particles per cell and axis (default: the scenes')")
+    law.add_argument("--side-walls", type=side_walls_argument, default=None, metavar="WIDTH,FRICTION[,K]",
+                     help="every column in a channel of this width (m) whose walls have this Coulomb friction "
+                          "(and lateral pressure ratio K, default 1), e.g. 0.1,0.3 (default: plane strain)")
     law.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="material parameter")
     law.add_argument("--steps", type=int, default=15)
     law.add_argument("--jacobian", choices=JACOBIANS, default="fd")

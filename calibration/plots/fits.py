@@ -294,5 +294,8 @@ def law_figures(directory, result, law) -> list[str]:
     missing): ``law_runout.png`` (``plot_runout_law`` against ``law``) and ``law_history.png``;
     their paths."""
     d = _folder(directory)
-    return [str(plot_runout_law(result.to_json()["cases"], d / "law_runout.png", law=law, title=result.law)),
+    walls = result.side_walls
+    title = result.law if walls is None else (f"{result.law}\nchannel {walls.width * 100:g} cm wide, wall friction "
+                                              f"{walls.friction:g}, K = {walls.lateral_pressure_ratio:g}")
+    return [str(plot_runout_law(result.to_json()["cases"], d / "law_runout.png", law=law, title=title)),
             str(plot_history(result.fit.history, result.fit.keys, d / "law_history.png"))]

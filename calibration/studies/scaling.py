@@ -61,12 +61,13 @@ def named_law(path=None, *, sand: bool = False) -> tuple[Callable, str]:
 
 def runout_objective(a: float, keys: Sequence[str], law: Callable = runout_law, L0: float = 0.05,
                      dx: float | None = None, ppc: float | None = None, values: Mapping[str, float] | None = None,
-                     dtype=None, jacobian: str = "fd", fd_step: float = 0.05):
-    """The S5 objective at aspect ratio ``a``: the final front against ``law(a)``. The Jacobian
+                     dtype=None, jacobian: str = "fd", fd_step: float = 0.05, side_walls=None):
+    """The S5 objective at aspect ratio ``a``: the final front against ``law(a)``, in a channel
+    whose walls are ``side_walls`` (a ``jaxmpm.SideWalls``; default None, plane strain). The Jacobian
     defaults to central differences over ±5 %: in tall columns the final front scatters between
     neighbouring parameter values, and autodiff would measure that scatter, not the trend
     (docs/calibration.md)."""
-    scene = aspect_ratio_collapse(a, L0=L0, dx=dx, ppc=ppc, dtype=dtype, **dict(values or {}))
+    scene = aspect_ratio_collapse(a, L0=L0, dx=dx, ppc=ppc, dtype=dtype, side_walls=side_walls, **dict(values or {}))
     t_end = scene.config.t_end
     target = FrontTarget(np.array([t_end]), np.array([L0 * (1.0 + float(law(a)))]))
     return Objective(scene, keys, front=target, jacobian=jacobian, fd_step=fd_step)
@@ -107,6 +108,7 @@ class LawResult:
     dx: float
     warning: str | None
     wall_s: float
+    side_walls: Any = None  # the channel's jaxmpm.SideWalls, or None (plane strain)
 
     def to_json(self) -> dict[str, Any]:
         """The fit's JSON and every case: what ``python -m calibration law --json`` prints."""
@@ -114,7 +116,8 @@ class LawResult:
         if self.warning:
             out["warning"] = self.warning
         out.update({"start": dict(self.start), "cases": [dataclasses.asdict(c) for c in self.cases],
-                    "wall_s": round(self.wall_s, 3), "law": self.law, "L0": self.L0, "dx": self.dx})
+                    "wall_s": round(self.wall_s, 3), "law": self.law, "L0": self.L0, "dx": self.dx,
+                    "side_walls": None if self.side_walls is None else dataclasses.asdict(self.side_walls)})
         return out
 
 
@@ -123,28 +126,30 @@ def fit_runout_law(a_fit: Sequence[float] = (0.5, 1.0, 4.0), a_test: Sequence[fl
                    L0: float = 0.05, dx: float | None = None, ppc: float | None = None,
                    values: Mapping[str, float] | None = None, init: Mapping[str, float] | None = None,
                    steps: int = 15, out=None, overwrite: bool = False, progress: bool = False,
-                   dtype=None, jacobian: str = "fd", fd_step: float = 0.05) -> LawResult:
+                   dtype=None, jacobian: str = "fd", fd_step: float = 0.05, side_walls=None) -> LawResult:
     """Fit ``keys`` to the runout law at ``a_fit`` and predict it at ``a_test``. ``law(a)`` must
     answer at every aspect ratio (checked before any run); ``label`` names it in the result
-    (default: the function's name)."""
+    (default: the function's name). ``side_walls`` (a ``jaxmpm.SideWalls``) puts every column in
+    that channel: its width is in metres, so the walls weigh more on the taller columns."""
     a_fit, a_test = [float(a) for a in a_fit], [float(a) for a in a_test]
     if not a_fit:
         raise ValueError("a_fit: at least one aspect ratio is needed")
     for a in a_fit + a_test:
         law(a)  # an aspect ratio the law does not give (e.g. a table's missing row) fails here, before any run
     t0 = time.perf_counter()
-    members = [runout_objective(a, keys, law, L0, dx, ppc, values, dtype, jacobian, fd_step) for a in a_fit]
+    members = [runout_objective(a, keys, law, L0, dx, ppc, values, dtype, jacobian, fd_step, side_walls) for a in a_fit]
     composite = CompositeObjective(members)
     theta0 = np.array([float(getattr(members[0].scene.params, k)) for k in keys])
     start = {**dict(zip(keys, theta0.tolist())), **dict(init or {})}
     result = fit(composite, start, method="lm", steps=steps, out=out, overwrite=overwrite, progress=progress,
-                 meta={"runout_law": True, "a_fit": a_fit, "a_test": a_test})
+                 meta={"runout_law": True, "a_fit": a_fit, "a_test": a_test,
+                       **({"side_walls": dataclasses.asdict(side_walls)} if side_walls is not None else {})})
     theta = np.array([result.theta[k] for k in keys])
     theta_start = np.array([start[k] for k in keys])
     cases = []
     for a in sorted(set(a_fit) | set(a_test)):
         obj = (members[a_fit.index(a)] if a in a_fit
-               else runout_objective(a, keys, law, L0, dx, ppc, values, dtype, jacobian, fd_step))
+               else runout_objective(a, keys, law, L0, dx, ppc, values, dtype, jacobian, fd_step, side_walls))
         before, st0 = _runouts(obj, theta_start)
         after, st1 = _runouts(obj, theta)
         target = float(law(a))
@@ -159,4 +164,5 @@ def fit_runout_law(a_fit: Sequence[float] = (0.5, 1.0, 4.0), a_test: Sequence[fl
                    "(a sign of missing physics or resolution, not a measurement of them)")
     return LawResult(fit=result, start=start, cases=tuple(cases),
                      law=label if label is not None else getattr(law, "__name__", str(law)), L0=L0,
-                     dx=members[0].config.grid.dx, warning=warning, wall_s=time.perf_counter() - t0)
+                     dx=members[0].config.grid.dx, warning=warning, wall_s=time.perf_counter() - t0,
+                     side_walls=side_walls)
