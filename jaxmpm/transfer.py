@@ -10,13 +10,17 @@ Layout, chosen by measurement on the CPU (docs/performance.md): grid fields are 
 (channels, n_nodes); per-particle values are planes (lists of (N,) arrays, ``jaxmpm.linalg``);
 each P2G channel is one (S, N) array built plane by plane and scattered on its own (a
 multi-channel scatter makes XLA interleave the channels into rows first, which costs more than
-the scatters), and G2P gathers each grid channel on its own.
+the scatters), and G2P gathers each grid channel on its own. In 3D, P2G first stores the
+particle planes it reads (v, C, τ) contiguously, and G2P sums the 27 gathered nodes of a channel
+axis by axis (the weights are products w_x w_y w_z): together 0.8 of a 3D step's time; neither
+changes a 2D step, which keeps the plain sums.
 """
 
 from __future__ import annotations
 
 from typing import NamedTuple
 
+import jax
 import jax.numpy as jnp
 
 from .kernels import APIC_INERTIA, Stencil
@@ -49,6 +53,14 @@ def _matrix_planes(a):
     return planes(a)
 
 
+def _contiguous(tree):
+    """The planes of ``tree`` stored side by side in one array, read back as planes. The 3D P2G
+    builds 189 (N,) planes, each of which reads entries of v, C and τ; read in place from the
+    (N, d, d) state arrays, each is a strided load, which costs a 3D step 10 % more."""
+    leaves, treedef = jax.tree.flatten(tree)
+    return jax.tree.unflatten(treedef, list(jnp.unstack(jax.lax.optimization_barrier(jnp.stack(leaves)))))
+
+
 def p2g(stencil: Stencil, mass, v, C, vol0, tau, n_nodes: int, pressure=None) -> GridFields:
     """Scatter mass, APIC momentum and internal force to the grid. ``v`` (N, dim) and ``C``,
     ``tau`` (N, dim, dim) are arrays or planes. ``pressure`` (N,), if given, is scattered too
@@ -57,6 +69,8 @@ def p2g(stencil: Stencil, mass, v, C, vol0, tau, n_nodes: int, pressure=None) ->
     C = _matrix_planes(C) if hasattr(C, "shape") else C
     tau = _matrix_planes(tau) if hasattr(tau, "shape") else tau
     dim = len(v)
+    if dim == 3:
+        v, C, tau = _contiguous((v, C, tau))
     n_stencil = stencil.index.shape[0]
     mass_ch, momentum_ch, force_ch = [], [[] for _ in range(dim)], [[] for _ in range(dim)]
     for s in range(n_stencil):
@@ -93,6 +107,8 @@ def g2p_planes(stencil: Stencil, v_old, v_new, v_p, dx, transfer: str, alpha: fl
     """G2P with the chosen transfer, every result as planes. ``v_p`` (planes) is the particle
     velocity the FLIP part starts from (the particles' own, or its XPIC filter)."""
     dim = v_new.shape[0]
+    if dim == 3:
+        return _g2p3(stencil, v_old, v_new, v_p, dx, transfer, alpha)
     n_stencil = stencil.index.shape[0]
     flip = transfer != "pic" and alpha != 0.0
     # (S, N) gathers split into rows by ``unstack``, whose transpose is one ``stack``: indexing
@@ -118,6 +134,56 @@ def g2p_planes(stencil: Stencil, v_old, v_new, v_p, dx, transfer: str, alpha: fl
         return Transferred(v_pic, v_pic, C, grad_v)
     dv = [over_stencil(lambda s, a=a: weights[s] * (new[a][s] - old[a][s])) for a in range(dim)]
     v = [alpha * (v_p[a] + dv[a]) + (1.0 - alpha) * v_pic[a] for a in range(dim)]
+    return Transferred(v, v_pic, C, grad_v)
+
+
+def _axis_sums(rows, w, dw, wo):
+    """Of one gathered channel g (27 rows, node (i, j, k) at 9i + 3j + k), the sums Σ w g, Σ ∇w g
+    (3) and Σ w (x_i - x_p) g (3), summed over z, then y, then x: with the weights products
+    w_x w_y w_z the partial sums are shared between the seven. ``w``, ``dw``, ``wo`` per axis:
+    the weights, their derivatives and the weights times the offsets."""
+    def z_sum(f, i, j):
+        return sum(f[2][k] * rows[9 * i + 3 * j + k] for k in range(3))
+
+    def y_sum(f, part, i):
+        return sum(f[1][j] * part[i][j] for j in range(3))
+
+    def x_sum(f, part):
+        return sum(f[0][i] * part[i] for i in range(3))
+
+    z_w, z_dw, z_wo = ([[z_sum(f, i, j) for j in range(3)] for i in range(3)] for f in (w, dw, wo))
+    ww = [y_sum(w, z_w, i) for i in range(3)]
+    value = x_sum(w, ww)
+    grad = [x_sum(dw, ww), x_sum(w, [y_sum(dw, z_w, i) for i in range(3)]),
+            x_sum(w, [y_sum(w, z_dw, i) for i in range(3)])]
+    moment = [x_sum(wo, ww), x_sum(w, [y_sum(wo, z_w, i) for i in range(3)]),
+              x_sum(w, [y_sum(w, z_wo, i) for i in range(3)])]
+    return value, grad, moment
+
+
+def _weighted_sum(rows, w):
+    """Σ w g of one gathered channel (27 rows), summed axis by axis."""
+    return sum(w[0][i] * sum(w[1][j] * sum(w[2][k] * rows[9 * i + 3 * j + k] for k in range(3)) for j in range(3))
+               for i in range(3))
+
+
+def _g2p3(stencil: Stencil, v_old, v_new, v_p, dx, transfer: str, alpha: float) -> Transferred:
+    """``g2p_planes`` in 3D, each channel's sums over the stencil taken axis by axis (``_axis_sums``)."""
+    flip = transfer != "pic" and alpha != 0.0
+    w, dw = stencil.w, stencil.dw
+    wo = [[w[b][k] * stencil.off[b][k] for k in range(3)] for b in range(3)]
+    sums = [_axis_sums(jnp.unstack(v_new[a][stencil.index]), w, dw, wo) for a in range(3)]
+    v_pic = [s[0] for s in sums]
+    grad_v = [s[1] for s in sums]
+    if transfer == "pic":
+        zero = jnp.zeros_like(v_pic[0])
+        return Transferred(v_pic, v_pic, [[zero] * 3 for _ in range(3)], grad_v)
+    scale = APIC_INERTIA / dx**2
+    C = [[scale * m for m in s[2]] for s in sums]
+    if not flip:
+        return Transferred(v_pic, v_pic, C, grad_v)
+    dv = [v_pic[a] - _weighted_sum(jnp.unstack(v_old[a][stencil.index]), w) for a in range(3)]
+    v = [alpha * (v_p[a] + dv[a]) + (1.0 - alpha) * v_pic[a] for a in range(3)]
     return Transferred(v, v_pic, C, grad_v)
 
 
