@@ -145,6 +145,12 @@ def test_verdict_and_intervals_of_a_linear_model():
     assert estimated.noise["profile"] == pytest.approx(0.01, rel=0.2) and not estimated.is_fit
     edge = assess_fit(noise, scale, blocks, np.array([1e-5, 0.5]), converged=True, bounds=bounds, noise=0.01)
     assert not edge.is_fit and edge.at_bound == ("beta",)
+    # μ2 below μ1 is inside both boxes but outside the rheology (rate-weakening): not a fit.
+    frictions = Bounds.create(("mu1", "mu2"))
+    weakening = assess_fit(noise, scale, blocks, np.array([0.6, 0.16]), converged=True, bounds=frictions, noise=0.01)
+    assert not weakening.is_fit and weakening.reasons == ("mu2 = 0.16 below mu1 = 0.6 (mu2 is the limiting friction: "
+                                                          "the point lies outside the model's rheology)",)
+    assert assess_fit(noise, scale, blocks, np.array([0.4, 0.6]), converged=True, bounds=frictions, noise=0.01).is_fit
 
 
 def test_structural_noise_sees_the_white_part_only():

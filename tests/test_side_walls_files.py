@@ -4,6 +4,7 @@ file (read, checked, written back), ``jaxmpm.scenes.collapse(side_walls=)``, the
 
 import importlib
 
+import numpy as np
 import pytest
 from helpers import ROOT, S4_DATA, call_main, main_exit
 
@@ -295,3 +296,14 @@ def test_runout_law_puts_every_column_in_the_channel():
     assert runout_objective(2.0, ("mu1",), dx=0.0125).scene.config.side_walls is None
     code, err = calibration_call(["law", "--side-walls", "0.1,-0.3", "--json"])
     assert code == 2 and "argument --side-walls: the friction must be >= 0" in err, err
+
+
+def test_a_3d_channel_must_be_a_whole_number_of_cells_wide():
+    """The walls act on grid nodes: between two node rows a wall would act at the row behind it and
+    the channel would be wider than asked, so the builder refuses and names two spacings that fit."""
+    with pytest.raises(ValueError, match=r"width = 0.05 m is 12.5 cells of dx = 0.004 m: .* use dx = width/12 = "
+                                         r"0.00416667 m or width/13 = 0.00384615 m"):
+        jm.scenes.collapse("c", 0.05, 0.05, dx=0.004, dim=3, width=0.05, t_end=0.01, runout=0.05)
+    scene = jm.scenes.collapse("c", 0.05, 0.05, dx=0.05 / 12, dim=3, width=0.05, t_end=0.01, runout=0.05)
+    nodes_z = scene.config.grid.origin[2] + scene.config.grid.dx * np.arange(scene.config.grid.cells[2] + 1)
+    assert np.isclose(nodes_z, 0.0, atol=1e-12).any() and np.isclose(nodes_z, 0.05, atol=1e-12).any()

@@ -11,6 +11,8 @@ from typing import Any
 
 import numpy as np
 
+from jaxmpm.params import RELATIONS
+
 from ..problem.protocol import ObjectiveLike
 from .gauss_newton import gauss_newton_uncertainty
 from .gridcheck import GRID_DRAWS, check_grid_options, grid_shift
@@ -46,6 +48,16 @@ class Verdict:
         return out
 
 
+def broken_relations(keys, theta) -> list[str]:
+    """The rules across fitted keys (``jaxmpm.params.RELATIONS``, μ2 >= μ1) that θ breaks, in words.
+    The boxes of the bounds cannot hold them, so a fit can end where the model is not the one
+    docs/model.md describes (μ2 < μ1 makes μ(I) rate-weakening)."""
+    values = dict(zip(keys, np.asarray(theta, float).tolist()))
+    return [f"{rel.key} = {values[rel.key]:.4g} below {rel.other} = {values[rel.other]:.4g} ({rel.key} is {rel.why}: "
+            f"the point lies outside the model's rheology)"
+            for rel in RELATIONS if rel.key in values and rel.other in values and values[rel.key] < values[rel.other]]
+
+
 def assess_fit(r, row_scale, blocks: Mapping[str, slice], theta, *, converged: bool, message: str = "",
                bounds=None, noise: Mapping[str, float] | float | None = None, J=None,
                scatter: ModelScatter | None = None) -> Verdict:
@@ -78,6 +90,7 @@ def assess_fit(r, row_scale, blocks: Mapping[str, slice], theta, *, converged: b
     at_bound = tuple(bounds.near_bound(theta)) if bounds is not None else ()
     if at_bound:
         reasons.append(f"{', '.join(at_bound)} at a bound (the misfit falls towards or beyond the physical range)")
+    reasons.extend(broken_relations(bounds.keys, theta) if bounds is not None else ())
     sigma, counts, source = block_noise(r, row_scale, blocks, noise)
     if scatter is not None:
         sigma = {name: None if v is None else math.hypot(v, scatter.noise.get(name, 0.0)) for name, v in sigma.items()}

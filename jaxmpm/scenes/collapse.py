@@ -178,6 +178,13 @@ def _checked_column(length, height, *, dx, ppc, sampling, wall_gap, dim, width, 
         raise ValueError(f"dim must be 2 or 3, got {dim!r}")
     if dim == 3 and width is None:
         raise ValueError("width (the channel width, m) is required when dim=3")
+    if dim == 3 and abs(width / dx - round(width / dx)) > 1e-6:
+        # The walls act on grid nodes: one between two node rows would act at the row behind it,
+        # and the channel would be wider than asked (docs/channel.md).
+        n = width / dx
+        raise ValueError(f"width = {width:g} m is {n:.4g} cells of dx = {dx:g} m: a 3D channel's walls stand on node "
+                         f"rows, so the width must be a whole number of cells; use dx = width/{math.floor(n)} = "
+                         f"{width / math.floor(n):.6g} m or width/{math.ceil(n)} = {width / math.ceil(n):.6g} m")
     if side_walls is not None:
         if not isinstance(side_walls, SideWalls):
             raise ValueError(f"side_walls must be a jaxmpm.SideWalls or None, got {type(side_walls).__name__}")
