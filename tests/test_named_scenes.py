@@ -86,7 +86,7 @@ OPTIONS = [
     {},
     {"ppc": 2, "sampling": "lattice"},
     {"seed": 3, "t_end": 0.2, "frames": 4, "values": {"beta": 0.2, "mu1": 0.4}},
-    {"dim": 3, "width": 0.1, "dtype": "float64"},
+    {"dim": 3, "dtype": "float64"},  # width: three cells (a 3D channel is a whole number of cells wide)
 ]
 
 
@@ -95,6 +95,8 @@ OPTIONS = [
 def test_builder_build_scene_and_named_experiment_agree(name, options):
     e = shipped_experiment(name)
     options = {"dx": min(e.length, e.height) / 3, **options}
+    if options.get("dim") == 3:
+        options["width"] = 3 * options["dx"]
     values = options.pop("values", {})
     scene = build_scene(name, values=values, **options)
     _same_scene(scene, named_experiment(name, values=values, **options).scene())
