@@ -162,6 +162,13 @@ def _check_numerics(e: Experiment) -> None:
         thinnest = min(e.length, e.height, e.width if e.dim == 3 else math.inf)
         _need(e.dx <= thinnest, "numerics", "dx", f"must be at most the column's thinnest side ({thinnest:g} m): a "
                                                   f"body needs at least one cell across, got {e.dx:g} m")
+        if e.dim == 3 and e.width is not None:
+            cells = e.width / e.dx
+            _need(abs(cells - round(cells)) <= 1e-6, "numerics", "dx",
+                  f"must fit a whole number of cells across the 3D channel (its walls stand on node rows): "
+                  f"[geometry] width {e.width:g} m is {cells:.4g} cells of {e.dx:g} m; use width/{math.floor(cells)} "
+                  f"= {e.width / math.floor(cells):.6g} m or width/{math.ceil(cells)} = "
+                  f"{e.width / math.ceil(cells):.6g} m")
     sampling = e.sampling or DEFAULT_SAMPLING
     _need(sampling in SAMPLINGS, "numerics", "sampling", _one_of(SAMPLINGS, e.sampling))
     if e.ppc is not None:

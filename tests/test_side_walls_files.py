@@ -91,19 +91,20 @@ def test_side_walls_refusals_name_file_line_and_key(entry, message):
 
 
 def test_side_walls_in_3d_are_the_channel_s_own_walls():
-    """In 3D the key gives the friction of the channel's walls: its width must be the channel's."""
-    text = s4_text(geometry='width = "50 mm"\n', numerics="dim = 3\n")
+    """In 3D the key gives the friction of the channel's walls: its width must be the channel's
+    (44.5 mm: eight cells of the file's dx, as a 3D channel must be a whole number of cells wide)."""
+    text = s4_text(geometry='width = "44.5 mm"\n', numerics="dim = 3\n")
     with pytest.raises(ExperimentError) as err:
         Experiment.from_text(text, "walls.toml")
     assert str(err.value).startswith(f"walls.toml:{line_of(text, 'side_walls')}: [boundaries] side_walls: ")
-    assert "in 3D the channel's own walls: its width must be [geometry] width (0.05 m), got 0.02 m" in str(err.value)
-    text = s4_text('side_walls = { width = "50 mm", friction = 0.3, lateral_pressure_ratio = 0.5 }',
-                   geometry='width = "50 mm"\n', numerics="dim = 3\n")
+    assert "in 3D the channel's own walls: its width must be [geometry] width (0.0445 m), got 0.02 m" in str(err.value)
+    text = s4_text('side_walls = { width = "44.5 mm", friction = 0.3, lateral_pressure_ratio = 0.5 }',
+                   geometry='width = "44.5 mm"\n', numerics="dim = 3\n")
     with pytest.raises(ExperimentError, match="in 3D the walls' normal stress is computed"):
         Experiment.from_text(text, "walls.toml")
-    e = Experiment.from_text(s4_text('side_walls = { width = "50 mm", friction = 0.3 }', geometry='width = "50 mm"\n',
+    e = Experiment.from_text(s4_text('side_walls = { width = "44.5 mm", friction = 0.3 }', geometry='width = "44.5 mm"\n',
                                      numerics="dim = 3\n"), "walls.toml")
-    assert e.side_walls == jm.SideWalls(0.05, 0.3)
+    assert e.side_walls == jm.SideWalls(0.0445, 0.3)
 
 
 def test_width_in_a_2d_file_points_to_side_walls():
@@ -217,7 +218,7 @@ def test_run_refuses_bad_side_walls(capsys, built, value, message):
 
 
 def test_run_refuses_side_walls_where_they_do_not_apply(capsys, built, tmp_path):
-    refused(capsys, ["run", "cohesive-collapse", *TINY, "--dim", "3", "--width", "0.05", "--side-walls", "0.02,0.25"],
+    refused(capsys, ["run", "cohesive-collapse", *TINY, "--dim", "3", "--width", "0.06", "--side-walls", "0.02,0.25"],
             "in 3D the channel's own walls: its width must be")
     refused(capsys, ["run", "elastic-block", *TINY, "--side-walls", "0.02,0.25"],
             "--side-walls applies to the collapses, not elastic-block")
@@ -225,8 +226,8 @@ def test_run_refuses_side_walls_where_they_do_not_apply(capsys, built, tmp_path)
             "--side-walls does not apply to the avalanche scene")
     refused(capsys, ["run", "cohesive-collapse", *TINY, "--width", "0.05"], "--width applies to --dim 3")
     # a 3D file refuses the flag
-    path = s4_file(tmp_path, side_walls=None, geometry='width = "50 mm"\n', numerics="dim = 3\n")
-    refused(capsys, ["run", str(path), *TINY, "--side-walls", "0.02,0.25"],
+    path = s4_file(tmp_path, side_walls=None, geometry='width = "44.5 mm"\n', numerics="dim = 3\n")
+    refused(capsys, ["run", str(path), "--dx", "0.011125", *TINY[2:], "--side-walls", "0.02,0.25"],
             "in 3D the channel's own walls: its width must be")
 
 
@@ -296,6 +297,16 @@ def test_runout_law_puts_every_column_in_the_channel():
     assert runout_objective(2.0, ("mu1",), dx=0.0125).scene.config.side_walls is None
     code, err = calibration_call(["law", "--side-walls", "0.1,-0.3", "--json"])
     assert code == 2 and "argument --side-walls: the friction must be >= 0" in err, err
+
+
+def test_a_3d_file_must_fit_a_whole_number_of_cells_across(tmp_path):
+    text = s4_text(side_walls=None, geometry='width = "50 mm"\n', numerics="dim = 3\n")
+    with pytest.raises(ExperimentError) as err:
+        Experiment.from_text(text, "walls.toml")
+    assert str(err.value).startswith(f"walls.toml:{line_of(text, 'dx')}: [numerics] dx: must fit a whole number of "
+                                     "cells across the 3D channel"), str(err.value)
+    assert "width 0.05 m is 8.989 cells of 0.0055625 m; use width/8 = 0.00625 m or width/9 = 0.00555556 m" in str(
+        err.value)
 
 
 def test_a_3d_channel_must_be_a_whole_number_of_cells_wide():
