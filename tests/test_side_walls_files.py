@@ -102,8 +102,8 @@ def test_side_walls_in_3d_are_the_channel_s_own_walls():
                    geometry='width = "44.5 mm"\n', numerics="dim = 3\n")
     with pytest.raises(ExperimentError, match="in 3D the walls' normal stress is computed"):
         Experiment.from_text(text, "walls.toml")
-    e = Experiment.from_text(s4_text('side_walls = { width = "44.5 mm", friction = 0.3 }', geometry='width = "44.5 mm"\n',
-                                     numerics="dim = 3\n"), "walls.toml")
+    e = Experiment.from_text(s4_text('side_walls = { width = "44.5 mm", friction = 0.3 }',
+                                     geometry='width = "44.5 mm"\n', numerics="dim = 3\n"), "walls.toml")
     assert e.side_walls == jm.SideWalls(0.0445, 0.3)
 
 
