@@ -22,7 +22,7 @@ from .config import TRANSFERS
 from .params import DEFAULTS, LENGTH_UNITS, PARAM_KEYS, RELATIONS, param_help, param_problem
 from .precision import DTYPES
 from .sampling import SAMPLINGS
-from .scenes.collapse import DEFAULT_SAMPLING, FLOORS
+from .scenes.collapse import DEFAULT_SAMPLING, FLOORS, channel_cells_problem
 
 if TYPE_CHECKING:
     from .experiment import Experiment
@@ -163,12 +163,9 @@ def _check_numerics(e: Experiment) -> None:
         _need(e.dx <= thinnest, "numerics", "dx", f"must be at most the column's thinnest side ({thinnest:g} m): a "
                                                   f"body needs at least one cell across, got {e.dx:g} m")
         if e.dim == 3 and e.width is not None:
-            cells = e.width / e.dx
-            _need(abs(cells - round(cells)) <= 1e-6, "numerics", "dx",
-                  f"must fit a whole number of cells across the 3D channel (its walls stand on node rows): "
-                  f"[geometry] width {e.width:g} m is {cells:.4g} cells of {e.dx:g} m; use width/{math.floor(cells)} "
-                  f"= {e.width / math.floor(cells):.6g} m or width/{math.ceil(cells)} = "
-                  f"{e.width / math.ceil(cells):.6g} m")
+            problem = channel_cells_problem(e.width, e.dx)
+            _need(problem is None, "numerics", "dx", f"must fit a whole number of cells across the 3D channel: "
+                                                      f"[geometry] width {problem}")
     sampling = e.sampling or DEFAULT_SAMPLING
     _need(sampling in SAMPLINGS, "numerics", "sampling", _one_of(SAMPLINGS, e.sampling))
     if e.ppc is not None:

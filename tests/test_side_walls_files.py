@@ -305,8 +305,8 @@ def test_a_3d_file_must_fit_a_whole_number_of_cells_across(tmp_path):
         Experiment.from_text(text, "walls.toml")
     assert str(err.value).startswith(f"walls.toml:{line_of(text, 'dx')}: [numerics] dx: must fit a whole number of "
                                      "cells across the 3D channel"), str(err.value)
-    assert "width 0.05 m is 8.989 cells of 0.0055625 m; use width/8 = 0.00625 m or width/9 = 0.00555556 m" in str(
-        err.value)
+    assert ("width 0.05 m is 8.989 cells of dx = 0.0055625 m: a 3D channel's walls stand on node rows, so the width "
+            "must be a whole number of cells; use dx = width/8 = 0.00625 m or width/9 = 0.00555556 m") in str(err.value)
 
 
 def test_a_3d_channel_must_be_a_whole_number_of_cells_wide():

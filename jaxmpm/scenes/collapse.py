@@ -164,6 +164,18 @@ def collapse(name: str, length: float, height: float, *, dx: float, ppc: float |
     return Scene(name, config, init_state(config, x, vol, dtype=dtype), params, info, sampler, remake)
 
 
+def channel_cells_problem(width: float, dx: float) -> str | None:
+    """None if a 3D channel ``width`` wide is a whole number of cells of ``dx``, else what is wrong
+    and two spacings that fit. The walls act on grid nodes: one between two node rows would act at
+    the row behind it, and the channel would be wider than asked (docs/channel.md)."""
+    n = width / dx
+    if abs(n - round(n)) <= 1e-6:
+        return None
+    return (f"{width:g} m is {n:.4g} cells of dx = {dx:g} m: a 3D channel's walls stand on node rows, so the width "
+            f"must be a whole number of cells; use dx = width/{math.floor(n)} = {width / math.floor(n):.6g} m or "
+            f"width/{math.ceil(n)} = {width / math.ceil(n):.6g} m")
+
+
 def _checked_column(length, height, *, dx, ppc, sampling, wall_gap, dim, width, slope_deg, floor, runout, t_end,
                     frames, side_walls=None) -> tuple[str, float]:
     """``collapse``'s checks, before anything is built; (the sampling, the particles per cell)
@@ -178,13 +190,8 @@ def _checked_column(length, height, *, dx, ppc, sampling, wall_gap, dim, width, 
         raise ValueError(f"dim must be 2 or 3, got {dim!r}")
     if dim == 3 and width is None:
         raise ValueError("width (the channel width, m) is required when dim=3")
-    if dim == 3 and abs(width / dx - round(width / dx)) > 1e-6:
-        # The walls act on grid nodes: one between two node rows would act at the row behind it,
-        # and the channel would be wider than asked (docs/channel.md).
-        n = width / dx
-        raise ValueError(f"width = {width:g} m is {n:.4g} cells of dx = {dx:g} m: a 3D channel's walls stand on node "
-                         f"rows, so the width must be a whole number of cells; use dx = width/{math.floor(n)} = "
-                         f"{width / math.floor(n):.6g} m or width/{math.ceil(n)} = {width / math.ceil(n):.6g} m")
+    if dim == 3 and (problem := channel_cells_problem(width, dx)):
+        raise ValueError(f"width = {problem}")
     if side_walls is not None:
         if not isinstance(side_walls, SideWalls):
             raise ValueError(f"side_walls must be a jaxmpm.SideWalls or None, got {type(side_walls).__name__}")
