@@ -21,6 +21,7 @@ import numpy as np
 
 from jaxmpm import describe_status
 
+from ..problem.options import check_int
 from ..problem.protocol import ResidualModel
 from .compiled import compile_batch
 
@@ -60,12 +61,6 @@ def _check_ranges(ranges: Mapping[str, Sequence[float]], keys) -> tuple[tuple[st
     return keys, np.asarray(lo), np.asarray(hi)
 
 
-def _check_count(name: str, value, least: int = 1) -> int:
-    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)) or value < least:
-        raise ValueError(f"{name} must be an integer >= {least}, got {value!r}")
-    return int(value)
-
-
 def grid_points(ranges: Mapping[str, tuple[float, float]], num: int | Mapping[str, int],
                 keys: Sequence[str] | None = None) -> tuple[tuple[str, ...], np.ndarray]:
     """The cartesian product of ``np.linspace(lo, hi, num)`` over the keys of ``ranges``.
@@ -77,9 +72,9 @@ def grid_points(ranges: Mapping[str, tuple[float, float]], num: int | Mapping[st
     if isinstance(num, Mapping):
         if set(num) != set(keys):
             raise ValueError(f"num must give a count for each of {list(keys)}, got {dict(num)}")
-        counts = [_check_count(f"num[{k!r}]", num[k]) for k in keys]
+        counts = [check_int(f"num[{k!r}]", num[k]) for k in keys]
     else:
-        counts = [_check_count("num", num)] * len(keys)
+        counts = [check_int("num", num)] * len(keys)
     axes = [np.linspace(a, b, c) for a, b, c in zip(lo, hi, counts)]
     mesh = np.meshgrid(*axes, indexing="ij")
     return keys, np.stack([m.reshape(-1) for m in mesh], axis=-1)
@@ -91,8 +86,8 @@ def latin_hypercube(ranges: Mapping[str, tuple[float, float]], n: int, seed: int
     exactly one point, at a uniform random place inside it; strata are paired across axes by
     independent random permutations. Returns ``(keys, thetas)`` with ``thetas`` (n, n_keys)."""
     keys, lo, hi = _check_ranges(ranges, keys)
-    n = _check_count("n", n)
-    rng = np.random.default_rng(_check_count("seed", seed, least=0))
+    n = check_int("n", n)
+    rng = np.random.default_rng(check_int("seed", seed, least=0))
     u = np.stack([(rng.permutation(n) + rng.random(n)) / n for _ in keys], axis=-1)
     return keys, lo + (hi - lo) * u
 
@@ -337,7 +332,7 @@ def _check_sweep(objective, thetas, mode, chunk, memory_budget_bytes, validate):
     if validate:
         objective.check_thetas(thetas, "thetas")
     if chunk is not None:
-        chunk = _check_count("chunk", chunk)
+        chunk = check_int("chunk", chunk)
     if memory_budget_bytes is not None and not (
             isinstance(memory_budget_bytes, (int, np.integer)) and memory_budget_bytes > 0):
         raise ValueError(f"memory_budget_bytes must be a positive integer, got {memory_budget_bytes!r}")

@@ -24,6 +24,7 @@ import numpy as np
 
 from ..batch.workers import jacobians_z, residuals_at
 from ..problem.bounds import dphysical_dz, physical, unconstrained
+from ..problem.options import check_int
 from ..problem.protocol import ObjectiveLike
 from .gridpost import weighted_summary
 from .gridterm import GridTerm, coarse_objectives, with_grid_term
@@ -279,8 +280,7 @@ def _check_settings(*, rounds, checks, chains, warmup, draws, axial, reach, sett
     """``emulated_posterior``'s counts, whitened lengths, emulator and acceptance target."""
     for name, value, least in (("rounds", rounds, 0), ("checks", checks, 30), ("chains", chains, 2),
                                ("warmup", warmup, 1), ("draws", draws, 4)):
-        if not isinstance(value, (int, np.integer)) or isinstance(value, bool) or value < least:
-            raise ValueError(f"{name} must be an integer >= {least}, got {value!r}")
+        check_int(name, value, least)
     for name, value in (("axial", axial), ("reach", reach), ("settle", settle)):
         if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
             raise ValueError(f"{name} must be a positive number (whitened units), got {value!r}")

@@ -12,7 +12,7 @@ from typing import Any
 import numpy as np
 
 from ..batch.sweep import sweep
-from ..problem.protocol import ObjectiveLike
+from ..problem.protocol import ObjectiveLike, is_valid
 from .likelihood import _check_span, _stderr, noise_levels
 from .noise import Z95, chi2_of
 
@@ -133,7 +133,7 @@ def grid_posterior(objective: ObjectiveLike, fit_result, *, span: float = 4.0, n
                 raise ValueError(f"ranges[{k!r}]: ({a:g}, {b:g}) is empty inside the bounds")
         thetas = lo + (mesh + span) / (2 * span) * (hi - lo)
     inside = np.all((thetas > lower + margin) & (thetas < upper - margin), axis=1)
-    inside &= np.array([_valid_row(objective, t) for t in thetas])  # the engine's rules (mu1 <= mu2): no support
+    inside &= np.array([is_valid(objective, t) for t in thetas])  # the engine's rules (mu1 <= mu2): no support
     chi2 = np.full(thetas.shape[0], np.nan)
     if np.any(inside):
         result = sweep(objective, thetas[inside], chunk=chunk)
@@ -150,14 +150,6 @@ def grid_posterior(objective: ObjectiveLike, fit_result, *, span: float = 4.0, n
                          dict(zip(keys, theta_hat.tolist())), None if se is None else dict(zip(keys, se.tolist())),
                          float(weight[on_edge].max() / weight.max()), int((inside & ~finite).sum()),
                          {k: float(v) for k, v in sigma.items()}, time.perf_counter() - clock)
-
-
-def _valid_row(objective: ObjectiveLike, theta) -> bool:
-    try:
-        objective.check_thetas(theta[None, :])
-    except ValueError:
-        return False
-    return True
 
 
 def observed_blocks(objective) -> dict[str, tuple[np.ndarray, np.ndarray]]:

@@ -21,6 +21,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..problem.bounds import dphysical_dz, unconstrained
+from ..problem.options import check_int
 from ..problem.protocol import ObjectiveLike
 from .gridterm import GridTerm, coarse_objectives, with_grid_term
 from .nuts import (
@@ -326,8 +327,7 @@ def _check_settings(chains, warmup, draws, max_doublings, target_accept, spread,
     warmup = 100 if warmup is None else warmup
     for name, value, least in (("chains", chains, 1), ("warmup", warmup, 1), ("draws", draws, 4),
                                ("max_doublings", max_doublings, 1)):
-        if not isinstance(value, (int, np.integer)) or isinstance(value, bool) or value < least:
-            raise ValueError(f"{name} must be an integer >= {least}, got {value!r}")
+        check_int(name, value, least)
     if not 0 < target_accept < 1:
         raise ValueError(f"target_accept must lie in (0, 1), got {target_accept!r}")
     if not (math.isfinite(spread) and spread > 0):

@@ -27,7 +27,8 @@ from ..inference.noise import block_noise, chi2_of, chi2_quantile
 from ..inference.options import JudgeOptions
 from ..inference.scatter import ROUNDOFF_SAMPLES
 from ..inference.verdict import judge_point
-from ..problem.protocol import ObjectiveLike
+from ..problem.options import check_int
+from ..problem.protocol import ObjectiveLike, is_valid
 from .evaluate import BatchEvaluator
 from .fit import FitResult, measured_at, roundoff_stop, save_start, start_theta
 from .history import History, check_out
@@ -73,18 +74,12 @@ def _qmc():
     return qmc
 
 
-def _check_int(name: str, value, low: int) -> int:
-    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)) or value < low:
-        raise ValueError(f"{name} must be an integer >= {low}, got {value!r}")
-    return int(value)
-
-
 def design_starts(objective: ObjectiveLike, k: int, *, seed: int = 0, design: str = "sobol") -> np.ndarray:
     """``k`` physical starts (k, n) in the objective's bounds, ``DESIGN_MARGIN`` inside them,
     space-filling (scrambled Sobol or Latin hypercube, seeded), every one a valid parameter set
     of the engine (``objective.check_thetas``): invalid rows are skipped and more are drawn."""
-    k = _check_int("starts", k, 1)
-    seed = _check_int("seed", seed, 0)
+    k = check_int("starts", k, 1)
+    seed = check_int("seed", seed, 0)
     if design not in DESIGNS:
         raise ValueError(f"design must be one of {DESIGNS}, got {design!r}")
     qmc = _qmc()
@@ -97,15 +92,9 @@ def design_starts(objective: ObjectiveLike, k: int, *, seed: int = 0, design: st
         else:
             u = qmc.LatinHypercube(bounds.n, seed=seed).random(draw)
         thetas = lo + (hi - lo) * (DESIGN_MARGIN + (1 - 2 * DESIGN_MARGIN) * u)
-        valid = []
-        for theta in thetas:
-            try:
-                objective.check_thetas(theta, "start")
-            except ValueError:
-                continue
-            valid.append(theta)
-            if len(valid) == k:
-                return np.asarray(valid)
+        valid = [theta for theta in thetas if is_valid(objective, theta)]
+        if len(valid) >= k:
+            return np.asarray(valid[:k])
         draw *= 4
     raise ValueError(f"starts: fewer than {k} of {draw // 4} design points in the bounds are valid parameter sets "
                      "(the fixed parameters leave little room: narrow the bounds or fit fewer keys)")
@@ -190,7 +179,7 @@ def _starts(objective: ObjectiveLike, starts, init, seed: int, design: str) -> t
     checked; ``init`` (one more start, first) and its note."""
     keys, bounds = objective.keys, objective.bounds
     if isinstance(starts, (int, np.integer)) and not isinstance(starts, (bool, np.bool_)):
-        k_design = _check_int("starts", starts, 1) - (1 if init else 0)
+        k_design = check_int("starts", starts, 1) - (1 if init else 0)
         thetas = design_starts(objective, k_design, seed=seed, design=design) if k_design else np.zeros((0, len(keys)))
     else:
         thetas = np.asarray(starts, float)
@@ -306,7 +295,7 @@ def search(objective: ObjectiveLike, starts: int | np.ndarray = DEFAULT_STARTS, 
                          grid_ratio=grid_ratio, grid_draws=grid_draws, grid_levels=grid_levels)
     with using(workers) as workers:
         clock0 = time.perf_counter()
-        steps = _check_int("steps", steps, 1)
+        steps = check_int("steps", steps, 1)
         FitOptions(steps=int(steps), xtol=xtol, ftol=ftol, stat_tol=stat_tol, max_rejections=max_rejections)
         if not (math.isfinite(cluster_tol) and 0 < cluster_tol < 1):
             raise ValueError(f"cluster_tol must be in (0, 1), got {cluster_tol!r}")
@@ -363,7 +352,7 @@ def coarse_to_fine(objective: ObjectiveLike, coarse: ObjectiveLike, starts: int 
     ``options`` (steps, noise, ...). The result is the fine stage's, with the coarse one as
     ``.coarse``: nothing the coarse stage gets wrong survives into it, except a basin it never
     found."""
-    refine = _check_int("refine", refine, 1)
+    refine = check_int("refine", refine, 1)
     if tuple(coarse.keys) != tuple(objective.keys):
         raise ValueError(f"coarse: fits {tuple(coarse.keys)}, the objective {tuple(objective.keys)}; they must agree")
     b_c, b_f = coarse.bounds, objective.bounds
@@ -374,24 +363,17 @@ def coarse_to_fine(objective: ObjectiveLike, coarse: ObjectiveLike, starts: int 
         first = search(coarse, starts, seed=seed, design=design, init=init, uncertainty=False,
                        noise=options.get("noise"), progress=progress, workers=workers, **opts)
 
-        def valid(theta):  # an LM endpoint may break a rule of the engine's (μ1 > μ2): not a start
-            try:
-                objective.check_thetas(theta[None], "coarse minimum")
-            except ValueError:
-                return False
-            return True
-
         def placed(m):
             """The minimum, moved inside the bounds; if it breaks an engine rule, the last valid point
             on the straight line from its (valid) start to it (bisection)."""
             theta = b_f.move_inside([m.theta[k] for k in objective.keys])[0]
-            if valid(theta):
+            if is_valid(objective, theta):  # an LM endpoint may break a rule of the engine's (μ1 > μ2)
                 return theta, False
             start = first.starts[m.starts[0]]
             lo, hi = 0.0, 1.0
             for _ in range(30):
                 mid = 0.5 * (lo + hi)
-                lo, hi = (mid, hi) if valid(start + mid * (theta - start)) else (lo, mid)
+                lo, hi = (mid, hi) if is_valid(objective, start + mid * (theta - start)) else (lo, mid)
             return start + lo * (theta - start), True
 
         usable = [(m, *placed(m)) for m in first.minima]
@@ -425,7 +407,7 @@ def fit_from_starts(objective, init: Mapping[str, float] | None = None, *, start
     one start). A search's ``out`` is its best start's file (``save_start``), which a resume
     continues as one start."""
     options, judge = options or FitOptions(), judge or JudgeOptions()
-    if _check_int("starts", starts, 1) == 1:
+    if check_int("starts", starts, 1) == 1:
         from .fit import fit  # looked up at the call: the fit that runs is the module's
 
         return fit(objective, init, options=options, judge=judge, out=out, resume=resume, overwrite=overwrite,

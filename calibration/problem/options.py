@@ -9,6 +9,8 @@ import dataclasses
 import math
 from collections.abc import Mapping
 
+import numpy as np
+
 __all__ = ["WEIGHTINGS", "OptionError", "DataOptions", "FitRequest", "fit_request"]
 
 
@@ -32,6 +34,13 @@ def _is_int(value) -> bool:
 
 def _is_number(value) -> bool:
     return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+
+
+def check_int(name: str, value, least: int = 1) -> int:
+    """``value`` as an int, or a ``ValueError`` unless it is an integer (numpy's too, not a bool) >= ``least``."""
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)) or value < least:
+        raise ValueError(f"{name} must be an integer >= {least}, got {value!r}")
+    return int(value)
 
 
 def _require(ok: bool, field: str, what: str, value) -> None:

@@ -16,7 +16,7 @@ import numpy as np
 
 from .bounds import Bounds
 
-__all__ = ["ObjectiveLike", "ResidualModel"]
+__all__ = ["ObjectiveLike", "ResidualModel", "is_valid"]
 
 
 @runtime_checkable
@@ -109,3 +109,12 @@ class ObjectiveLike(ResidualModel, Protocol):
     def residuals_resampled(self, theta, seed: int) -> tuple[Any, dict[str, Any]]: ...
 
     def coarsened(self, ratio: float) -> ObjectiveLike: ...
+
+
+def is_valid(objective: ResidualModel, theta) -> bool:
+    """Whether ``theta`` (n,) is a parameter set of ``objective``'s model (``check_thetas`` passes)."""
+    try:
+        objective.check_thetas(np.asarray(theta)[None, :])
+    except ValueError:
+        return False
+    return True
