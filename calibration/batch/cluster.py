@@ -25,6 +25,7 @@ import numpy as np
 
 from ..problem.protocol import ResidualModel
 from .sweep import SweepResult, _check_thetas, _chunk_rows, _failure_text, _jsonable, member_losses, sweep, write_sweep
+from .workers import progress_bar
 
 __all__ = ["parse_cluster", "ClusterSweepResult", "write_cluster_sweep", "cluster_sweep"]
 
@@ -160,16 +161,6 @@ def _connect(kind: str, value):
     return client, client.close
 
 
-def _bar(total: int, show: bool):
-    if not show:
-        return None
-    try:
-        from tqdm import tqdm
-    except ImportError:  # the optional 'progress' extra
-        return None
-    return tqdm(total=total, unit="member", desc="sweep", file=sys.stderr)
-
-
 def cluster_sweep(make_objective: Callable[[], ResidualModel], thetas, *, cluster="local:2", chunk: int | None = None,
                   retries: int = 2, x64: bool | None = None, progress: bool = False,
                   objective: ResidualModel | None = None) -> ClusterSweepResult:
@@ -241,7 +232,7 @@ def _run_tasks(submit: Callable, tasks: list[dict[str, Any]], retries: int, n_me
 
     outputs: dict[int, dict] = {}
     pending = {submit(t, 0): t for t in range(len(tasks))}
-    bar = _bar(n_members, progress)
+    bar = progress_bar(progress, total=n_members, unit="member", desc="sweep", file=sys.stderr)
     completed = as_completed(list(pending))
     try:
         for future in completed:

@@ -21,7 +21,11 @@ import numpy as np
 
 from jaxmpm.threads import allowed_cores, use_one_thread
 
-__all__ = ["available_cores", "Workers", "as_workers", "using", "run_tasks", "jacobians_z", "residuals_at"]
+from ..problem.options import check_int
+
+__all__ = [
+    "available_cores", "Workers", "as_workers", "using", "run_tasks", "jacobians_z", "residuals_at", "progress_bar",
+]
 
 
 def available_cores() -> int:
@@ -54,9 +58,7 @@ class Workers:
     exception in a task is raised in the caller. Use as a context manager, or ``close()``."""
 
     def __init__(self, n: int):
-        if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 1:
-            raise ValueError(f"workers must be an integer >= 1, got {n!r}")
-        self.n = int(n)
+        self.n = check_int("workers", n)
         self._pool: concurrent.futures.ProcessPoolExecutor | None = None
 
     @property
@@ -116,6 +118,17 @@ def using(workers):
     finally:
         if pool is not workers:
             pool.close()
+
+
+def progress_bar(show: bool, **options):
+    """A tqdm bar made with ``options``, or None without ``show`` or without tqdm (the ``progress`` extra)."""
+    if not show:
+        return None
+    try:
+        from tqdm import tqdm
+    except ImportError:
+        return None
+    return tqdm(**options)
 
 
 def run_tasks(workers, tasks) -> list:

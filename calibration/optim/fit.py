@@ -23,7 +23,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..batch.workers import using
+from ..batch.workers import progress_bar, using
 from ..inference.gauss_newton import Uncertainty
 from ..inference.options import JudgeOptions
 from ..inference.scatter import model_scatter, roundoff_limit
@@ -254,14 +254,8 @@ def _check_start(evaluation) -> None:
 def _progress(keys, history, options: FitOptions, progress: bool, callback):
     """The loop's ``report(state, rows)``: a tqdm bar (with ``progress``, where tqdm is
     installed) and the user's ``callback(iteration, record)``, after each iteration is saved."""
-    bar = None
-    if progress:
-        try:
-            from tqdm import tqdm
-
-            bar = tqdm(total=options.steps, initial=history.iterations, desc=f"fit ({options.method})", unit="it")
-        except ImportError:
-            bar = None
+    bar = progress_bar(progress, total=options.steps, initial=history.iterations, desc=f"fit ({options.method})",
+                       unit="it")
 
     def report(state, rows):
         last = history.last()
