@@ -21,6 +21,7 @@ from jaxmpm.scenes import build_scene
 from jaxmpm.scenes.collapse import S4_SIDE
 
 from ..batch.sweep import SweepResult, grid_points, sweep
+from ..inference.noise import chi2_of, chi2_quantile
 from ..inference.scatter import ROUNDOFF_SAMPLES
 from ..optim.fit import FitResult, fit
 from ..optim.options import cli_steps
@@ -45,10 +46,6 @@ PROFILE_TIMES = (0.1, 0.2, 0.5)
 
 
 FRONT_TIMES = tuple(np.round(np.linspace(0.05, 0.5, 10), 6))
-
-
-#: 95 % quantiles of χ² with n degrees of freedom (n fitted parameters).
-CHI2_95 = {1: 3.841, 2: 5.991, 3: 7.815, 4: 9.488, 5: 11.070}
 
 
 def twin_data(scene, keys, truth: np.ndarray, noise: float = 0.0, seed: int = 0, n_points: int = 50):
@@ -101,7 +98,7 @@ class TwinResult:
         """Δχ² of the truth against χ²_n(0.95), n fitted parameters (None without noise)."""
         if self.delta_chi2_truth is None:
             return None
-        return bool(self.delta_chi2_truth <= CHI2_95[len(self.keys)])
+        return bool(self.delta_chi2_truth <= chi2_quantile(0.95, len(self.keys)))
 
     @property
     def ci95(self) -> dict[str, list[float]] | None:
@@ -158,13 +155,9 @@ def twin(*, quick: bool = False, noise: float = 0.0, keys: Sequence[str] = ("bet
     if noise > 0:
         # The likelihood-ratio view, which does not linearise: Δχ² of the truth against the fit,
         # with each block's residuals divided by its estimated noise, against χ²_n(0.95).
-        r_true, _ = objective.residuals(truth)
-
-        def chi2(r):
-            e = np.asarray(r, float) / objective.row_scale
-            return sum(float(np.sum(e[sl] ** 2)) / unc.noise[name] ** 2 for name, sl in objective.blocks.items())
-
-        delta = chi2(r_true) - chi2(result.residuals)
+        chi2 = [chi2_of(r, objective.row_scale, objective.blocks, unc.noise)
+                for r in (objective.residuals(truth)[0], result.residuals)]
+        delta = chi2[0] - chi2[1]
     return TwinResult(fit=result, objective=objective, keys=keys, truth=dict(zip(keys, truth.tolist())), start=start,
                       rel_error={k: result.theta[k] / v - 1.0 for k, v in zip(keys, truth)}, in_ci95=in_ci95,
                       delta_chi2_truth=delta, noise=noise, seed=seed, dx=dx, n_particles=int(scene.state.x.shape[0]),
