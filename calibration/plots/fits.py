@@ -62,8 +62,7 @@ def plot_fit(objective: ObjectiveLike, result, path, *, title: str | None = None
         x = x if front else 100 * x  # lengths in cm
         ax.plot(x, 100 * data, "o", ms=3, color="0.3", label="data")
         ax.plot(x, 100 * model, "-", color="tab:red", label="fit")
-        ax.set_xlabel("t (s)" if front else "x (cm)")
-        ax.set_ylabel("front x_f (cm)" if front else "h (cm)")
+        ax.set(xlabel="t (s)" if front else "x (cm)", ylabel="front x_f (cm)" if front else "h (cm)")
         what = "front position" if front else f"profile at t = {t:.3g} s"
         ax.set_title(what + (f" [{i}]" if len(members) > 1 else ""), fontsize=9)
         ax.grid(alpha=0.3)
@@ -88,8 +87,7 @@ def plot_history(history, keys, path, *, truth=None, title: str | None = None):
     if (~accepted).any():
         ax.semilogy(it[~accepted], loss[~accepted], "o", ms=4, mfc="none", color="tab:gray", label="rejected")
         ax.legend(fontsize=8)
-    ax.set_xlabel("iteration")
-    ax.set_ylabel("loss")
+    ax.set(xlabel="iteration", ylabel="loss")
     ax.grid(alpha=0.3)
     for j, key in enumerate(keys):
         ax = axes[j + 1]
@@ -125,8 +123,7 @@ def plot_landscape(xs, ys, loss, key_x, key_y, path, *, marks=None, failed=None,
         ax.plot(failed[0], failed[1], "kx", ms=6, label="failed run")
         if not items:
             ax.legend(fontsize=8)
-    ax.set_xlabel(key_x)
-    ax.set_ylabel(key_y)
+    ax.set(xlabel=key_x, ylabel=key_y)
     ax.set_title(title or f"loss landscape over ({key_x}, {key_y})", fontsize=10)
     return _save(fig, path, dpi=110)
 
@@ -148,8 +145,7 @@ def plot_loss_curve(xs, loss, key, path, *, best=None, title: str | None = None)
         ax.legend(fontsize=8)
     if best is not None:
         ax.axvline(best, color="r", lw=1, ls="--")
-    ax.set_xlabel(key)
-    ax.set_ylabel("loss")
+    ax.set(xlabel=key, ylabel="loss")
     ax.set_title(title or f"loss over {key}", fontsize=10)
     return _save(fig, path, dpi=110)
 

@@ -41,8 +41,7 @@ def plot_profile_likelihoods(profiles, path, *, truth=None, posterior=None):
             twin.plot(*posterior.marginal(prof.key), color="C2", lw=1.2)
             twin.set_ylabel("posterior density", color="C2")
             twin.set_ylim(bottom=0)
-        ax.set_xlabel(prof.key)
-        ax.set_ylabel(r"$\Delta\chi^2$")
+        ax.set(xlabel=prof.key, ylabel=r"$\Delta\chi^2$")
         finite = prof.delta_chi2[np.isfinite(prof.delta_chi2)]
         ax.set_ylim(0, max(3 * DELTA_CHI2_95, 1.1 * float(finite.max()) if finite.size else 0.0))
         ax.legend(fontsize=7, loc="upper center")
@@ -72,8 +71,7 @@ def _mark_pair(ax, keys, theta_hat, truth) -> None:
     ax.plot(theta_hat[keys[0]], theta_hat[keys[1]], "r+", ms=10, label="fit")
     if truth is not None:
         ax.plot(truth.get(keys[0], np.nan), truth.get(keys[1], np.nan), "kx", label="truth")
-    ax.set_xlabel(keys[0])
-    ax.set_ylabel(keys[1])
+    ax.set(xlabel=keys[0], ylabel=keys[1])
     ax.legend(fontsize=7)
 
 
@@ -90,8 +88,7 @@ def plot_heldout(heldout, path, *, title: str | None = None):
                         alpha=0.25, label="prediction 95 %")
         ax.plot(x, 100 * b["predicted"], color="C0", label="predicted")
         ax.plot(x, 100 * b["data"], "k.", ms=3, label="held-out data")
-        ax.set_xlabel("t (s)" if front else "x (cm)")
-        ax.set_ylabel("front x (cm)" if front else f"{name}: h (cm)")
+        ax.set(xlabel="t (s)" if front else "x (cm)", ylabel="front x (cm)" if front else f"{name}: h (cm)")
         ax.set_title(f"{name}: RMS {1000 * heldout.rms[name]:.2g} mm, {100 * heldout.inside[name]:.0f} % inside",
                      fontsize=9)
         ax.legend(fontsize=7)
@@ -112,8 +109,7 @@ def plot_nuts(posterior, path, *, grid=None, truth=None):
         ax = axes[0][j]
         for c in range(posterior.chains):
             ax.plot(posterior.draws[c, :, j], lw=0.7, label=f"chain {c + 1}")
-        ax.set_xlabel("draw (after warm-up)")
-        ax.set_ylabel(key)
+        ax.set(xlabel="draw (after warm-up)", ylabel=key)
         ax.set_title(f"R-hat {posterior.rhat[key]:.3f}, ESS bulk {posterior.ess_bulk[key]:.0f}, "
                      f"tail {posterior.ess_tail[key]:.0f}", fontsize=9)
         ax = axes[1][j]
@@ -128,8 +124,7 @@ def plot_nuts(posterior, path, *, grid=None, truth=None):
             ax.plot(*grid.marginal(key), color="C2", label="grid quadrature")
         if truth is not None and key in truth:
             ax.axvline(truth[key], color="k", lw=1, label="truth")
-        ax.set_xlabel(key)
-        ax.set_ylabel("posterior density")
+        ax.set(xlabel=key, ylabel="posterior density")
         ax.set_title(f"mean {posterior.mean[key]:.4g}, sd {posterior.sd[key]:.2g} "
                      f"(GN se {se:.2g})", fontsize=9)
         ax.legend(fontsize=7)
@@ -269,8 +264,7 @@ def plot_posterior_predictive(predictive, path, *, title: str | None = None, spl
         ax.plot(x, b["data"] if front else 100 * b["data"], "k.", ms=3, label="data")
         if split is not None and not front:
             ax.axvline(100 * split, color="0.4", lw=0.8, ls=":", label="fitted | held out")
-        ax.set_xlabel("t (s)" if front else "x (cm)")
-        ax.set_ylabel("front x (m)" if front else "h (cm)")
+        ax.set(xlabel="t (s)" if front else "x (cm)", ylabel="front x (m)" if front else "h (cm)")
         ax.legend(fontsize=7)
     return _save(fig, path, dpi=120, title=title)
 
