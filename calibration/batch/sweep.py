@@ -165,11 +165,8 @@ class SweepResult:
     @property
     def failures(self) -> list[dict[str, Any]]:
         """One dict per failed member: index, params, status and its plain-language reasons."""
-        out = []
-        for i in self.failed:
-            s = int(self.status[i])
-            out.append({"index": int(i), "params": self.params(int(i)), "status": s, "status_text": _failure_text(s)})
-        return out
+        return [{"index": int(i), "params": self.params(int(i)), "status": int(self.status[i]),
+                 "status_text": _failure_text(int(self.status[i]))} for i in self.failed]
 
     def best(self) -> dict[str, Any]:
         """The successful member with the lowest loss: its parameter values by key, and

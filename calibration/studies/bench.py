@@ -26,16 +26,13 @@ __all__ = ["Timing", "MEASURES", "BenchResult", "bench"]
 
 
 def _timed(fn, repeat: int):
-    t0 = time.perf_counter()
-    jax.block_until_ready(fn())
-    first = time.perf_counter() - t0
     runs = []
-    for _ in range(repeat):
+    for _ in range(repeat + 1):  # the first call compiles
         t0 = time.perf_counter()
         jax.block_until_ready(fn())
         runs.append(time.perf_counter() - t0)
-    run = float(np.median(runs))
-    return max(first - run, 0.0), run
+    run = float(np.median(runs[1:]))
+    return max(runs[0] - run, 0.0), run
 
 
 def _temp_bytes(jitted, *args) -> int | None:
