@@ -304,6 +304,8 @@ def test_composite_with_keys_per_experiment_fits_and_spreads_columns(sharing):
 
 # ---- fitting ---------------------------------------------------------------------------
 
+@pytest.mark.slow  # 25 s: LM's iterations run by default in test_interrupted_fit_resumes_without_losing_iterations,
+# its steps and stops on the library's problems in tests/test_lm.py, the documented fit in tests/test_calibration_cli.py
 def test_lm_recovers_the_truth(problem):
     _, truth, objective = problem
     result = fit(objective, {"beta": 0.18, "mu1": 0.45}, method="lm", steps=30)

@@ -136,6 +136,8 @@ def test_bad_grid_options_are_refused_before_anything_runs(ratio, draws, match, 
         fit(objective, {"beta": 0.1}, grid_ratio=ratio, grid_draws=draws)
 
 
+@pytest.mark.slow  # 23 s: two draws rebuilt coarser and compiled; the grid term of a fit runs by default in
+# tests/test_calibration_cli.py (the documented JSON) and the shift's algebra in the test above
 def test_grid_shift_runs_the_objective_rebuilt_coarser_over_two_draws():
     """On a real objective: the shift is −J⁺ of the mean residual of the objective rebuilt at
     1.5 dx over two particle draws (any J: the shift is linear in that mean)."""

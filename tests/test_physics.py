@@ -222,9 +222,14 @@ def test_block_sticks_when_friction_exceeds_slope():
     assert abs(vel[-1, 0]) < 1e-3 * G * math.sin(theta) * t[-1], vel[-1]
 
 
-@pytest.mark.parametrize("mu, dx", [(0.3, 0.025), (0.5, 0.025), pytest.param(0.5, 0.0125, marks=pytest.mark.xfail(
+AFLIP_KNOWN_FAILURE = pytest.mark.xfail(
     strict=True, reason="known limitation: with AFLIP the block slides 40 % too fast at mu_w = 0.5 and dx = 0.0125 "
-    "while it bounces off the floor by half a cell (see test_aflip_block_stays_on_floor_and_sticks)"))])
+    "while it bounces off the floor by half a cell (see test_aflip_block_stays_on_floor_and_sticks)")
+
+
+# The known failure at dx = 0.0125 (12 s) is recorded in the slow set.
+@pytest.mark.parametrize("mu, dx", [(0.3, 0.025), (0.5, 0.025),
+                                    pytest.param(0.5, 0.0125, marks=[pytest.mark.slow, AFLIP_KNOWN_FAILURE])])
 def test_block_slides_with_aflip_transfer(mu, dx):
     """The sliding acceleration of ``test_block_slides_down_slope_at_coulomb_acceleration`` with
     the default AFLIP transfer (α = 0.95) and the reference code's non-separable rule (friction
@@ -327,6 +332,7 @@ def test_lifted_gate_releases_block():
     assert np.mean(X[-1, :, 0] > x_gate) > 0.5
 
 
+@pytest.mark.slow  # 17 s: a physics check at scale; the lifted and the static gate run by default
 def test_partly_lifted_gate_lets_soft_material_pass_only_below_its_edge():
     """A soft block (E = 2e4, 0.2 m × 0.2 m; ρ g h / E ≈ 15 % strain) behind a gate rising slowly
     (U = 0.2 m/s, edge at 0.12 m after 0.6 s, below the block's top at ≈ 0.19 m). The plate acts
