@@ -361,6 +361,7 @@ def test_prior_sensitivity_moves_a_key_the_data_leave_to_the_prior():
     assert found["log_uniform_keys"] == ["I0"] and found["ess_importance"] < n
 
 
+@pytest.mark.slow  # 11 s: a whole emulated posterior; the priors' forms and refusals run by default
 def test_a_measured_key_enters_as_a_normal_prior(banana):
     """k0 measured elsewhere as 0 ± 0.2 (the data's posterior sd is 0.27): the emulated posterior
     sampled with that prior matches the quadrature of likelihood × prior, and records it."""

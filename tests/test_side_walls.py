@@ -78,6 +78,8 @@ def test_side_walls_vanish_without_friction_and_as_one_over_the_width():
     np.testing.assert_allclose(shift[1e4] / shift[1e2], 1e-2, rtol=0.05)
 
 
+@pytest.mark.slow  # 19 s: a physics check at scale (also `python -m jaxmpm validate side-walls`); the node
+# rule runs by default (test_node_friction_stops_a_node_but_never_reverses_it)
 def test_the_steady_flow_between_side_walls_is_the_analytic_one():
     """S1 at 28° between walls 5 cm apart (μ_w = 0.3): the flow stops 25 mm below the surface
     of the 38 mm layer and the surface runs at 0.85 m/s, against 2.6 m/s without walls. Started
