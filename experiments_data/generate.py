@@ -1,6 +1,7 @@
 """Regenerate the computed files of experiments_data/ (run from the repository root).
 
-    python experiments_data/generate.py tables    # scaling_laws/*.csv, bagnold/*.csv, examples/wpd_example.csv
+    python experiments_data/generate.py tables    # scaling_laws/*.csv, bagnold/*.csv, synthetic/flow_rule_twin.csv,
+                                                  # examples/wpd_example.csv
     python experiments_data/generate.py profiles  # synthetic/S4_beta0.25.csv, S4_beta0.csv, S3_10deg.csv (~20 s)
     python experiments_data/generate.py front     # synthetic/S3_10deg_front.csv (one ~15 s run)
 
@@ -102,6 +103,37 @@ def bagnold() -> None:
     }, ("slope_deg", "z_m", "v_m_per_s"), rows)
 
 
+def flow_rule_twin() -> None:
+    """A synthetic flow-rule table: the depth-averaged velocity of the steady flow (docs/model.md
+    section 6) of S1's material at S1's slopes and four thicknesses, with 2 % Gaussian noise
+    (seed 0); what ``python -m calibration flow-rule`` fits in the docs and tests."""
+    from jaxmpm.params import DEFAULTS
+    from jaxmpm.precision import x64
+    from jaxmpm.scenes import S1_PARAMS
+    from jaxmpm.scenes.incline import steady_velocity
+
+    p = {**DEFAULTS, **S1_PARAMS}
+    slope, h = (a.ravel() for a in np.meshgrid(SLOPES, (0.01, 0.02, 0.03, 0.04), indexing="ij"))
+    with x64():
+        u = np.asarray(steady_velocity(h, slope, p["mu1"], p["mu2"], p["I0"], p["rho"], p["rho_s"], p["d"],
+                                       "depth_averaged"))
+    u = u * (1.0 + 0.02 * np.random.default_rng(0).standard_normal(u.size))
+    _write(HERE / "synthetic" / "flow_rule_twin.csv", {
+        "experiment": "steady flows down a rough incline, S1's glass beads (synthetic twin, not a measurement)",
+        "synthetic": True,
+        "secondary": False,
+        "quantity": "depth_averaged",
+        "noise": 0.02,
+        "source": "docs/model.md section 6 (jaxmpm.scenes.incline.steady_velocity) at S1's material, "
+                  "times 1 + 0.02 N(0, 1) (numpy default_rng(0))",
+        "parameters": {k: p[k] for k in ("rho", "rho_s", "d", "mu1", "mu2", "I0")},
+        "parameter_sources": "docs/scenes.md S1 (rho, rho_s, d, mu1 = tan 20.9 deg, mu2 = tan 32.76 deg, I0, slopes)",
+        "columns": {"slope_deg": "bed angle, degrees", "h_m": "layer thickness, m",
+                    "u_m_s": "depth-averaged downslope velocity, m/s"},
+        "generated_by": "python experiments_data/generate.py tables",
+    }, ("slope_deg", "h_m", "u_m_s"), zip(slope, h, u))
+
+
 def wpd_example() -> None:
     from jaxmpm.tables import PROFILE_COLUMNS, read_columns
 
@@ -152,6 +184,7 @@ if __name__ == "__main__":
         if item == "tables":
             scaling_laws()
             bagnold()
+            flow_rule_twin()
             wpd_example()
         elif item == "profiles":
             profiles()

@@ -23,7 +23,7 @@ class DatasetInfo:
 
     name: str
     path: pathlib.Path
-    kind: str  # setup, scaling_law, analytic, synthetic, example, measured or experiment
+    kind: str  # setup, scaling_law, analytic, synthetic, flow_rule, example, measured, terrain or experiment
     description: str
     synthetic: bool
     secondary: bool

@@ -198,6 +198,16 @@ def _law(args) -> int:
     return _print_with_figures(result.to_json(), args, lambda: law_figures(args.plot, result, law))
 
 
+def _flow_rule(args) -> int:
+    from ..data.flow_rule import load_flow_rule
+    from ..plots.flow_rule import plot_flow_rule
+    from ..studies.flow_rule import fit_flow_rule
+
+    result = fit_flow_rule(load_flow_rule(args.table), parse_keys(args.fit), init=parse_pairs(args.init, "--init"),
+                           values=parse_pairs(args.set, "--set"), steps=args.steps)
+    return _print_with_figures(result.to_json(), args, lambda: [str(plot_flow_rule(result, args.plot))])
+
+
 def _bench(args) -> int:
     from ..studies.bench import bench
 
@@ -209,7 +219,7 @@ def _bench(args) -> int:
 
 
 COMMANDS = {"fit": _fit, "posterior": _posterior, "sweep": _sweep, "twin": _twin, "bench": _bench, "law": _law,
-            "coverage": _coverage, "design": _design}
+            "flow-rule": _flow_rule, "coverage": _coverage, "design": _design}
 
 
 def main(argv=None) -> int:

@@ -88,7 +88,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="python -m calibration", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = parser.add_subparsers(dest="command", required=True)
-    for add in (_add_fit, _add_posterior, _add_sweep, _add_bench, _add_law, _add_coverage, _add_design, _add_twin):
+    for add in (_add_fit, _add_posterior, _add_sweep, _add_bench, _add_law, _add_flow_rule, _add_coverage, _add_design,
+                _add_twin):
         add(sub)
     for command in sub.choices.values():
         add_threads_argument(command)
@@ -206,6 +207,19 @@ def _add_bench(sub) -> None:
                     help="a scene parameter (e.g. --set pc0=500 --set xi=50)")
     be.add_argument("--dtype", choices=DTYPES, default="float32")
     be.add_argument("--json", action="store_true", help="print one line of JSON")
+
+
+def _add_flow_rule(sub) -> None:
+    rule = sub.add_parser("flow-rule", help="fit mu1, mu2 and I0 to steady flows down an incline (a flow-rule table)")
+    rule.add_argument("table", metavar="TABLE.csv", help="columns slope_deg,h_m,u_m_s (docs/data_files.md)")
+    rule.add_argument("--fit", default="mu1,mu2,I0", metavar="KEYS", help="parameters to fit (default mu1,mu2,I0)")
+    rule.add_argument("--init", action="append", default=[], metavar="KEY=VALUE",
+                      help="start of a fitted key (default: the material's value)")
+    rule.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                      help="a parameter held fixed: the grain diameter d, rho, rho_s, or a key not fitted")
+    rule.add_argument("--steps", type=int, default=100)
+    rule.add_argument("--plot", default=None, metavar="DIR", help="draw flow_rule.png in DIR (made if missing)")
+    rule.add_argument("--json", action="store_true")
 
 
 def _add_law(sub) -> None:

@@ -1,12 +1,13 @@
-"""What was measured: deposit profiles, front histories and scaling laws read from files, validated,
-and the shipped data (``jaxmpm.datasets``' finder, re-exported: ``list_datasets``, ``dataset_path``,
+"""What was measured: deposit profiles, front histories, scaling laws and flow rules read from files,
+validated, and the shipped data (``jaxmpm.datasets``' finder, re-exported: ``list_datasets``, ``dataset_path``,
 ``data_dir``)."""
 
 from jaxmpm.datasets import DatasetInfo, data_dir, dataset_path, list_datasets
 
+from .flow_rule import FlowRuleTable, load_flow_rule
 from .loaders import FrontHistory, Profile, RunoutLaw, load_front_history, load_profile, load_scaling_law
 from .measurements import check_run_status, data_end_time, load_data, load_measurements, load_setup
 
-__all__ = ["DatasetInfo", "FrontHistory", "Profile", "RunoutLaw", "check_run_status", "data_dir", "data_end_time",
-           "dataset_path", "list_datasets", "load_data", "load_front_history", "load_measurements", "load_profile",
-           "load_scaling_law", "load_setup"]
+__all__ = ["DatasetInfo", "FlowRuleTable", "FrontHistory", "Profile", "RunoutLaw", "check_run_status", "data_dir",
+           "data_end_time", "dataset_path", "list_datasets", "load_data", "load_flow_rule", "load_front_history",
+           "load_measurements", "load_profile", "load_scaling_law", "load_setup"]

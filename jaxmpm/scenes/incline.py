@@ -23,7 +23,7 @@ from .base import Scene
 from .collapse import G, floor_lift
 from .info import SceneInfo
 
-__all__ = ["incline", "S1_DEPTH", "S1_PARAMS", "bagnold_velocity", "side_wall_velocity"]
+__all__ = ["incline", "S1_DEPTH", "S1_PARAMS", "bagnold_velocity", "side_wall_velocity", "steady_velocity"]
 
 #: S1's layer depth h (docs/scenes.md S1), m.
 S1_DEPTH = 0.038
@@ -54,6 +54,24 @@ def bagnold_velocity(z, depth, slope_deg, params):
 
     z = np.clip(np.asarray(z, float), 0.0, depth)
     return scale * (depth**1.5 - (depth - z) ** 1.5)
+
+
+def steady_velocity(depth, slope_deg, mu1, mu2, I0, rho, rho_s, d, quantity: str = "surface"):
+    """The steady flow's velocity at the free surface (``quantity="surface"``: ``bagnold_velocity``
+    at z = h) or averaged over the depth (``"depth_averaged"``: 3/5 of it), for a layer of depth
+    ``depth`` at ``slope_deg``: (2/3) I_θ sqrt(ρ g cos θ / ρ_s) h^{3/2} / d. Traceable, on arrays
+    that broadcast; NaN where tan θ does not lie strictly between μ1 and μ2 (no steady flow: the
+    layer stops, or accelerates)."""
+    import jax.numpy as jnp
+
+    if quantity not in ("surface", "depth_averaged"):
+        raise ValueError(f"quantity must be 'surface' or 'depth_averaged', got {quantity!r}")
+    theta = jnp.deg2rad(slope_deg)
+    tan = jnp.tan(theta)
+    steady = (mu1 < tan) & (tan < mu2)
+    i_theta = I0 * (tan - mu1) / jnp.where(steady, mu2 - tan, 1.0)
+    surface = (2.0 / 3.0) * i_theta * jnp.sqrt(rho * G * jnp.cos(theta) / rho_s) / d * depth**1.5
+    return jnp.where(steady, surface if quantity == "surface" else 0.6 * surface, jnp.nan)
 
 
 def side_wall_velocity(z, depth, slope_deg, params, side_walls, points: int = 4001):
