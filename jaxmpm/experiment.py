@@ -60,7 +60,7 @@ FORMAT = 1
 # section -> key -> kind: ``Units`` (a number; the material's from ``jaxmpm.params.PARAMS``), or "str", "int",
 # "bool", "strings", "numbers", "path".
 _SCHEMA: dict[str, dict[str, Any]] = {
-    "experiment": {"name": "str", "title": "str", "source": "str", "note": "str"},
+    "experiment": {"kind": "str", "name": "str", "title": "str", "source": "str", "note": "str"},
     "geometry": {"length": LENGTH, "height": LENGTH, "width": LENGTH, "slope": ANGLE},
     "boundaries": {"floor": "str", "floor_friction": PURE, "back_wall": "bool", "gate": "str", "gate_speed": SPEED,
                    "gate_lift_time": TIME, "side_walls": SIDE_WALLS},
@@ -290,6 +290,11 @@ def _section(raw: dict, name: str, where: Where, index=None) -> tuple[dict, dict
 
 
 def _parse(raw: dict, where: Where, check_files: bool) -> Experiment:
+    kind = raw.get("experiment", {}).get("kind", "collapse") if isinstance(raw.get("experiment"), dict) else "collapse"
+    if kind != "collapse":  # before the sections: another kind's are not this format's
+        what = (" (steady flows down an incline: fitted by `python -m calibration flow-rule FILE`, "
+                "docs/incline_fits.md)" if kind == "incline" else "")
+        raise where.error("experiment", "kind", f"this file describes a collapse; got kind = {kind!r}{what}")
     unknown = sorted(k for k in raw if k not in _SCHEMA and k not in _TOP)
     if unknown:
         raise where.error(None, unknown[0], f"unknown section or key; a file holds {', '.join(_TOP)} and the "
@@ -303,6 +308,7 @@ def _parse(raw: dict, where: Where, check_files: bool) -> Experiment:
             continue
         sections[name], meta = _section(raw, name, where)
         sources.update(meta)
+    sections["experiment"].pop("kind", None)  # "collapse" (checked first)
     for name in ("geometry", "numerics"):
         if name not in raw:
             raise where.error(None, None, f"[{name}] is missing")

@@ -11,6 +11,7 @@ from hypothesis import strategies as st
 
 import jaxmpm as jm
 from calibration.data.flow_rule import load_flow_rule
+from calibration.data.incline import load_incline
 from calibration.data.loaders import (
     FrontHistory,
     Profile,
@@ -268,8 +269,8 @@ def test_manifest_lists_every_file():
                ("README.md", "manifest.json", "generate.py", "__init__.py") and "__pycache__" not in p.parts}
     assert listed == shipped
     for info in datasets.values():
-        assert info.kind in ("setup", "experiment", "scaling_law", "analytic", "synthetic", "flow_rule", "example",
-                             "measured", "terrain")
+        assert info.kind in ("setup", "experiment", "incline", "scaling_law", "analytic", "synthetic", "flow_rule",
+                             "example", "measured", "terrain")
         # a third party's file: whose, what licence
         assert info.kind not in ("measured", "terrain") or (info.source and info.licence)
         assert info.description and "\n" not in info.description
@@ -302,6 +303,9 @@ def test_every_shipped_file_loads():
         elif info.kind == "flow_rule":
             table = load_flow_rule(info.path)
             assert table.n >= 4 and table.slopes.size >= 3 and table.meta["synthetic"] is info.synthetic
+        elif info.kind == "incline":
+            incline = load_incline(info.path)
+            assert incline.table_file.is_file() and set(incline.keys) <= {"mu1", "mu2", "I0"}
         elif info.kind == "measured":
             p = load_profile(info.path)
             assert not p.synthetic and not info.synthetic and p.n >= 5 and "licence" in p.meta

@@ -12,6 +12,7 @@ from helpers import call_main
 
 from calibration.cli.commands import main
 from calibration.data.flow_rule import FlowRuleTable, load_flow_rule
+from calibration.data.incline import load_incline
 from calibration.studies.flow_rule import fit_flow_rule, flow_rule_residuals
 from jaxmpm.datasets import dataset_path
 from jaxmpm.params import DEFAULTS
@@ -149,3 +150,54 @@ def _good(tmp_path):
     path = tmp_path / "good.csv"
     path.write_text(GOOD)
     return path
+
+
+# ---- the incline experiment file ---------------------------------------------------------------------------------
+TWIN_TOML = "synthetic/flow_rule_twin_experiment"
+
+
+def test_the_shipped_incline_file_is_fitted_as_its_table_with_its_material():
+    experiment = load_incline(dataset_path(TWIN_TOML))
+    assert experiment.keys == ("mu1", "mu2", "I0") and experiment.init == FAR
+    assert experiment.material["d"] == pytest.approx(0.7e-3) and experiment.sources["material.d"]["unit"] == "mm"
+    code, out, err = call_main(main, ["flow-rule", dataset_path(TWIN_TOML), "--json"])
+    assert code == 0, err
+    out = json.loads(out)
+    assert out["start"] == FAR and out["fixed"]["d"] == pytest.approx(0.7e-3) and out["converged"]
+    table = load_flow_rule(experiment.table_file)
+    direct = fit_flow_rule(table, init=FAR, values=experiment.material)
+    assert out["theta"] == pytest.approx(direct.theta, rel=1e-12)
+
+
+INCLINE = ('format = 1\n[experiment]\nkind = "incline"\n[material]\nd = "0.7 mm"\n[flow_rule]\nfile = "rule.csv"\n'
+           '[fit]\nkeys = ["mu2", "I0"]\n')
+
+
+@pytest.mark.parametrize("edit, message", [
+    (('kind = "incline"', 'kind = "chute"'), ':3: [experiment] kind: must be "incline" in an incline file'),
+    (('d = "0.7 mm"', 'nu = 0.7'), ":5: [material] nu: nu must be in (-1, 0.5)"),
+    (('file = "rule.csv"', 'file = "gone.csv"'), ":7: [flow_rule] file: no such file:"),
+    (('keys = ["mu2", "I0"]', 'keys = ["beta"]'), ":9: [fit] keys: a flow rule fits distinct keys among"),
+    (('keys = ["mu2", "I0"]\n', 'keys = ["mu2", "I0"]\ninit = { mu1 = 0.3 }\n'),
+     ":10: [fit] init: ['mu1'] are not among the fitted keys"),
+    (("[fit]", "[numerics]\ndx = 0.01\n[fit]"), ":8: [numerics]: unknown section or key"),
+])
+def test_a_bad_incline_file_is_refused_at_its_line(tmp_path, edit, message):
+    (tmp_path / "rule.csv").write_text(GOOD)
+    path = tmp_path / "chute.toml"
+    path.write_text(INCLINE.replace(*edit))
+    code, out, err = call_main(main, ["flow-rule", path, "--json"])
+    assert code == 2 and out == "" and f"{path}{message}" in err, err
+    path.write_text(INCLINE)
+    assert load_incline(path).keys == ("mu2", "I0")
+
+
+def test_the_engine_refuses_an_incline_file_and_says_what_fits_it(tmp_path):
+    from jaxmpm.experiment import Experiment, ExperimentError
+
+    path = tmp_path / "chute.toml"
+    path.write_text(INCLINE)
+    with pytest.raises(ExperimentError, match=r"chute.toml:3: \[experiment\] kind: this file describes a collapse; "
+                                              r"got kind = 'incline' \(steady flows down an incline: fitted by "
+                                              r"`python -m calibration flow-rule FILE`"):
+        Experiment.from_toml(path)

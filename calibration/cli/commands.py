@@ -200,11 +200,21 @@ def _law(args) -> int:
 
 def _flow_rule(args) -> int:
     from ..data.flow_rule import load_flow_rule
+    from ..data.incline import load_incline
     from ..plots.flow_rule import plot_flow_rule
-    from ..studies.flow_rule import fit_flow_rule
+    from ..studies.flow_rule import FLOW_RULE_KEYS, fit_flow_rule
 
-    result = fit_flow_rule(load_flow_rule(args.table), parse_keys(args.fit), init=parse_pairs(args.init, "--init"),
-                           values=parse_pairs(args.set, "--set"), steps=args.steps)
+    init, values = parse_pairs(args.init, "--init"), parse_pairs(args.set, "--set")
+    keys = parse_keys(args.fit) if args.fit else FLOW_RULE_KEYS
+    if str(args.table).endswith(".toml"):  # an incline experiment: its material, table and [fit]; flags win
+        experiment = load_incline(args.table)
+        keys = parse_keys(args.fit) if args.fit else experiment.keys
+        init = {**{k: v for k, v in experiment.init.items() if k in keys}, **init}
+        values = {**experiment.material, **values}
+        table = load_flow_rule(experiment.table_file)
+    else:
+        table = load_flow_rule(args.table)
+    result = fit_flow_rule(table, keys, init=init, values=values, steps=args.steps)
     return _print_with_figures(result.to_json(), args, lambda: [str(plot_flow_rule(result, args.plot))])
 
 

@@ -211,8 +211,11 @@ def _add_bench(sub) -> None:
 
 def _add_flow_rule(sub) -> None:
     rule = sub.add_parser("flow-rule", help="fit mu1, mu2 and I0 to steady flows down an incline (a flow-rule table)")
-    rule.add_argument("table", metavar="TABLE.csv", help="columns slope_deg,h_m,u_m_s (docs/data_files.md)")
-    rule.add_argument("--fit", default="mu1,mu2,I0", metavar="KEYS", help="parameters to fit (default mu1,mu2,I0)")
+    rule.add_argument("table", metavar="TABLE.csv|EXPERIMENT.toml",
+                      help="a flow-rule table (slope_deg,h_m,u_m_s; docs/data_files.md) or an incline experiment "
+                           "file ([experiment] kind = \"incline\": its material, table and [fit])")
+    rule.add_argument("--fit", default=None, metavar="KEYS",
+                      help="parameters to fit (default: the file's [fit] keys, else mu1,mu2,I0)")
     rule.add_argument("--init", action="append", default=[], metavar="KEY=VALUE",
                       help="start of a fitted key (default: the material's value)")
     rule.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",

@@ -1,0 +1,126 @@
+"""An incline experiment in one file: steady flows of one material down a rough incline, the
+flow-rule table measured on them, and what to fit (docs/incline_fits.md).
+
+    format = 1
+    [experiment]
+    kind = "incline"
+    name = "glass-beads-chute"
+    source = "my lab book, 2026-11-03"
+    [material]
+    d = { value = 0.5, unit = "mm", source = "sieved, 0.45-0.55 mm" }
+    rho = "1550 kg/m^3"
+    rho_s = "2500 kg/m^3"
+    [flow_rule]
+    file = "rule.csv"                    # slope_deg,h_m,u_m_s (docs/data_files.md), relative to this file
+    [fit]
+    keys = ["mu1", "mu2", "I0"]
+    init = { mu1 = 0.3, mu2 = 0.9, I0 = 0.8 }
+
+Values are written as in a collapse's file (``jaxmpm.experiment``: a number in SI units, a string
+with its unit, or ``{value, unit, source, note}``), and every error names the file, the line and
+the key. The material's keys and rules are the parameter table's (``jaxmpm.params.PARAMS``).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import pathlib
+import sys
+from collections.abc import Mapping
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # pragma: no cover - Python 3.10
+    import tomli as tomllib
+
+from jaxmpm._toml import ExperimentError, Units, Where, read_section
+from jaxmpm.params import DEFAULTS, PARAMS, param_help, validate_params
+
+__all__ = ["INCLINE_KEYS", "InclineExperiment", "is_incline_file", "load_incline"]
+
+#: The parameters a flow rule fixes (``calibration.studies.flow_rule.FLOW_RULE_KEYS``).
+INCLINE_KEYS = ("mu1", "mu2", "I0")
+
+_SCHEMA = {
+    "experiment": {"kind": "str", "name": "str", "title": "str", "source": "str", "note": "str"},
+    "material": {key: Units(spec.units, spec.unit) for key, spec in PARAMS.items()},
+    "flow_rule": {"file": "path"},
+    "fit": {"keys": "strings", "init": "numbers"},
+}
+
+
+@dataclasses.dataclass(frozen=True)
+class InclineExperiment:
+    """One incline experiment: its ``material`` (SI values, as given), the flow-rule table's
+    ``table_file``, the ``keys`` to fit and their ``init`` (empty: not stated), and where every
+    value came from (``sources``: "section.key" -> its ``source``/``note``/``unit`` entries)."""
+
+    name: str
+    material: Mapping[str, float]
+    table_file: pathlib.Path
+    keys: tuple[str, ...] = INCLINE_KEYS
+    init: Mapping[str, float] = dataclasses.field(default_factory=dict)
+    title: str = ""
+    sources: Mapping[str, Mapping[str, str]] = dataclasses.field(default_factory=dict, compare=False)
+    path: pathlib.Path | None = dataclasses.field(default=None, compare=False)
+
+
+def is_incline_file(path) -> bool:
+    """Whether ``path`` is a TOML file whose ``[experiment] kind`` is "incline"."""
+    path = pathlib.Path(path)
+    if path.suffix != ".toml" or not path.is_file():
+        return False
+    try:
+        raw = tomllib.loads(path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError):
+        return False
+    section = raw.get("experiment")
+    return isinstance(section, dict) and section.get("kind") == "incline"
+
+
+def load_incline(path, *, check_files: bool = True) -> InclineExperiment:
+    """Read and check an incline experiment file (its flow-rule table relative to its folder and,
+    with ``check_files``, present); every error is an ``ExperimentError`` naming the file, the
+    line and the key."""
+    path = pathlib.Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+        raw = tomllib.loads(text)
+    except OSError as err:
+        raise ExperimentError(f"{path}: cannot read the experiment file ({err.strerror or err})") from None
+    except tomllib.TOMLDecodeError as err:
+        raise ExperimentError(f"{path}: not valid TOML: {err}") from None
+    where = Where(path, text)
+    unknown = sorted(k for k in raw if k not in _SCHEMA and k != "format")
+    if unknown:
+        raise where.error(unknown[0], None, "unknown section or key; an incline file holds format and the sections "
+                                            + ", ".join(f"[{s}]" for s in _SCHEMA))
+    sections, sources = {}, {}
+    for name in _SCHEMA:
+        takes = f"{param_help()} (docs/model.md §4)" if name == "material" else None
+        sections[name], meta = read_section(raw, name, _SCHEMA[name], where, takes=takes)
+        sources.update(meta)
+    if sections["experiment"].get("kind") != "incline":
+        raise where.error("experiment", "kind", f"must be \"incline\" in an incline file, got "
+                                                f"{sections['experiment'].get('kind')!r}")
+    material = sections["material"]
+    try:
+        validate_params({**DEFAULTS, **material})
+    except ValueError as err:
+        key = next((k for k in material if str(err).startswith(k + " ") or f" {k} " in str(err)), None)
+        raise where.error("material", key, str(err)) from None
+    if "file" not in sections["flow_rule"]:
+        raise where.error("flow_rule", "file", "missing: the flow-rule table's CSV file (slope_deg,h_m,u_m_s)")
+    table_file = (path.parent / sections["flow_rule"]["file"])
+    if check_files and not table_file.is_file():
+        raise where.error("flow_rule", "file", f"no such file: {table_file}")
+    fit = sections["fit"]
+    keys = tuple(fit.get("keys", INCLINE_KEYS))
+    if not keys or set(keys) - set(INCLINE_KEYS) or len(set(keys)) != len(keys):
+        raise where.error("fit", "keys", f"a flow rule fits distinct keys among {list(INCLINE_KEYS)}, got {list(keys)}")
+    init = dict(fit.get("init", {}))
+    if set(init) - set(keys):
+        raise where.error("fit", "init", f"{sorted(set(init) - set(keys))} are not among the fitted keys {list(keys)}")
+    experiment = sections["experiment"]
+    return InclineExperiment(name=experiment.get("name", path.stem), material=material, table_file=table_file,
+                             keys=keys, init=init, title=experiment.get("title", ""), sources=sources, path=path)
