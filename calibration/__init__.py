@@ -23,6 +23,7 @@ from .optim.report import fit_report
 from .optim.search import Minimum, SearchResult, coarse_to_fine, design_starts, search
 from .problem.bounds import DEFAULT_BOUNDS, FIT_KEYS, Bounds
 from .problem.composite import CompositeObjective
+from .problem.flow_rule import FlowRuleObjective
 from .problem.objective import Objective
 from .problem.observe import Observations
 from .problem.options import OptionError
@@ -39,5 +40,5 @@ __all__ = [
     "load_measurements",
     "coarse_to_fine", "load_profile", "model_functions", "load_scaling_law", "read_history", "search",
     "grid_shift", "structural_noise", "FitOptions", "JudgeOptions", "OptionError", "fit_report",
-    "ObjectiveLike", "ResidualModel", "Problem", "make_residuals",
+    "ObjectiveLike", "ResidualModel", "Problem", "make_residuals", "FlowRuleObjective",
 ]

@@ -13,7 +13,8 @@ from helpers import call_main
 from calibration.cli.commands import main
 from calibration.data.flow_rule import FlowRuleTable, load_flow_rule
 from calibration.data.incline import load_incline
-from calibration.studies.flow_rule import fit_flow_rule, flow_rule_residuals
+from calibration.problem.flow_rule import flow_rule_residuals
+from calibration.studies.flow_rule import fit_flow_rule
 from jaxmpm.datasets import dataset_path
 from jaxmpm.params import DEFAULTS
 from jaxmpm.scenes import S1_PARAMS, bagnold_velocity
@@ -92,7 +93,8 @@ def test_the_shipped_noisy_twin_holds_its_truth_within_the_intervals():
         assert lo < truth[key] < hi, (key, lo, hi, truth[key])
     out = result.to_json()
     json.dumps(out, allow_nan=False)
-    assert out["data"]["slopes_deg"] == [22.0, 24.0, 26.0, 28.0] and out["uncertainty"]["noise"] == {"velocity": 0.02}
+    assert out["data"]["slopes_deg"] == [22.0, 24.0, 26.0, 28.0] and out["noise"] == {"velocity": 0.02}
+    assert out["verdict"]["verdict"] == "a fit of the data" and out["params"] == result.theta
 
 
 def test_the_command_line_prints_the_fit_and_draws_it(tmp_path):
@@ -101,7 +103,7 @@ def test_the_command_line_prints_the_fit_and_draws_it(tmp_path):
                                       "--plot", tmp_path, "--json"])
     assert code == 0, err
     out = json.loads(out)
-    assert out["converged"] and set(out["theta"]) == {"mu1", "mu2", "I0"} and out["fixed"]["d"] == 0.0007
+    assert out["converged"] and set(out["params"]) == {"mu1", "mu2", "I0"} and out["fixed"]["d"] == 0.0007
     assert out["figures"] == [str(tmp_path / "flow_rule.png")] and (tmp_path / "flow_rule.png").stat().st_size > 0
 
 
@@ -166,7 +168,7 @@ def test_the_shipped_incline_file_is_fitted_as_its_table_with_its_material():
     assert out["start"] == FAR and out["fixed"]["d"] == pytest.approx(0.7e-3) and out["converged"]
     table = load_flow_rule(experiment.table_file)
     direct = fit_flow_rule(table, init=FAR, values=experiment.material)
-    assert out["theta"] == pytest.approx(direct.theta, rel=1e-12)
+    assert out["params"] == pytest.approx(direct.theta, rel=1e-12)
 
 
 INCLINE = ('format = 1\n[experiment]\nkind = "incline"\n[material]\nd = "0.7 mm"\n[flow_rule]\nfile = "rule.csv"\n'

@@ -156,6 +156,8 @@ def judge_point(objective: ObjectiveLike, r, J, theta, *, converged: bool, messa
                               workers=workers)
         except ValueError as error:
             grid_note = str(error)
+        except NotImplementedError as error:  # a closed form's (as coarse_objectives says it)
+            grid_note = f"{type(objective).__name__} has no coarser grid ({error})"
         else:
             if grid is None:
                 grid_note = f"no run at {grid_ratio:g} × dx ran without status bits"

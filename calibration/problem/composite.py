@@ -159,16 +159,26 @@ class CompositeObjective:
 
     @property
     def dx(self) -> float:
-        """The first member's grid spacing, m (the grid term coarsens every member by one ratio)."""
-        return self.members[0].dx
+        """The first gridded member's grid spacing, m (the grid term coarsens every member by one
+        ratio); NaN where no member has a grid (closed forms)."""
+        return next((m.dx for m in self.members if np.isfinite(m.dx)), float("nan"))
 
     @property
     def seeded(self) -> bool:
         return all(m.seeded for m in self.members)
 
     def coarsened(self, ratio: float) -> CompositeObjective:
-        """Every member on a grid ``ratio`` times coarser (``Objective.coarsened``)."""
-        return CompositeObjective([m.coarsened(ratio) for m in self.members], self.shared, self.labels)
+        """Every member on a grid ``ratio`` times coarser (``Objective.coarsened``); a member with
+        no grid (a closed form, whose ``coarsened`` raises ``NotImplementedError``) as it is."""
+        members = []
+        for m in self.members:
+            try:
+                members.append(m.coarsened(ratio))
+            except NotImplementedError:
+                members.append(m)
+        if all(a is b for a, b in zip(members, self.members)):
+            raise NotImplementedError("no member has a grid to coarsen")
+        return CompositeObjective(members, self.shared, self.labels)
 
     def residuals_resampled(self, theta, seed: int):
         """The members' residuals at θ with every scene's particles drawn with ``seed``."""

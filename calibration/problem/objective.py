@@ -25,6 +25,7 @@ from jaxmpm import PARAM_KEYS, validate_params
 from .bounds import Bounds
 from .layout import _checked_weights, residual_layout
 from .observe import Observations, unwhiten_front
+from .protocol import as_theta
 from .residuals import Problem, column_pass, run_pass
 from .targets import FrontTarget, _targets
 
@@ -346,10 +347,7 @@ class Objective:
 
     def as_theta(self, theta, name: str = "theta"):
         """``theta`` as an array of the run's dtype, its shape checked against ``keys``."""
-        theta = jnp.asarray(theta, self.dtype)
-        if theta.shape != (len(self.keys),):
-            raise ValueError(f"{name} must have shape ({len(self.keys)},) for keys {self.keys}, got {theta.shape}")
-        return theta
+        return as_theta(theta, self.keys, self.dtype, name)
 
     def initial(self) -> dict[str, float]:
         """The scene's values of the fitted keys."""

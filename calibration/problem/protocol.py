@@ -16,7 +16,7 @@ import numpy as np
 
 from .bounds import Bounds
 
-__all__ = ["ObjectiveLike", "ResidualModel", "is_valid"]
+__all__ = ["ObjectiveLike", "ResidualModel", "as_theta", "is_valid"]
 
 
 @runtime_checkable
@@ -118,3 +118,13 @@ def is_valid(objective: ResidualModel, theta) -> bool:
     except ValueError:
         return False
     return True
+
+
+def as_theta(theta, keys: Sequence[str], dtype, name: str = "theta"):
+    """``theta`` as a JAX array of ``dtype``, its shape checked against ``keys`` (one value each)."""
+    import jax.numpy as jnp
+
+    theta = jnp.asarray(theta, dtype)
+    if theta.shape != (len(keys),):
+        raise ValueError(f"{name} must have shape ({len(keys)},) for keys {tuple(keys)}, got {theta.shape}")
+    return theta
