@@ -20,6 +20,7 @@ from jaxmpm.precision import use_dtype
 from jaxmpm.scenes import SCENE_NAMES, experiments_dtype, is_experiment_file
 
 from ..batch.workers import available_cores
+from ..data.incline import InclineExperiment, is_incline_file, load_incline
 from ..inference.options import JudgeOptions
 from ..optim.options import FitOptions, cli_steps
 from ..optim.report import PosteriorOptions
@@ -259,10 +260,12 @@ def fit_fields(args, setup: FitSetup, init, found) -> dict:
 
 
 # ---- the setup ---------------------------------------------------------------------------------
-def experiments_of(args) -> list[Experiment]:
+def experiments_of(args) -> list[Experiment | InclineExperiment]:
     """The experiments of ``fit``/``sweep``: each experiment file (positional) with the command
     line's scene options over its values, or the named --scene as an experiment; --data and
-    --front are the measurements of the one experiment (replacing a file's)."""
+    --front are the measurements of the one experiment (replacing a file's). An incline file
+    (``[experiment] kind = "incline"``) is read as it is (``load_incline``): the scene options
+    apply to the collapses only, and --data and --front to none."""
     from jaxmpm.cli import experiment_from_args
 
     files = list(getattr(args, "experiments", None) or [])
@@ -279,11 +282,16 @@ def experiments_of(args) -> list[Experiment]:
                          "measurements ([[profile]], [front])")
     if not files:
         return [_scene_experiment(args)]
-    experiments = [experiment_from_args(args, path=file) for file in files]
+    inclines = {file for file in files if is_incline_file(file)}
+    if inclines and (args.data or args.front):
+        raise ValueError(f"{'--data' if args.data else '--front'} applies to a collapse; {min(inclines)} is an "
+                         "incline file, whose measurements are its [flow_rule] table")
+    experiments = [load_incline(file) if file in inclines else experiment_from_args(args, path=file)
+                   for file in files]
     if args.data or args.front:
         return [_with_data(experiments[0], args)]
     for e in experiments:
-        if not e.profiles and e.front is None:
+        if not isinstance(e, InclineExperiment) and not e.profiles and e.front is None:
             raise ValueError(f"{e.path}: lists no measurement ([[profile]] or [front]); give --data or --front")
     return experiments
 
@@ -320,9 +328,9 @@ def _scene_experiment(args) -> Experiment:
 def setup_of(args, keys) -> FitSetup:
     """The ``FitSetup`` of ``fit`` and ``sweep``: the experiments (``experiments_of``) fitting
     ``keys``, read and weighed as the flags say, several sharing --shared (labelled by their files'
-    names); its float type is enabled here, before anything is built."""
+    names); its float type (the collapses', or --dtype) is enabled here, before anything is built."""
     experiments = experiments_of(args)
-    dtype = experiments_dtype(experiments, args.dtype)
+    dtype = experiments_dtype([e for e in experiments if not isinstance(e, InclineExperiment)], args.dtype)
     use_dtype(dtype)
     shared = getattr(args, "shared", None)
     labels = tuple(pathlib.Path(e.path).stem if e.path is not None else e.name for e in experiments)
@@ -337,6 +345,8 @@ def coarse_setup(setup: FitSetup, factor: float) -> FitSetup:
     if len(setup.experiments) > 1:
         raise ValueError("--coarse takes one experiment (its dx); fit several without it")
     (experiment,) = setup.experiments
+    if isinstance(experiment, InclineExperiment):
+        raise ValueError(f"--coarse: {experiment.path} is an incline (a closed form), which has no grid to coarsen")
     dx = experiment.builder_arguments()["dx"] * factor
     return dataclasses.replace(setup, experiments=(experiment.replace(dx=dx),))
 

@@ -36,7 +36,7 @@ else:  # pragma: no cover - Python 3.10
 from jaxmpm._toml import ExperimentError, Units, Where, read_section
 from jaxmpm.params import DEFAULTS, PARAMS, param_help, validate_params
 
-__all__ = ["INCLINE_KEYS", "InclineExperiment", "is_incline_file", "load_incline"]
+__all__ = ["INCLINE_KEYS", "InclineExperiment", "incline_from_text", "is_incline_file", "load_incline"]
 
 #: The parameters a flow rule fixes (``calibration.studies.flow_rule.FLOW_RULE_KEYS``).
 INCLINE_KEYS = ("mu1", "mu2", "I0")
@@ -53,7 +53,9 @@ _SCHEMA = {
 class InclineExperiment:
     """One incline experiment: its ``material`` (SI values, as given), the flow-rule table's
     ``table_file``, the ``keys`` to fit and their ``init`` (empty: not stated), and where every
-    value came from (``sources``: "section.key" -> its ``source``/``note``/``unit`` entries)."""
+    value came from (``sources``: "section.key" -> its ``source``/``note``/``unit`` entries);
+    ``text``: the file's text as read (None: not read from a file), which a fit's record keeps
+    (``calibration.problem.build.FitSetup.to_json``)."""
 
     name: str
     material: Mapping[str, float]
@@ -63,6 +65,7 @@ class InclineExperiment:
     title: str = ""
     sources: Mapping[str, Mapping[str, str]] = dataclasses.field(default_factory=dict, compare=False)
     path: pathlib.Path | None = dataclasses.field(default=None, compare=False)
+    text: str | None = dataclasses.field(default=None, compare=False, repr=False)
 
 
 def is_incline_file(path) -> bool:
@@ -85,9 +88,17 @@ def load_incline(path, *, check_files: bool = True) -> InclineExperiment:
     path = pathlib.Path(path)
     try:
         text = path.read_text(encoding="utf-8")
-        raw = tomllib.loads(text)
     except OSError as err:
         raise ExperimentError(f"{path}: cannot read the experiment file ({err.strerror or err})") from None
+    return incline_from_text(text, path, check_files=check_files)
+
+
+def incline_from_text(text: str, path=None, *, check_files: bool = True) -> InclineExperiment:
+    """The incline experiment of a file's ``text`` as if read from ``path`` (its table is found
+    relative to that folder; None: the working directory), checked as ``load_incline`` checks it."""
+    given, path = path, pathlib.Path(path) if path is not None else pathlib.Path("<text>")
+    try:
+        raw = tomllib.loads(text)
     except tomllib.TOMLDecodeError as err:
         raise ExperimentError(f"{path}: not valid TOML: {err}") from None
     where = Where(path, text)
@@ -123,4 +134,5 @@ def load_incline(path, *, check_files: bool = True) -> InclineExperiment:
         raise where.error("fit", "init", f"{sorted(set(init) - set(keys))} are not among the fitted keys {list(keys)}")
     experiment = sections["experiment"]
     return InclineExperiment(name=experiment.get("name", path.stem), material=material, table_file=table_file,
-                             keys=keys, init=init, title=experiment.get("title", ""), sources=sources, path=path)
+                             keys=keys, init=init, title=experiment.get("title", ""), sources=sources,
+                             path=None if given is None else path, text=text)

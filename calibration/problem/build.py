@@ -1,5 +1,6 @@
 """A fit's objective built from where its data come from: a scene with measured profiles and a
-front history, or experiment files (``jaxmpm.Experiment``) with theirs; several make one joint
+front history, or experiment files (``jaxmpm.Experiment``) with theirs, or incline experiment
+files (``calibration.data.incline``) with their flow-rule tables; several make one joint
 objective. ``FitSetup`` is that description as data, which ``to_json`` and ``from_json`` record
 in a fit's file so that a later command or another machine builds the same objective.
 """
@@ -13,13 +14,16 @@ from typing import Any
 
 from jaxmpm import Experiment
 
+from ..data.flow_rule import load_flow_rule
+from ..data.incline import INCLINE_KEYS, InclineExperiment, incline_from_text
 from ..data.measurements import check_run_status, load_measurements
 from .composite import CompositeObjective
+from .flow_rule import FlowRuleObjective
 from .objective import Objective
 from .options import DataOptions
 from .targets import FrontTarget
 
-__all__ = ["FitSetup", "member_objective", "objective_of"]
+__all__ = ["FitSetup", "incline_objective", "member_objective", "objective_of"]
 
 
 def member_objective(source, keys: Sequence[str], profiles=(), front=None,
@@ -40,16 +44,33 @@ def member_objective(source, keys: Sequence[str], profiles=(), front=None,
     return Objective(source, keys, profile=list(profiles) or None, front=front, weights=options.weights(), **common)
 
 
-def objective_of(sources: Sequence, keys: Sequence[str], data: Sequence[tuple], options: DataOptions | None = None,
-                 *, shared: Sequence[str] | None = None, labels: Sequence[str] | None = None):
-    """The objective fitting ``keys`` to ``data`` (one ``(profiles, front)`` pair per source)
-    of ``sources`` (scenes or experiments, ``member_objective``). One source: its ``Objective``;
+def incline_objective(incline: InclineExperiment, table, keys: Sequence[str], *, alone: bool = True,
+                      dtype=None) -> FlowRuleObjective:
+    """The ``FlowRuleObjective`` of an incline experiment's ``table`` (its material as the fixed
+    values) fitting those of ``keys`` a flow rule fixes (μ1, μ2, I0): all of ``keys`` when it is
+    fitted ``alone``, some of them in a joint fit; none is an error naming the file."""
+    own = tuple(k for k in keys if k in INCLINE_KEYS)
+    name = incline.path or incline.name
+    if not own or (alone and len(own) < len(tuple(keys))):
+        other = [k for k in keys if k not in INCLINE_KEYS]
+        raise ValueError(f"{name}: an incline's flow rule fits only {', '.join(INCLINE_KEYS)}; it cannot fit "
+                         f"{', '.join(other)}" + ("" if own else " (fit one of its keys, or leave the file out)"))
+    return FlowRuleObjective(table, own, values=incline.material, dtype=dtype)
+
+
+def objective_of(sources: Sequence, keys: Sequence[str], data: Sequence, options: DataOptions | None = None,
+                 *, shared: Sequence[str] | None = None, labels: Sequence[str] | None = None, dtype=None):
+    """The objective fitting ``keys`` to ``data`` (one ``(profiles, front)`` pair per source,
+    an incline's flow-rule table) of ``sources`` (scenes or experiments, ``member_objective``;
+    incline experiments, ``incline_objective``, in ``dtype``). One source: its objective;
     several: one ``CompositeObjective`` whose members fit the same keys, or with ``shared`` those
     shared and the others per source, named ``key@label`` (``labels``, one per source)."""
     if len(sources) != len(data):
         raise ValueError(f"data: one (profiles, front) pair per source, got {len(data)} for {len(sources)}")
-    members = [member_objective(source, keys, profiles, front, options)
-               for source, (profiles, front) in zip(sources, data)]
+    alone = len(sources) == 1
+    members = [incline_objective(source, datum, keys, alone=alone, dtype=dtype)
+               if isinstance(source, InclineExperiment) else member_objective(source, keys, *datum, options)
+               for source, datum in zip(sources, data)]
     if len(members) == 1:
         return members[0]
     if shared is None:
@@ -60,13 +81,14 @@ def objective_of(sources: Sequence, keys: Sequence[str], data: Sequence[tuple], 
 @dataclasses.dataclass(frozen=True)
 class FitSetup:
     """What a fit's objective is built from. ``experiments``: one or more ``jaxmpm.Experiment``
-    with their measurements; ``keys``: the fitted keys; ``options``: how the data are read and
-    weighed; ``shared`` and ``labels``: with several experiments, the keys they share and the
-    names of each one's own (``objective_of``); ``sort``, ``clip_noise``: how the measurement
-    files are read (``load_profile``); ``dtype``: the float type the runs compute in (the caller
-    enables it)."""
+    with their measurements or ``InclineExperiment`` with their flow-rule tables (which fit
+    the keys among μ1, μ2 and I0 and read no ``options``); ``keys``: the fitted keys;
+    ``options``: how the data are read and weighed; ``shared`` and ``labels``: with several
+    experiments, the keys they share and the names of each one's own (``objective_of``);
+    ``sort``, ``clip_noise``: how the measurement files are read (``load_profile``); ``dtype``:
+    the float type the runs compute in (the caller enables it)."""
 
-    experiments: tuple[Experiment, ...]
+    experiments: tuple[Experiment | InclineExperiment, ...]
     keys: tuple[str, ...]
     options: DataOptions = DataOptions()
     shared: tuple[str, ...] | None = None
@@ -77,9 +99,13 @@ class FitSetup:
 
     def measurements(self) -> list[tuple]:
         """Each experiment's (profiles, front history or None), read and checked: an experiment
-        must list one measurement at least, and no file may come from a run that failed."""
+        must list one measurement at least, and no file may come from a run that failed; an
+        incline's flow-rule table (``load_flow_rule``)."""
         data = []
         for e in self.experiments:
+            if isinstance(e, InclineExperiment):
+                data.append(load_flow_rule(e.table_file))
+                continue
             profiles, front = load_measurements(e, sort=self.sort, clip_noise=self.clip_noise)
             if not profiles and front is None:
                 raise ValueError(f"{e.path or e.name}: lists no measurement ([[profile]] or [front])")
@@ -90,13 +116,13 @@ class FitSetup:
     def objective(self):
         """The objective (``objective_of``) of the experiments against their measurements."""
         return objective_of(self.experiments, self.keys, self.measurements(), self.options, shared=self.shared,
-                            labels=self.labels)
+                            labels=self.labels, dtype=self.dtype)
 
     def to_json(self) -> dict[str, Any]:
-        """The setup as JSON: each experiment as its file's text (``Experiment.to_toml``) and where
-        that file was (its measurement files are found from there)."""
-        return {"experiments": [{"toml": e.to_toml(), "path": None if e.path is None else str(e.path)}
-                                for e in self.experiments],
+        """The setup as JSON: each experiment as its file's text (``Experiment.to_toml``; an
+        incline's as it was read, with ``"kind": "incline"``) and where that file was (its
+        measurement files are found from there)."""
+        return {"experiments": [_experiment_json(e) for e in self.experiments],
                 "keys": list(self.keys), "options": dataclasses.asdict(self.options),
                 "shared": None if self.shared is None else list(self.shared),
                 "labels": None if self.labels is None else list(self.labels),
@@ -105,9 +131,24 @@ class FitSetup:
     @classmethod
     def from_json(cls, record: dict[str, Any]) -> FitSetup:
         """The setup ``to_json`` recorded (its measurement files must still be where they were)."""
-        experiments = tuple(Experiment.from_text(e["toml"], None if e["path"] is None else pathlib.Path(e["path"]))
-                            for e in record["experiments"])
+        experiments = tuple(_experiment_of_json(e) for e in record["experiments"])
         tuple_or_none = lambda v: None if v is None else tuple(v)  # noqa: E731
         return cls(experiments, tuple(record["keys"]), DataOptions(**record["options"]),
                    tuple_or_none(record["shared"]), tuple_or_none(record["labels"]), bool(record["sort"]),
                    bool(record["clip_noise"]), str(record["dtype"]))
+
+
+def _experiment_json(e) -> dict[str, Any]:
+    path = None if e.path is None else str(e.path)
+    if isinstance(e, InclineExperiment):
+        if e.text is None:
+            raise ValueError(f"{e.name}: an incline experiment not read from a file has no text to record")
+        return {"kind": "incline", "toml": e.text, "path": path}
+    return {"toml": e.to_toml(), "path": path}
+
+
+def _experiment_of_json(record: dict[str, Any]):
+    path = None if record["path"] is None else pathlib.Path(record["path"])
+    if record.get("kind") == "incline":
+        return incline_from_text(record["toml"], path)
+    return Experiment.from_text(record["toml"], path)

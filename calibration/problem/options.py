@@ -102,10 +102,12 @@ class FitRequest:
 
 
 def fit_request(experiments=(), keys=None, init=None, noise=None) -> FitRequest:
-    """The ``FitRequest`` of a fit of ``experiments`` (``jaxmpm.Experiment``): ``keys``,
-    ``init`` and ``noise`` where given, else what every file's [fit] table agrees on (files that
-    disagree must be overruled)."""
-    specs = [e.fit for e in experiments if e.fit is not None]
+    """The ``FitRequest`` of a fit of ``experiments`` (``jaxmpm.Experiment``, or an incline's
+    ``InclineExperiment``): ``keys``, ``init`` and ``noise`` where given, else what every file's
+    [fit] table agrees on (files that disagree must be overruled). An incline's [fit] keys
+    (μ1, μ2, I0 where it states none) and init take part as a collapse's do; it states no noise."""
+    specs = [_fit_spec(e) for e in experiments]
+    specs = [s for s in specs if s is not None]
 
     def agreed(name, values):
         if any(v != values[0] for v in values):
@@ -123,6 +125,24 @@ def fit_request(experiments=(), keys=None, init=None, noise=None) -> FitRequest:
     init = dict(init or {})
     if not init and specs:  # the files' starts, of the keys fitted (keys given here may be fewer)
         init = {k: v for k, v in (agreed("init", [dict(s.init) for s in specs]) or {}).items() if k in keys}
-    if noise is None and specs:
-        noise = agreed("noise", [s.noise for s in specs])
+    stated = [s.noise for s in specs if not isinstance(s, _InclineSpec)]
+    if noise is None and stated:
+        noise = agreed("noise", stated)
     return FitRequest(keys, init, noise)
+
+
+@dataclasses.dataclass(frozen=True)
+class _InclineSpec:
+    """An incline file's [fit] table as a collapse's ``FitSpec`` is read here (no noise)."""
+
+    keys: tuple[str, ...]
+    init: Mapping[str, float]
+
+
+def _fit_spec(experiment):
+    """An experiment file's [fit] table (None: it has none)."""
+    from ..data.incline import InclineExperiment
+
+    if isinstance(experiment, InclineExperiment):
+        return _InclineSpec(experiment.keys, experiment.init)
+    return experiment.fit
