@@ -15,10 +15,12 @@ import numpy as np
 
 from jaxmpm import tables
 
-__all__ = ["FLOW_RULE_COLUMNS", "QUANTITIES", "FlowRuleTable", "load_flow_rule"]
+__all__ = ["FLOW_RULE_COLUMNS", "FLOW_RULE_KEYS", "QUANTITIES", "FlowRuleTable", "load_flow_rule"]
 
 #: The columns of a flow-rule table: slope (degrees), layer thickness (m), velocity (m/s).
 FLOW_RULE_COLUMNS = ("slope_deg", "h_m", "u_m_s")
+#: The parameters a flow rule fixes (the grain size and φ = ρ/ρ_s are measured, not fitted).
+FLOW_RULE_KEYS = ("mu1", "mu2", "I0")
 #: What the velocity column measures: the depth-averaged velocity (the flow rule) or the free surface's.
 QUANTITIES = ("depth_averaged", "surface")
 

@@ -36,10 +36,10 @@ else:  # pragma: no cover - Python 3.10
 from jaxmpm._toml import ExperimentError, Units, Where, read_section
 from jaxmpm.params import DEFAULTS, PARAMS, param_help, validate_params
 
-__all__ = ["INCLINE_KEYS", "InclineExperiment", "incline_from_text", "is_incline_file", "load_incline"]
+from .flow_rule import FLOW_RULE_KEYS
 
-#: The parameters a flow rule fixes (``calibration.studies.flow_rule.FLOW_RULE_KEYS``).
-INCLINE_KEYS = ("mu1", "mu2", "I0")
+__all__ = ["InclineExperiment", "incline_from_text", "is_incline_file", "load_incline"]
+
 
 _SCHEMA = {
     "experiment": {"kind": "str", "name": "str", "title": "str", "source": "str", "note": "str"},
@@ -60,7 +60,7 @@ class InclineExperiment:
     name: str
     material: Mapping[str, float]
     table_file: pathlib.Path
-    keys: tuple[str, ...] = INCLINE_KEYS
+    keys: tuple[str, ...] = FLOW_RULE_KEYS
     init: Mapping[str, float] = dataclasses.field(default_factory=dict)
     title: str = ""
     sources: Mapping[str, Mapping[str, str]] = dataclasses.field(default_factory=dict, compare=False)
@@ -126,9 +126,10 @@ def incline_from_text(text: str, path=None, *, check_files: bool = True) -> Incl
     if check_files and not table_file.is_file():
         raise where.error("flow_rule", "file", f"no such file: {table_file}")
     fit = sections["fit"]
-    keys = tuple(fit.get("keys", INCLINE_KEYS))
-    if not keys or set(keys) - set(INCLINE_KEYS) or len(set(keys)) != len(keys):
-        raise where.error("fit", "keys", f"a flow rule fits distinct keys among {list(INCLINE_KEYS)}, got {list(keys)}")
+    keys = tuple(fit.get("keys", FLOW_RULE_KEYS))
+    if not keys or set(keys) - set(FLOW_RULE_KEYS) or len(set(keys)) != len(keys):
+        raise where.error("fit", "keys",
+                          f"a flow rule fits distinct keys among {list(FLOW_RULE_KEYS)}, got {list(keys)}")
     init = dict(fit.get("init", {}))
     if set(init) - set(keys):
         raise where.error("fit", "init", f"{sorted(set(init) - set(keys))} are not among the fitted keys {list(keys)}")

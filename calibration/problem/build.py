@@ -14,8 +14,8 @@ from typing import Any
 
 from jaxmpm import Experiment
 
-from ..data.flow_rule import load_flow_rule
-from ..data.incline import INCLINE_KEYS, InclineExperiment, incline_from_text
+from ..data.flow_rule import FLOW_RULE_KEYS, load_flow_rule
+from ..data.incline import InclineExperiment, incline_from_text
 from ..data.measurements import check_run_status, load_measurements
 from .composite import CompositeObjective
 from .flow_rule import FlowRuleObjective
@@ -49,11 +49,11 @@ def incline_objective(incline: InclineExperiment, table, keys: Sequence[str], *,
     """The ``FlowRuleObjective`` of an incline experiment's ``table`` (its material as the fixed
     values) fitting those of ``keys`` a flow rule fixes (μ1, μ2, I0): all of ``keys`` when it is
     fitted ``alone``, some of them in a joint fit; none is an error naming the file."""
-    own = tuple(k for k in keys if k in INCLINE_KEYS)
+    own = tuple(k for k in keys if k in FLOW_RULE_KEYS)
     name = incline.path or incline.name
     if not own or (alone and len(own) < len(tuple(keys))):
-        other = [k for k in keys if k not in INCLINE_KEYS]
-        raise ValueError(f"{name}: an incline's flow rule fits only {', '.join(INCLINE_KEYS)}; it cannot fit "
+        other = [k for k in keys if k not in FLOW_RULE_KEYS]
+        raise ValueError(f"{name}: an incline's flow rule fits only {', '.join(FLOW_RULE_KEYS)}; it cannot fit "
                          f"{', '.join(other)}" + ("" if own else " (fit one of its keys, or leave the file out)"))
     return FlowRuleObjective(table, own, values=incline.material, dtype=dtype)
 

@@ -23,13 +23,13 @@ import numpy as np
 from jaxmpm.params import DEFAULTS, validate_params
 from jaxmpm.scenes.incline import steady_velocity
 
+from ..data.flow_rule import FLOW_RULE_KEYS
 from .bounds import Bounds, physical
+from .objective import _digest
 from .protocol import as_theta
 
 __all__ = ["FLOW_RULE_KEYS", "FlowRuleObjective", "flow_rule_residuals", "flow_rule_material"]
 
-#: The parameters a flow rule fixes (the grain size and φ = ρ/ρ_s are measured, not fitted).
-FLOW_RULE_KEYS = ("mu1", "mu2", "I0")
 
 
 def flow_rule_material(values: Mapping[str, float] | None) -> dict[str, float]:
@@ -205,11 +205,8 @@ class FlowRuleObjective:
 
     def fingerprint(self) -> dict[str, Any]:
         t = self.table
-        data = np.concatenate([t.slope_deg, t.h, t.u]).tobytes()
-        import hashlib
-
         return {"model": "steady incline flow (closed form)", "quantity": t.quantity,
-                "data": hashlib.sha256(data).hexdigest()[:16], "keys": list(self.keys),
+                "data": _digest(t.slope_deg, t.h, t.u), "keys": list(self.keys),
                 "fixed": {k: v for k, v in self.material.items() if k not in self.keys},
                 "bounds": {k: [lo, hi] for k, lo, hi in zip(self.keys, self.bounds.lower, self.bounds.upper)},
                 "dtype": np.dtype(self.dtype).name}
