@@ -32,7 +32,8 @@ __all__ = ["GATES", "SIDE_WALLS", "Invalid", "check_experiment", "side_walls_of"
 #: The gates of ``[boundaries] gate`` (``Experiment.gate_speeds``).
 GATES = ("none", "front", "back", "both")
 #: ``[boundaries] side_walls``, the walls of a 2D channel (``jaxmpm.SideWalls``): its entries.
-SIDE_WALLS = Table({"width": LENGTH, "friction": PURE, "lateral_pressure_ratio": PURE})
+#: Their friction may be the parameter "mu_w" (fitted, or given as [material] mu_w).
+SIDE_WALLS = Table({"width": LENGTH, "friction": PURE._replace(parameter="mu_w"), "lateral_pressure_ratio": PURE})
 
 
 class Invalid(ExperimentError):
@@ -112,6 +113,9 @@ def _check_boundaries(e: Experiment) -> None:
     if e.side_walls is not None:
         _need(isinstance(e.side_walls, SideWalls), "boundaries", "side_walls",
               f"must be a jaxmpm.SideWalls, got {type(e.side_walls).__name__}")
+        _need(e.side_walls.friction != "mu_w" or e.floor != "no-slip" or "mu_w" in e.material, "material", "mu_w",
+              "missing: the side walls' friction is the parameter mu_w (friction = \"mu_w\"); give its value here "
+              "(a fit's start; on the command line --set mu_w=...)")
         if e.dim == 3 and e.width is not None:
             _need(math.isclose(e.side_walls.width, e.width, rel_tol=1e-9), "boundaries", "side_walls",
                   f"in 3D the channel's own walls: its width must be [geometry] width ({e.width:g} m), got "
@@ -129,7 +133,8 @@ def side_walls_of(values: Mapping[str, float]) -> SideWalls:
     width, friction = values["width"], values["friction"]
     ratio = values.get("lateral_pressure_ratio", 1.0)
     _need(width > 0, "boundaries", "side_walls", f"width must be > 0 m, got {width:g} m")
-    _need(friction >= 0, "boundaries", "side_walls", f"friction must be >= 0, got {friction:g}")
+    _need(friction == "mu_w" or friction >= 0, "boundaries", "side_walls", f"friction must be >= 0 or \"mu_w\", "
+                                                                          f"got {friction!r}")
     _need(ratio >= 0, "boundaries", "side_walls", f"lateral_pressure_ratio must be >= 0, got {ratio:g}")
     return SideWalls(width, friction, ratio)
 
@@ -209,8 +214,11 @@ def _check_fit(e: Experiment) -> None:
     unknown = sorted(set(e.fit.keys) - set(PARAM_KEYS))
     _need(not unknown, "fit", "keys", f"unknown parameter(s) {unknown}; valid keys are {list(PARAM_KEYS)}")
     _need(len(set(e.fit.keys)) == len(e.fit.keys), "fit", "keys", f"a key is listed twice: {list(e.fit.keys)}")
-    _need(e.fit.keys != ("mu_w",) or e.floor != "no-slip", "fit", "keys", "mu_w is the floor's friction: a no-slip "
-                                                                          "floor has none to fit")
+    walls_read = e.side_walls is not None and e.side_walls.friction == "mu_w"
+    _need("mu_w" not in e.fit.keys or e.floor != "no-slip" or walls_read, "fit", "keys",
+          "mu_w is read by no boundary: the floor is no-slip and the side walls' friction is not \"mu_w\" (fit "
+          "the floor's friction with floor = \"slip-stick\" and floor_friction, the side walls' with "
+          "side_walls = { ..., friction = \"mu_w\" } and [material] mu_w as the start)")
     stray = sorted(set(e.fit.init) - set(e.fit.keys))
     _need(not stray, "fit", "init", f"{stray} are not fitted (keys = {list(e.fit.keys)})")
     if e.fit.noise is not None:

@@ -28,10 +28,12 @@ class ExperimentError(ValueError):
 
 class Units(NamedTuple):
     """The unit names a number may be given in (name -> factor to SI) and the name of its SI
-    unit, which a bare number is in."""
+    unit, which a bare number is in; ``parameter``: a parameter's name the value may be instead
+    (kept as that string: the value is the parameter's, e.g. a wall friction of "mu_w")."""
 
     table: Mapping[str, float]
     si: str
+    parameter: str | None = None
 
 
 LENGTH = Units(LENGTH_UNITS, "m")
@@ -130,10 +132,15 @@ def number(value, units: Units, where: Where, section, key, index=None) -> tuple
     """(the value in SI units, its provenance entries) of a number, a "value unit" string or a
     ``{value, unit, source, note}`` table."""
     value, meta, unit = provenance(value, where, section, key, index)
+    if units.parameter is not None and value == units.parameter:
+        if unit is not None:
+            raise where.error(section, key, f"the parameter {value!r} takes no unit, got unit = {unit!r}", index)
+        return value, meta
     if isinstance(value, str):
         split = _split_unit(value)
         if split is None:
-            raise where.error(section, key, f"expected a number or 'number unit', got {value!r}", index)
+            named = f" or the parameter {units.parameter!r}" if units.parameter else ""
+            raise where.error(section, key, f"expected a number or 'number unit'{named}, got {value!r}", index)
         if unit is not None and split[1]:
             raise where.error(section, key, f"the unit is given twice ({split[1]!r} and unit = {unit!r})", index)
         value, unit = split[0], (split[1] or unit)

@@ -49,7 +49,8 @@ import numpy as np
 
 from .linalg import safe_div
 
-__all__ = ["Wall", "Terrain", "SideWalls", "KINDS", "KIND_ALIASES", "apply_walls", "side_wall_friction"]
+__all__ = ["Wall", "Terrain", "SideWalls", "KINDS", "KIND_ALIASES", "apply_walls", "side_wall_friction",
+           "friction_value"]
 
 KINDS = ("no-slip", "non-separable", "separable")
 #: The reference code's names for the same types.
@@ -107,15 +108,21 @@ class SideWalls:
     against its velocity with magnitude 2 μ_w K p / W per unit volume: p ≥ 0 is the material's
     pressure at the node, K = ``lateral_pressure_ratio`` the ratio of the walls' normal stress to
     p, W the width. It is applied implicitly (``side_wall_friction``): it can stop a node, never
-    reverse it. The plug-flow and K p assumptions, and where they fail: docs/model.md §5."""
+    reverse it. The plug-flow and K p assumptions, and where they fail: docs/model.md §5.
+    ``friction`` is a number, or ``"mu_w"``: the parameter ``Params.mu_w``, so that it can be
+    differentiated and fitted (shared with every other boundary declared so)."""
 
     width: float
-    friction: float
+    friction: float | str
     lateral_pressure_ratio: float = 1.0
 
     def __post_init__(self):
+        if isinstance(self.friction, str):
+            _check_friction("SideWalls", self.friction)
         for name, low, value in (("width", 0.0, self.width), ("friction", None, self.friction),
                                  ("lateral_pressure_ratio", None, self.lateral_pressure_ratio)):
+            if name == "friction" and isinstance(value, str):
+                continue
             try:
                 number = float(value)
             except (TypeError, ValueError):
@@ -126,11 +133,22 @@ class SideWalls:
             object.__setattr__(self, name, number)
 
 
-def side_wall_friction(side: SideWalls, v, pressure, mass, dt):
+def friction_value(friction, params, dtype):
+    """A boundary's μ_w: its number, or ``params.mu_w`` where it is declared ``"mu_w"``."""
+    if isinstance(friction, str):
+        if params is None:
+            raise ValueError("a friction of 'mu_w' needs the parameters (params=None)")
+        return jnp.asarray(params.mu_w, dtype)
+    return friction
+
+
+def side_wall_friction(side: SideWalls, v, pressure, mass, dt, params=None):
     """Node velocities ``v`` (dim, n) after the side walls' friction over ``dt``: |v| <- max(|v| - c,
     0), the direction kept, with c = 2 μ_w K dt P / (W m), P = Σ_p w_ip V_p max(p_p, 0) the node's
-    pressure times its volume and m its mass (c = 0 where m = 0). Finite derivatives at v = 0."""
-    c = (2.0 * side.friction * side.lateral_pressure_ratio * dt / side.width) * safe_div(pressure, mass)
+    pressure times its volume and m its mass (c = 0 where m = 0); μ_w from ``params`` where the
+    walls' friction is ``"mu_w"``. Finite derivatives at v = 0."""
+    friction = friction_value(side.friction, params, v.dtype)
+    c = (2.0 * friction * side.lateral_pressure_ratio * dt / side.width) * safe_div(pressure, mass)
     speed2 = jnp.sum(v * v, axis=0)
     moving = speed2 > 0
     speed = jnp.sqrt(jnp.where(moving, speed2, 1.0))
@@ -298,11 +316,9 @@ def apply_walls(walls, v, node_x, t, dt, params=None, mass=None):
     grid velocities, and this is the momentum they remove)."""
     impulses = []
     for wall in walls:
-        friction = wall.friction
-        if isinstance(friction, str):
-            if params is None:
-                raise ValueError(f"{type(wall).__name__} friction 'mu_w' needs the parameters (params=None)")
-            friction = jnp.asarray(params.mu_w, v.dtype)
+        if isinstance(wall.friction, str) and params is None:
+            raise ValueError(f"{type(wall).__name__} friction 'mu_w' needs the parameters (params=None)")
+        friction = friction_value(wall.friction, params, v.dtype)
         after = _apply_wall(wall, v, node_x, t, dt, friction)
         if mass is not None:
             impulses.append(jnp.sum(mass * (v - after), axis=1))

@@ -58,7 +58,8 @@ def add_scene_arguments(parser, scene_choices: bool = True) -> None:
                         "else 2)")
     parser.add_argument("--width", type=float, default=None, help="channel width for --dim 3, m")
     parser.add_argument("--side-walls", type=side_walls_argument, default=None, metavar="WIDTH,FRICTION[,K]",
-                        help="the side walls of a 2D channel: its width (m), the walls' Coulomb friction and the "
+                        help="the side walls of a 2D channel: its width (m), the walls' Coulomb friction (a number, "
+                             "or mu_w: the parameter, set with --set mu_w=... and fitted with --fit) and the "
                              "lateral pressure ratio K (default 1), e.g. 0.02,0.25 (default: the experiment's, "
                              "else none)")
     parser.add_argument("--slope", type=float, default=None, help="bed angle for slope-collapse, degrees")
@@ -75,19 +76,20 @@ def side_walls_argument(text: str):
     from .boundary import SideWalls
 
     parts = [p.strip() for p in str(text).split(",")]
+    parameter = len(parts) > 1 and parts[1] == "mu_w"  # the friction is the parameter mu_w (--set/--init/--fit)
     try:
-        numbers = [float(p) for p in parts]
+        numbers = [0.0 if parameter and i == 1 else float(p) for i, p in enumerate(parts)]
     except ValueError:
         numbers = []
     if len(numbers) not in (2, 3) or not all(math.isfinite(n) for n in numbers):
-        raise argparse.ArgumentTypeError(f"expected WIDTH,FRICTION[,K]: finite numbers, the width in m (e.g. "
-                                         f"0.02,0.25), got {text!r}")
+        raise argparse.ArgumentTypeError(f"expected WIDTH,FRICTION[,K]: finite numbers, the width in m, the friction "
+                                         f"a number or mu_w (e.g. 0.02,0.25 or 0.02,mu_w), got {text!r}")
     width, friction, ratio = numbers[0], numbers[1], (numbers[2] if len(numbers) == 3 else 1.0)
     for name, value, ok, rule in (("width", width, width > 0, "> 0 m"), ("friction", friction, friction >= 0, ">= 0"),
                                   ("K", ratio, ratio >= 0, ">= 0")):
         if not ok:
             raise argparse.ArgumentTypeError(f"the {name} must be {rule}, got {value:g}")
-    return SideWalls(*numbers)
+    return SideWalls(width, "mu_w" if parameter else friction, ratio)
 
 
 #: Scene options that take a number (``add_scene_arguments``): argparse's float() accepts

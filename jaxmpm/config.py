@@ -233,6 +233,13 @@ class Config:
             raise ValueError(f"the grid has {self.grid.n_nodes} nodes; node numbers must fit in int32 (< 2**31 - 1)")
 
     @property
+    def reads_mu_w(self) -> bool:
+        """Whether a boundary takes its friction from ``Params.mu_w`` (declared ``friction="mu_w"``):
+        only then does μ_w change a run."""
+        boundaries = tuple(self.walls) + ((self.side_walls,) if self.side_walls is not None else ())
+        return any(getattr(b, "friction", None) == "mu_w" for b in boundaries)
+
+    @property
     def dim(self) -> int:
         return self.grid.dim
 

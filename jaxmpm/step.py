@@ -143,7 +143,7 @@ def make_step(config: Config):
         fields = p2g(stencil, mass, v, planes(state.C), state.vol0, tau, n_grid, pressure)
         v_old, v_new = grid_velocities(fields, dt, jnp.asarray(config.gravity, dtype))
         if config.side_walls is not None:
-            v_new = side_wall_friction(config.side_walls, v_new, fields.pressure, fields.mass, dt)
+            v_new = side_wall_friction(config.side_walls, v_new, fields.pressure, fields.mass, dt, params)
         v_new, impulse = apply_walls(config.walls, v_new, node_x, state.t, dt, params, mass=fields.mass)
         v_flip = v
         if config.xpic and config.transfer == "aflip" and alpha != 0.0:

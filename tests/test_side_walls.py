@@ -55,9 +55,9 @@ def test_node_friction_stops_a_node_but_never_reverses_it():
     check_grads(lambda u, p, m: side_wall_friction(side, u, p, m, dt), sliding, order=1, modes=("fwd", "rev"))
 
 
-def _strip(slope, side_walls, t_end=0.5, division=16, frames=4):
+def _strip(slope, side_walls, t_end=0.5, division=16, frames=4, **values):
     return scenes.incline(slope, dx=S1_DEPTH / division, t_end=t_end, frames=frames, critical_start=True,
-                          side_walls=side_walls)
+                          side_walls=side_walls, **values)
 
 
 @pytest.mark.slow  # 20 s: two critical-state compiles; side_walls=None is the engine's own code path
@@ -103,9 +103,9 @@ def test_the_steady_flow_between_side_walls_is_the_analytic_one():
 
 @pytest.mark.slow  # 27 s: a reverse-mode compile of the critical-state rollout; the node rule's own
 def test_the_side_walls_gradient_matches_finite_differences():  # derivatives are checked by default
-    """d(mean velocity along the slope after 40 steps)/d(μ1, ρ) with side walls, float64,
-    against central differences (relative step 1e-6), to 1e-5."""
-    scene = _strip(28.0, SideWalls(0.05, 0.3), t_end=1.0, division=8, frames=0)
+    """d(mean velocity along the slope after 40 steps)/d(μ1, ρ, μ_w) with side walls whose friction
+    is the parameter, float64, against central differences (relative step 1e-6), to 1e-5."""
+    scene = _strip(28.0, SideWalls(0.05, "mu_w"), t_end=1.0, division=8, frames=0, mu_w=0.3)
     scene = dataclasses.replace(scene, config=dataclasses.replace(scene.config, max_steps=40))
     rollout = jm.make_rollout(scene.config, observer=None)
 
@@ -115,9 +115,63 @@ def test_the_side_walls_gradient_matches_finite_differences():  # derivatives ar
 
     grads = jax.jit(jax.grad(mean_speed))(scene.params)
     f = jax.jit(mean_speed)
-    for key in ("mu1", "rho"):
+    for key in ("mu1", "rho", "mu_w"):
         value = getattr(scene.params, key)
         h = 1e-6 * value
         fd = (f(scene.params.replace(**{key: value + h})) - f(scene.params.replace(**{key: value - h}))) / (2 * h)
         assert np.isfinite(getattr(grads, key))
         np.testing.assert_allclose(getattr(grads, key), fd, rtol=1e-5, err_msg=key)
+
+
+# ---- the walls' friction as the parameter mu_w --------------------------------------------------------------
+def test_walls_declared_mu_w_take_the_parameter_and_equal_the_number():
+    """``SideWalls(W, "mu_w")`` reads ``Params.mu_w``: a run equals the one with the number, and
+    the node rule takes μ_w from the parameters (refused without them)."""
+    side, fixed = SideWalls(0.05, "mu_w"), SideWalls(0.05, 0.3)
+    v = jnp.array([[3.0, -2.0], [4.0, 0.5]])
+    pressure, mass = jnp.array([50.0, 10.0]), jnp.array([2.0, 1.0])
+    params = jm.Params.create(mu_w=0.3)
+    np.testing.assert_array_equal(side_wall_friction(side, v, pressure, mass, 1e-2, params),
+                                  side_wall_friction(fixed, v, pressure, mass, 1e-2))
+    with pytest.raises(ValueError, match="needs the parameters"):
+        side_wall_friction(side, v, pressure, mass, 1e-2)
+    with pytest.raises(ValueError, match="SideWalls.friction must be a number >= 0 or the parameter name 'mu_w'"):
+        SideWalls(0.05, "mu")
+    config, state = _sliding_block(fixed)
+    declared = dataclasses.replace(config, side_walls=side)
+    assert not config.reads_mu_w and declared.reads_mu_w
+    plain, walled = jax.jit(jm.make_step(config)), jax.jit(jm.make_step(declared))
+    a = b = state
+    for _ in range(5):
+        a, b = plain(a, params.replace(mu_w=0.0)), walled(b, params)
+    np.testing.assert_allclose(b.v, a.v, rtol=1e-12, atol=1e-15)
+    assert float(jnp.abs(a.v - state.v).max()) > 0
+
+
+def _sliding_block(side_walls, max_steps=10):
+    """An elastic block, compressed (F = 0.98 I: a pressure for the walls to act on), sliding at
+    1 m/s along a no-slip floor's row, between ``side_walls``."""
+    config = jm.Config(grid=jm.Grid((16, 12), 0.05), t_end=1.0, max_steps=max_steps,
+                       walls=(jm.Wall((0.0, 0.1), (0.0, 1.0)),), side_walls=side_walls)
+    x, vol = jm.seed_box((0.2, 0.1), (0.5, 0.3), 0.05, 2)
+    state = jm.init_state(config, x, vol, v=np.tile([1.0, 0.0], (len(x), 1)))
+    return config, state.replace(F=0.98 * state.F)
+
+
+def test_the_walls_mu_w_derivative_matches_finite_differences():
+    """d(mean velocity after 3 steps)/d μ_w of walls declared "mu_w", through the whole step, in
+    forward mode (the calibration's Jacobians), float64, against central differences (relative
+    step 1e-6), to 1e-6; and not zero (the walls act), on the elastic sliding block (reverse mode
+    through the critical state: the slow test above)."""
+    config, state = _sliding_block(SideWalls(0.05, "mu_w"), max_steps=3)
+    rollout, params = jm.make_rollout(config, observer=None, checkpoint=False), jm.Params.create()
+
+    def mean_speed(mu_w):
+        final, _ = rollout(state, params.replace(mu_w=mu_w))
+        return jnp.mean(final.v[:, 0])
+
+    _, grad = jax.jit(lambda m: jax.jvp(mean_speed, (m,), (jnp.ones_like(m),)))(jnp.asarray(0.3))
+    f, h = jax.jit(mean_speed), 1e-6 * 0.3
+    fd = (f(0.3 + h) - f(0.3 - h)) / (2 * h)
+    assert np.isfinite(grad) and grad < 0  # more friction, slower
+    np.testing.assert_allclose(grad, fd, rtol=1e-6)

@@ -70,7 +70,7 @@ def test_side_walls_keep_their_source():
 @pytest.mark.parametrize("entry, message", [
     ('{ width = "-20 mm", friction = 0.25 }', "width must be > 0 m, got -0.02 m"),
     ('{ width = 0, friction = 0.25 }', "width must be > 0 m, got 0 m"),
-    ('{ width = "20 mm", friction = -0.1 }', "friction must be >= 0, got -0.1"),
+    ('{ width = "20 mm", friction = -0.1 }', "friction must be >= 0 or \"mu_w\", got -0.1"),
     ('{ width = "20 mm", friction = 0.2, lateral_pressure_ratio = -1 }', "lateral_pressure_ratio must be >= 0"),
     ('{ width = "20 mm" }', "missing friction"),
     ('{ friction = 0.25 }', "missing width"),
@@ -318,3 +318,65 @@ def test_a_3d_channel_must_be_a_whole_number_of_cells_wide():
     scene = jm.scenes.collapse("c", 0.05, 0.05, dx=0.05 / 12, dim=3, width=0.05, t_end=0.01, runout=0.05)
     nodes_z = scene.config.grid.origin[2] + scene.config.grid.dx * np.arange(scene.config.grid.cells[2] + 1)
     assert np.isclose(nodes_z, 0.0, atol=1e-12).any() and np.isclose(nodes_z, 0.05, atol=1e-12).any()
+
+
+# ---- the walls' friction as the parameter mu_w (fitted) -------------------------------------------------------
+MU_W_WALLS = 'side_walls = { width = "20 mm", friction = "mu_w" }'
+
+
+def with_material(text: str, line: str) -> str:
+    return text.replace("[material]\n", "[material]\n" + line + "\n")
+
+
+def test_a_file_s_side_walls_may_take_the_parameter_mu_w():
+    """friction = "mu_w": the walls read Params.mu_w ([material] mu_w, a fit's start), so that
+    [fit] keys may hold mu_w; written back as it was read."""
+    text = with_material(s4_text(MU_W_WALLS), "mu_w = 0.3")
+    e = Experiment.from_text(text, S4_FILE)
+    assert e.side_walls == jm.SideWalls(0.02, "mu_w")
+    scene = e.scene()
+    assert scene.config.reads_mu_w and float(scene.params.mu_w) == 0.3
+    assert Experiment.from_text(e.to_toml(), S4_FILE) == e
+    fitted = text + '\n[fit]\nkeys = ["beta", "mu_w"]\n'
+    assert Experiment.from_text(fitted, S4_FILE).fit.keys == ("beta", "mu_w")
+
+
+@pytest.mark.parametrize("walls, material, fit, at, message", [
+    (MU_W_WALLS, None, None, "[material]",
+     "[material] mu_w: missing: the side walls' friction is the parameter mu_w"),
+    (WALLS, None, '["beta", "mu_w"]', "keys", "[fit] keys: mu_w is read by no boundary"),
+    ('side_walls = { width = "20 mm", friction = "mu" }', None, None, "side_walls",
+     "friction: expected a number or 'number unit' or the parameter 'mu_w', got 'mu'"),
+    ('side_walls = { width = "20 mm", friction = { value = "mu_w", unit = "-" } }', "mu_w = 0.3", None, "side_walls",
+     "the parameter 'mu_w' takes no unit"),
+])
+def test_mu_w_walls_refusals_name_file_line_and_key(walls, material, fit, at, message):
+    text = s4_text(walls)
+    if material:
+        text = with_material(text, material)
+    if fit:
+        text += f"\n[fit]\nkeys = {fit}\n"
+    with pytest.raises(ExperimentError) as err:
+        Experiment.from_text(text, "walls.toml")
+    assert str(err.value).startswith(f"walls.toml:{line_of(text, at)}: "), str(err.value)
+    assert message in str(err.value), str(err.value)
+
+
+def test_the_flag_and_the_objective_take_mu_w_walls():
+    from calibration import Objective, load_profile
+    from calibration.cli import build_parser
+    from calibration.cli.args import experiments_of
+    from calibration.cli.checks import check_args
+
+    args = build_parser().parse_args(["fit", "--scene", "cohesive-collapse", "--data", str(S4_DATA), "--fit",
+                                      "mu1,mu_w", "--side-walls", "0.02,mu_w,0.8", "--set", "mu_w=0.3"])
+    check_args(args)
+    (experiment,) = experiments_of(args)
+    assert experiment.side_walls == jm.SideWalls(0.02, "mu_w", 0.8)
+    scene = experiment.scene()
+    assert scene.config.reads_mu_w and float(scene.params.mu_w) == pytest.approx(0.3, rel=1e-7)  # float32
+    profile = load_profile(S4_DATA)
+    assert Objective(scene, ("mu1", "mu_w"), profile=profile).keys == ("mu1", "mu_w")
+    plain = jm.scenes.cohesive_collapse(dx=0.02, t_end=0.5, side_walls=jm.SideWalls(0.02, 0.25))
+    with pytest.raises(ValueError, match="keys: mu_w is read by no boundary of the scene"):
+        Objective(plain, ("mu1", "mu_w"), profile=profile)

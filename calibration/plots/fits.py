@@ -291,7 +291,8 @@ def law_figures(directory, result, law) -> list[str]:
     their paths."""
     d = _folder(directory)
     walls = result.side_walls
+    friction = None if walls is None else (walls.friction if isinstance(walls.friction, str) else f"{walls.friction:g}")
     title = result.law if walls is None else (f"{result.law}\nchannel {walls.width * 100:g} cm wide, wall friction "
-                                              f"{walls.friction:g}, K = {walls.lateral_pressure_ratio:g}")
+                                              f"{friction}, K = {walls.lateral_pressure_ratio:g}")
     return [str(plot_runout_law(result.to_json()["cases"], d / "law_runout.png", law=law, title=title)),
             str(plot_history(result.fit.history, result.fit.keys, d / "law_history.png"))]

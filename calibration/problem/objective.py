@@ -111,6 +111,10 @@ class Objective:
         bad = [k for k in keys if k not in PARAM_KEYS]
         if bad:
             raise ValueError(f"keys: unknown parameter(s) {bad}; valid keys are {list(PARAM_KEYS)}")
+        if "mu_w" in keys and not scene.config.reads_mu_w:
+            raise ValueError("keys: mu_w is read by no boundary of the scene, so it cannot be fitted: declare the "
+                             "floor's or the side walls' friction as \"mu_w\" (e.g. jaxmpm.SideWalls(width, \"mu_w\"), "
+                             "--side-walls WIDTH,mu_w)")
         self.bounds = Bounds.create(keys, bounds)
         self.keys = keys
         self.profiles, self.front = _targets(profile, front)

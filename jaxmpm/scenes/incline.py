@@ -83,7 +83,8 @@ def side_wall_velocity(z, depth, slope_deg, params, side_walls, points: int = 40
     import numpy as np
 
     get, theta, tan, mu1, mu2 = _steady_flow(params, slope_deg)
-    drag = side_walls.friction * side_walls.lateral_pressure_ratio / side_walls.width
+    friction = get("mu_w") if isinstance(side_walls.friction, str) else side_walls.friction
+    drag = friction * side_walls.lateral_pressure_ratio / side_walls.width
     stop = (tan - mu1) / drag if drag > 0 else math.inf
     height = np.linspace(0.0, depth, points)
     zeta = depth - height
