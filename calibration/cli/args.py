@@ -20,6 +20,7 @@ from jaxmpm.precision import use_dtype
 from jaxmpm.scenes import SCENE_NAMES, experiments_dtype, is_experiment_file
 
 from ..batch.workers import available_cores
+from ..data.flow_rule import load_flow_rule
 from ..data.incline import InclineExperiment, is_incline_file, load_incline
 from ..inference.options import JudgeOptions
 from ..optim.options import FitOptions, cli_steps
@@ -29,9 +30,9 @@ from ..problem.options import DataOptions, OptionError
 
 __all__ = [
     "parse_keys", "parse_pairs", "parse_floats", "parse_over", "parse_variants", "design_scene", "design_noise",
-    "worker_count", "fit_options", "data_options", "posterior_options", "fit_request", "single_start_reason",
-    "start_count", "fit_meta", "fit_fields", "experiments_of", "setup_of", "coarse_setup", "guard", "finish", "FLAGS",
-    "as_flag",
+    "design_inclines", "worker_count", "fit_options", "data_options", "posterior_options", "fit_request",
+    "single_start_reason", "start_count", "fit_meta", "fit_fields", "experiments_of", "setup_of", "coarse_setup",
+    "guard", "finish", "FLAGS", "as_flag",
 ]
 
 
@@ -134,9 +135,32 @@ def design_scene(text: str) -> str:
 
 
 def design_noise(args) -> dict[str, float]:
-    """``design``'s expected noise by block: --noise, the front's and the top's where given."""
-    return {"profile": args.noise, "front": args.noise_front if args.noise_front is not None else args.noise,
-            "top": args.noise_top if args.noise_top is not None else args.noise}
+    """``design``'s expected noise by block: --noise, the front's and the top's where given, and
+    the inclines' velocities' where given (else each table's stated noise, else the library's 0.02)."""
+    noise = {"profile": args.noise, "front": args.noise_front if args.noise_front is not None else args.noise,
+             "top": args.noise_top if args.noise_top is not None else args.noise}
+    if getattr(args, "noise_velocity", None) is not None:
+        noise["velocity"] = args.noise_velocity
+    return noise
+
+
+def design_inclines(files) -> dict:
+    """``design --incline FILE`` (repeatable) -> {the file's stem: its flow-rule table, or (table, the
+    file's material) for an incline experiment file}; an unreadable file is refused naming the option."""
+    out: dict = {}
+    for file in files:
+        label = pathlib.Path(file).stem
+        if label in out:
+            raise ValueError(f"--incline: two files are labelled {label!r} (a label is the file's stem); rename one")
+        try:
+            if is_incline_file(file):
+                experiment = load_incline(file)
+                out[label] = (load_flow_rule(experiment.table_file), dict(experiment.material))
+            else:
+                out[label] = load_flow_rule(file)
+        except (OSError, ValueError) as err:
+            raise ValueError(f"--incline {file}: {err}") from None
+    return out
 
 
 def worker_count(args) -> int:

@@ -18,6 +18,7 @@ from ..plots.fits import fit_figures, law_figures, plot_coverage, plot_design, s
 from ..plots.posteriors import likelihood_figures
 from .args import (
     coarse_setup,
+    design_inclines,
     design_noise,
     experiments_of,
     finish,
@@ -171,11 +172,12 @@ def _design(args) -> int:
     use_dtype(scene_dtype(args))
     keys, variants = parse_keys(args.fit), parse_variants(args.variant)
     times = parse_floats(args.times, "--times") if args.times else None
+    inclines = design_inclines(args.incline)
     scene = scene_from_args(args)
     with Workers(worker_count(args)) as workers:
         result = design(scene, keys, parse_pairs(args.at, "--at"), noise=design_noise(args),
-                        tolerance=args.tolerance, times=times, variants=variants, sampling_seeds=args.sampling_seeds,
-                        grid_ratio=args.grid_check or None, workers=workers)
+                        tolerance=args.tolerance, times=times, variants=variants, inclines=inclines,
+                        sampling_seeds=args.sampling_seeds, grid_ratio=args.grid_check or None, workers=workers)
     out = result.to_json()
     errors: dict[str, str] = {}
     if args.plot:

@@ -286,6 +286,12 @@ def _add_design(sub) -> None:
     de.add_argument("--variant", action="append", default=[], metavar="LABEL:KEY=VALUE[,...]",
                     help="another experiment on the same material: the scene built with these builder arguments "
                          "changed (height, length, slope_deg, front_gate_speed, runout, t_end, ...); repeatable")
+    de.add_argument("--incline", action="append", default=[], metavar="TABLE.csv|INCLINE.toml",
+                    help="steady flows of the same material down an incline: a flow-rule table (its slopes, "
+                         "thicknesses and quantity are the plan; its velocities are not used) or an incline "
+                         "experiment file (its table and material); labelled by the file's stem; repeatable")
+    de.add_argument("--noise-velocity", type=float, default=None,
+                    help="an incline velocity's relative noise (default: the table's stated noise, else 0.02)")
     de.add_argument("--sampling-seeds", type=int, default=0, metavar="K",
                     help="K other particle draws per experiment: the sampling's share (default 0: not measured)")
     de.add_argument("--grid-check", type=float, default=1.5, metavar="RHO",

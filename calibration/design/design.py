@@ -5,9 +5,11 @@ observation of ``KINDS`` recorded, takes one forward-mode Jacobian of it, and gi
 observations, by choosing its rows, the expected 95 % half-widths of the fit the library would
 make from such data (the sandwich covariance of ``gauss_newton_uncertainty``), optionally with the
 particle draw's and the grid's shares. The sets are ranked by what they cost the experimenter and
-the cheapest that constrains every key within ``tolerance`` of |θ| is recommended. The half-widths
-are linear-Gaussian: they hold where the misfit is close to quadratic over the interval. The
-method, its costs and its validation: docs/what_collapses_tell.md.
+the cheapest that constrains every key within ``tolerance`` of |θ| is recommended. Incline
+experiments (flow-rule tables, ``inclines``) join the candidates with their one observation,
+"flow_rule" (``calibration.design.inclines``), so that sets may mix kinds of experiment. The
+half-widths are linear-Gaussian: they hold where the misfit is close to quadratic over the
+interval. The method, its costs and its validation: docs/what_collapses_tell.md.
 """
 
 from __future__ import annotations
@@ -27,13 +29,14 @@ from ..inference.noise import Z95
 from ..inference.scatter import coarse_residuals, redrawn_residuals
 from ..problem.objective import Objective
 from ..problem.targets import FrontTarget, ProfileTarget
+from .inclines import INCLINE_KINDS, incline_experiment, incline_plans, incline_sigma
 
-__all__ = ["KINDS", "Experiment", "DesignResult", "expected_halfwidths", "design"]
+__all__ = ["KINDS", "INCLINE_KINDS", "Experiment", "DesignResult", "expected_halfwidths", "design"]
 
 
 #: The observations an experiment can give: the deposit profile at the end (a photograph), the
 #: profiles at ``times`` during the flow (a side view), the front's position and the height of the
-#: column's top near the back wall at ``front_times`` (a video).
+#: column's top near the back wall at ``front_times`` (a video). An incline gives ``INCLINE_KINDS``.
 KINDS = ("final", "profiles", "front", "top")
 
 
@@ -43,7 +46,9 @@ VIDEO = ("profiles", "front", "top")
 @dataclasses.dataclass(frozen=True)
 class Experiment:
     """One experiment's runs at θ: its objective with every observation, the rows of each kind,
-    the weighted Jacobian and, when measured, the residual draws and the coarse grid's mean."""
+    the weighted Jacobian and, when measured, the residual draws and the coarse grid's mean.
+    ``closed_form``: a model with no particles and no grid (an incline's flow rule), whose draws'
+    and grid's shares are zero rather than unmeasured."""
 
     label: str
     objective: Objective
@@ -54,6 +59,7 @@ class Experiment:
     draws: np.ndarray | None  # (K, m) relative residual deviations of other particle draws
     coarse: np.ndarray | None  # (m,) relative mean residual at ρ dx
     ratio: float | None
+    closed_form: bool = False
 
 
 @dataclasses.dataclass(frozen=True)
@@ -134,8 +140,8 @@ def _check(noise, tolerance, times, front_times, scene):
         if np.any(values <= 0) or np.any(values > t_end) or np.any(np.diff(values) <= 0):
             raise ValueError(f"{name} must increase strictly within (0, t_end = {t_end}], got {values.tolist()}")
     for kind, sigma in noise.items():
-        if kind not in ("profile", "front", "top"):
-            raise ValueError(f"noise: unknown kind {kind!r} (profile, front, top)")
+        if kind not in ("profile", "front", "top", "velocity"):
+            raise ValueError(f"noise: unknown kind {kind!r} (profile, front, top, velocity)")
         if not (math.isfinite(sigma) and sigma > 0):
             raise ValueError(f"noise[{kind!r}] must be a positive fraction, got {sigma!r}")
 
@@ -196,37 +202,47 @@ def _experiment(label, scene, keys, theta, xs, times, front_times, top_x, noise,
     return Experiment(label, objective, rows, sigma, J, scale ** 2, draws, coarse_mean, grid_ratio)
 
 
-def _cost(parts) -> float:
-    """1 per experiment for running it and photographing the deposit, 2 more if anything of it is
-    filmed (``VIDEO``), 1 more for each experiment beyond the first (a second set-up)."""
+def _cost(parts, slopes: Mapping[str, int] | None = None) -> float:
+    """A convention, not a price: 1 per collapse for running it and photographing the deposit, 2
+    more if anything of it is filmed (``VIDEO``); 1 per slope of an incline's table (tilting the
+    chute and measuring the velocities of its layers at that slope; ``slopes``: {incline label:
+    its number of slopes}); 1 more for each experiment beyond the first (another set-up). A set
+    given with its own cost (``design``'s ``sets``) replaces this."""
+    slopes = dict(slopes or {})
     by_experiment: dict[str, set] = {}
     for label, kind in parts:
         by_experiment.setdefault(label, set()).add(kind)
-    return sum(1.0 + (2.0 if kinds & set(VIDEO) else 0.0) + (1.0 if i > 0 else 0.0)
-               for i, kinds in enumerate(by_experiment.values()))
+    return sum((float(slopes[label]) if label in slopes else 1.0 + (2.0 if kinds & set(VIDEO) else 0.0))
+               + (1.0 if i > 0 else 0.0) for i, (label, kinds) in enumerate(by_experiment.items()))
 
 
 def expected_halfwidths(experiments: Sequence[Experiment], parts) -> tuple[np.ndarray, ...]:
     """(95 % half-widths, their covariance, the data's share of the half-widths, the same with
     every row weighed by 1/σ², the data's share of the covariance) of θ from the observations
     ``parts`` ((experiment label, kind) pairs): the data's noise plus, where the experiments
-    measured them, the particle draw's and the grid's shares. The fourth is the Cramér–Rao bound
-    of the data: a fit that weighs each row by its noise reaches it, the library's (each block
-    weighed as a whole) only when the blocks are alike."""
+    measured them, the particle draw's and the grid's shares (zero for a ``closed_form``
+    experiment's rows: such a share is measured when every other experiment in the set measured
+    it). The fourth is the Cramér–Rao bound of the data: a fit that weighs each row by its noise
+    reaches it, the library's (each block weighed as a whole) only when the blocks are alike."""
     by_label = {e.label: e for e in experiments}
     chosen: dict[str, list[np.ndarray]] = {}
     for label, kind in parts:
         chosen.setdefault(label, []).append(by_label[label].rows[kind])
-    Js, sigmas, weights, draws, coarse = [], [], [], [], []
+    Js, sigmas, weights, draws, coarse, ratios = [], [], [], [], [], []
     for label, row_sets in chosen.items():
         e = by_label[label]
         rows = np.unique(np.concatenate(row_sets))
         Js.append(e.J[rows])
         sigmas.append(e.noise_rows[rows])
         weights.append(e.weights[rows])
-        draws.append(None if e.draws is None else e.draws[:, rows])
-        coarse.append(None if e.coarse is None else e.coarse[rows])
+        draws.append(rows.size if e.closed_form else None if e.draws is None else e.draws[:, rows])
+        coarse.append(np.zeros(rows.size) if e.closed_form else None if e.coarse is None else e.coarse[rows])
+        ratios += [] if e.closed_form else [e.ratio]
     J, sigma, w = np.concatenate(Js), np.concatenate(sigmas), np.concatenate(weights)
+    measured = [d for d in draws if not isinstance(d, int)]
+    draws = ([d if not isinstance(d, int) else np.zeros((min(x.shape[0] for x in measured), d)) for d in draws]
+             if measured and all(d is not None for d in measured) else [None])
+    coarse = coarse if ratios and all(c is not None for c in coarse) else [None]
     # The fit's estimator weighs row i by w_i (its objective's row_scale²), not by 1/σ_i²: its
     # covariance is the sandwich (uncertainty.gauss_newton_uncertainty), and its response to a
     # change r of the residuals is −(JᵀWJ)⁻¹JᵀW r, the least-squares solution of the weighted rows.
@@ -244,7 +260,7 @@ def expected_halfwidths(experiments: Sequence[Experiment], parts) -> tuple[np.nd
         P = np.linalg.lstsq(J, S.T, rcond=None)[0].T
         cov = cov + np.atleast_2d(np.cov(P, rowvar=False, ddof=1))
     if all(c is not None for c in coarse):
-        ratio = experiments[0].ratio
+        ratio = ratios[0]
         shift = -np.linalg.lstsq(J, np.concatenate(coarse) * root, rcond=None)[0]
         halfwidth = GCI_SAFETY * np.abs(shift) / (ratio ** GRID_ORDER - 1.0)
         norm = np.linalg.norm(shift)
@@ -254,7 +270,10 @@ def expected_halfwidths(experiments: Sequence[Experiment], parts) -> tuple[np.nd
     return Z95 * np.sqrt(np.maximum(np.diag(cov), 0.0)), cov, data_only, weighted, cov_data
 
 
-def _default_sets(labels: Sequence[str]) -> list[tuple[str, tuple[tuple[str, str], ...]]]:
+def _default_sets(labels: Sequence[str], inclines: Sequence[str] = ()) -> list[tuple[str, tuple[tuple[str, str], ...]]]:
+    """The curated candidates: of the main collapse, of it with its variants and, with ``inclines``,
+    each incline alone and with the main collapse's final profile, its filmed profiles and front,
+    and (with variants) the final profiles of every collapse; all inclines together where several."""
     main, others = labels[0], labels[1:]
     sets = [("final profile", ((main, "final"),)),
             ("final profile + top height", ((main, "final"), (main, "top"))),
@@ -272,33 +291,87 @@ def _default_sets(labels: Sequence[str]) -> list[tuple[str, tuple[tuple[str, str
             sets.append((f"profiles in time + front of main + {names}",
                          ((main, "profiles"), (main, "front"))
                          + tuple(p for g in group for p in ((g, "profiles"), (g, "front")))))
+    groups = [(f"incline {i}", ((i, "flow_rule"),)) for i in inclines]
+    if len(inclines) > 1:
+        groups.append(("inclines " + " + ".join(inclines), tuple((i, "flow_rule") for i in inclines)))
+    for name, rule in groups:
+        sets += [(name, rule), (f"final profile + {name}", ((main, "final"),) + rule),
+                 (f"profiles in time + front + {name}", ((main, "profiles"), (main, "front")) + rule)]
+        if others:
+            sets.append((f"final profiles of main + {' + '.join(others)} + {name}",
+                         tuple((g, "final") for g in labels) + rule))
     return sets
+
+
+def _candidate_sets(sets, scenes, plans) -> list[tuple[str, tuple[tuple[str, str], ...], float | None]]:
+    """``design``'s ``sets`` (default: ``_default_sets``) as (name, parts, the cost given or None),
+    every part checked against the experiments and the kinds each can give."""
+    given = sets if sets is not None else _default_sets(list(scenes), list(plans))
+    kinds = {**{label: KINDS for label in scenes}, **{label: INCLINE_KINDS for label in plans}}
+    out = []
+    for entry in given:
+        if not isinstance(entry, Sequence) or len(entry) not in (2, 3):
+            raise ValueError(f"sets: each entry is (name, [(experiment, kind), ...]) or (name, parts, cost), "
+                             f"got {entry!r}")
+        name, parts = entry[0], tuple((str(e), str(k)) for e, k in entry[1])
+        cost = None if len(entry) == 2 else float(entry[2])
+        if cost is not None and not (math.isfinite(cost) and cost >= 0):
+            raise ValueError(f"sets: {name!r} has the cost {entry[2]!r}; a cost is a finite number >= 0")
+        for label, kind in parts:
+            if kind not in kinds.get(label, ()):
+                raise ValueError(f"sets: {name!r} names ({label!r}, {kind!r}); experiments are {list(kinds)}, "
+                                 f"their kinds {list(KINDS)} (a collapse) and {list(INCLINE_KINDS)} (an incline)")
+        out.append((name, parts, cost))
+    return out
+
+
+def _notes(experiments, sampling_seeds, grid_ratio) -> list[str]:
+    notes = []
+    for e in experiments:
+        if e.closed_form:
+            continue  # no particles, no grid: its shares are zero, not unmeasured
+        if sampling_seeds and e.draws is None:
+            notes.append(f"experiment {e.label!r}: the particle draw's share was not measured (a sampling with no "
+                         "seed to redraw, or fewer than two redrawn runs without status bits)")
+        if grid_ratio is not None and e.coarse is None:
+            notes.append(f"experiment {e.label!r}: the grid's share was not measured (no run at {grid_ratio:g} × dx "
+                         "ran without status bits)")
+    return notes
 
 
 def design(scene, keys: Sequence[str], theta: Mapping[str, float] | None = None, *,
            noise: Mapping[str, float] | float = 0.02, tolerance: float = 0.1, times: Sequence[float] | None = None,
            front_times: Sequence[float] | None = None, variants: Mapping[str, Mapping[str, Any]] | None = None,
-           sampling_seeds: int = 0, grid_ratio: float | None = None, grid_draws: int = 2,
-           sets: Sequence[tuple[str, Sequence[tuple[str, str]]]] | None = None, workers=None) -> DesignResult:
+           inclines: Mapping[str, Any] | None = None, sampling_seeds: int = 0, grid_ratio: float | None = None,
+           grid_draws: int = 2, sets: Sequence[tuple] | None = None, workers=None) -> DesignResult:
     """Expected 95 % half-widths of ``keys`` at ``theta`` (default: the scene's values) for
     candidate sets of observations (see the module docstring).
 
     ``noise``: relative noise by kind, as the fit's ("profile": of the profile's peak, "front": of
-    the column's length, "top": of the top's height), or one number for all.
+    the column's length, "top": of the top's height, "velocity": of an incline's velocity), or one
+    number for all. An incline's velocity noise is "velocity" where given, else its table's stated
+    ``noise``, else 0.02.
     ``times``: the profile times during the flow (default t_end × (0.1, 0.2, 0.4)); the final
     profile is always recorded. ``front_times``: the front's and the top's times (default 20 over
     (0, t_end]). ``variants``: {label: changes to the scene's builder} (``Scene.variant``), the
-    same material in other experiments. ``sets``: the candidates as (name, [(experiment, kind)])
-    (default: the curated list of ``_default_sets``; "main" is the scene's label).
+    same material in other experiments. ``inclines``: {label: a ``FlowRuleTable``, or a pair
+    (table, {key: value}) of the incline's own material (ρ, ρ_s, d) over the scene's}: steady
+    flows of the same material; the table's slopes, thicknesses and quantity are the plan, its
+    velocities are not used (the model's at θ are). ``sets``: the candidates as (name,
+    [(experiment, kind)]) or (name, parts, cost) (default: the curated list of ``_default_sets``;
+    "main" is the scene's label; the kinds are ``KINDS`` for a collapse and "flow_rule" for an
+    incline; a cost not given follows ``_cost``'s convention).
     ``sampling_seeds``, ``grid_ratio``, ``grid_draws``: the particle draw's and the grid's shares,
-    as for ``fit``."""
+    as for ``fit`` (an incline's are zero: a closed form)."""
     clock = time.perf_counter()
     keys = tuple(keys)
     t_end = float(scene.config.t_end)
     times = tuple(t_end * f for f in (0.1, 0.2, 0.4)) if times is None else tuple(times)
     front_times = tuple(np.linspace(t_end / 20, t_end, 20)) if front_times is None else tuple(front_times)
-    noise = ({k: float(noise) for k in ("profile", "front", "top")} if not isinstance(noise, Mapping)
-             else {"profile": 0.02, "front": 0.02, "top": 0.02, **{k: float(v) for k, v in noise.items()}})
+    velocity_given = not isinstance(noise, Mapping) or "velocity" in noise
+    noise = ({k: float(noise) for k in ("profile", "front", "top", "velocity")} if not isinstance(noise, Mapping)
+             else {"profile": 0.02, "front": 0.02, "top": 0.02, "velocity": 0.02,
+                   **{k: float(v) for k, v in noise.items()}})
     _check(noise, tolerance, times, front_times, scene)
     check_grid_options(grid_ratio, grid_draws)
     if sampling_seeds and sampling_seeds < 2:
@@ -313,35 +386,29 @@ def design(scene, keys: Sequence[str], theta: Mapping[str, float] | None = None,
         if label == "main":
             raise ValueError("variants: 'main' names the scene itself; choose another label")
         scenes[label] = scene.variant(**dict(changes))
-    candidate_sets = [(name, tuple((str(e), str(k)) for e, k in parts))
-                      for name, parts in (sets if sets is not None else _default_sets(list(scenes)))]
-    for name, parts in candidate_sets:
-        for label, kind in parts:
-            if label not in scenes or kind not in KINDS:
-                raise ValueError(f"sets: {name!r} names ({label!r}, {kind!r}); experiments are {list(scenes)}, "
-                                 f"kinds {list(KINDS)}")
+    plans = incline_plans(inclines, list(scenes))
+    sigmas = {label: incline_sigma(table, noise, velocity_given) for label, (table, _) in plans.items()}
+    incline_runs = [incline_experiment(label, table, material, scene.params, keys, values, sigmas[label], Experiment)
+                    for label, (table, material) in plans.items()]  # refused here, before any collapse runs
+    candidate_sets = _candidate_sets(sets, scenes, plans)
     length = float(scene.info.length)
     grid = scene.config.grid
     xs = np.linspace(0.0, 0.9 * (grid.origin[0] + grid.cells[0] * grid.dx), 60)  # the profiles' points
     top_x = 0.1 * length
     experiments = [_experiment(label, s, keys, values, xs, times, front_times, top_x, noise, sampling_seeds,
-                               grid_ratio, grid_draws, workers) for label, s in scenes.items()]
+                               grid_ratio, grid_draws, workers) for label, s in scenes.items()] + incline_runs
     theta_arr = np.array([values[k] for k in keys])
-    notes = []
-    for e in experiments:
-        if sampling_seeds and e.draws is None:
-            notes.append(f"experiment {e.label!r}: the particle draw's share was not measured (a sampling with no "
-                         "seed to redraw, or fewer than two redrawn runs without status bits)")
-        if grid_ratio is not None and e.coarse is None:
-            notes.append(f"experiment {e.label!r}: the grid's share was not measured (no run at {grid_ratio:g} × dx "
-                         "ran without status bits)")
+    slopes = {label: int(table.slopes.size) for label, (table, _) in plans.items()}
     candidates = []
-    for name, parts in candidate_sets:
+    for name, parts, cost in candidate_sets:
         halfwidth, cov, data_only, weighted, cov_data = expected_halfwidths(experiments, parts)
         relative = halfwidth / np.maximum(np.abs(theta_arr), 1e-12)
-        candidates.append(Candidate(name, parts, _cost(parts), halfwidth, relative, cov,
-                                    bool(np.all(relative <= tolerance)), data_only, weighted, cov_data))
+        candidates.append(Candidate(name, parts, _cost(parts, slopes) if cost is None else cost, halfwidth, relative,
+                                    cov, bool(np.all(relative <= tolerance)), data_only, weighted, cov_data))
     candidates.sort(key=lambda c: (c.cost, float(np.max(c.relative))))
     recommended = next((c for c in candidates if c.meets), None)
-    return DesignResult(keys, theta_arr, noise, float(tolerance), tuple(candidates), recommended,
-                        tuple(scenes), time.perf_counter() - clock, tuple(notes))
+    noise_used = {**{k: v for k, v in noise.items() if k != "velocity" or (plans and velocity_given)},
+                  **{f"velocity@{label}": sigma for label, sigma in sigmas.items()}}
+    return DesignResult(keys, theta_arr, noise_used, float(tolerance), tuple(candidates), recommended,
+                        tuple(scenes) + tuple(plans), time.perf_counter() - clock,
+                        tuple(_notes(experiments, sampling_seeds, grid_ratio)))
