@@ -185,9 +185,10 @@ def make_step(config: Config):
         def idle(s):  # at rest before t_end: jump to the next stop (a frame or t_end); else nothing
             return s.replace(t=jnp.where(t < config.t_end, next_stop, t))
 
-        # Not rematerialised per step (jax.checkpoint around advance): it halved the elastic
-        # block's backward pass but made the critical-state model's 3.6 times slower, recomputing
-        # the return map's Newton solves (docs/performance.md, "Reverse mode").
+        # No jax.checkpoint inside the step's cond: rematerialising ``advance`` there made the
+        # critical-state model's backward pass 3.6 times slower, recomputing the return map's
+        # Newton solves (docs/performance.md, "Reverse mode"). The rollout checkpoints whole steps
+        # and blocks instead (jaxmpm.rollout._scan_steps).
         return jax.lax.cond(active, lambda s: advance(s, params, dt, t_new), idle, state)
 
     return step

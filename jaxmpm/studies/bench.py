@@ -157,7 +157,7 @@ def bench_gradient(quick=False, dim=2, dtype="float32", repeat=3, n_particles=No
         grad = jax.jit(jax.grad(loss_fn(checkpoint))).lower(params).compile()
         tag = "checkpointed" if checkpoint else "plain"
         out[f"grad_{tag}_compile_s"] = round(time.perf_counter() - start, 3)
-        out[f"grad_{tag}temp_mb"] = temp_mb(grad)
+        out[f"grad_{tag}_temp_mb"] = temp_mb(grad)
         if checkpoint:
             run_s, g = _timed(grad, params, repeat=repeat)
             out["grad_run_s"] = round(run_s, 4)
