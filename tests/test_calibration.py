@@ -330,7 +330,9 @@ def test_adam_lowers_the_loss(problem):
         assert np.all(np.isfinite(result.history["grad_norm"]))
 
 
-@pytest.mark.parametrize("method", ["lm", "adam"])
+# Adam by default; LM (a Jacobian program, 20 s) slow: the command line's --resume of an LM fit stays by
+# default (tests/test_robust_calibration.py)
+@pytest.mark.parametrize("method", [pytest.param("lm", marks=pytest.mark.slow), "adam"])
 def test_interrupted_fit_resumes_without_losing_iterations(problem, tmp_path, method):
     _, _, objective = problem
     init = {"beta": 0.18, "mu1": 0.45}

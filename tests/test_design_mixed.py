@@ -170,7 +170,8 @@ def test_an_inclines_noise_is_the_given_velocity_noise_else_its_tables_else_two_
     assert incline_experiment("c", _table(), {}, scene.params, KEYS, values, 0.02, Experiment).J[:, 1:].all()
 
 
-# ---- one tiny S4 design with the shipped twin table (about 20 s) ----------------------------------
+# ---- one tiny S4 design with the shipped twin table (about 20 s: slow; the incline's rows, Jacobian, ------
+# ---- costs and refusals are checked by default above, and a collapse's design in tests/test_design.py) --
 @pytest.fixture(scope="module")
 def mixed():
     scene = scenes.cohesive_collapse(dx=L / 4, t_end=0.1, dtype="float32")  # as the command line builds it
@@ -179,6 +180,7 @@ def mixed():
                   inclines={"flow_rule_twin": table})
 
 
+@pytest.mark.slow
 def test_a_collapse_and_an_incline_constrain_every_key_better_than_either_alone(mixed):
     by_name = {c.name: c for c in mixed.candidates}
     collapse, incline = by_name["final profile"], by_name["incline flow_rule_twin"]
@@ -202,6 +204,7 @@ def test_a_collapse_and_an_incline_constrain_every_key_better_than_either_alone(
             "profiles in time + front + incline flow_rule_twin"} <= {c["name"] for c in out["candidates"]}
 
 
+@pytest.mark.slow
 def test_the_designs_incline_alone_is_the_finite_difference_fisher_of_the_table(mixed):
     """The incline-alone candidate's μ1, μ2, I0 half-widths are those of the finite-difference
     Jacobian of the table's relative residuals (float64 closed form) at 2 % noise."""
@@ -223,6 +226,7 @@ def test_the_designs_incline_alone_is_the_finite_difference_fisher_of_the_table(
     np.testing.assert_allclose(incline.halfwidth[1:], expected, rtol=1e-6)
 
 
+@pytest.mark.slow
 def test_the_command_line_ranks_the_mixed_candidates(mixed, capsys):
     # The same design through the command line: under 1 s after ``mixed`` (the runs are compiled).
     code = main(["design", *TINY, "--fit", ",".join(KEYS), "--at", "beta=0.25", "--noise", "0.01", "--grid-check", "0",

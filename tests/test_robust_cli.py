@@ -140,6 +140,8 @@ def test_element_exits_non_zero_with_null_on_a_non_finite_result(capsys, monkeyp
 
 
 # ---- status bits ----------------------------------------------------------------------------------------
+# 13 s: a run to t = 1 s on the command line; the engine's LEFT_GRID and BUDGET bits are checked by default
+@pytest.mark.slow  # (tests/test_engine.py)
 def test_no_spurious_budget_bit_when_particles_leave_the_grid(capsys):
     """Frictionless, soft material spreads off the grid. The command line (block by block, stopping
     on the fatal bit) used to report LEFT_GRID | BUDGET | EDGE = 25 where ``simulate()`` gives no

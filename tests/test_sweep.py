@@ -163,6 +163,8 @@ def test_invalid_members_are_refused_before_anything_compiles(objective):
         sweep(objective, np.array([[-0.2, 1e6], [0.2, 1e6]]))
 
 
+# 12 s: another chunk shape compiled; padding and chunking are checked by default on the toy objective
+@pytest.mark.slow  # (test_toy_sweep_all_modes_and_failures)
 def test_chunks_with_a_padded_last_chunk_match_one_chunk(objective, vmapped):
     chunked = sweep(objective, THETAS, mode="vmap", chunk=2, validate=False)  # chunks of 2, 2, 1 (+1 padding)
     assert chunked.chunk == 2 and chunked.residuals.shape == vmapped.residuals.shape
