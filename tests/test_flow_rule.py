@@ -4,6 +4,7 @@ shipped noisy twin's intervals, and every refusal naming what was wrong."""
 
 import json
 import math
+import pathlib
 
 import jax
 import numpy as np
@@ -203,3 +204,18 @@ def test_the_engine_refuses_an_incline_file_and_says_what_fits_it(tmp_path):
                                               r"got kind = 'incline' \(steady flows down an incline: fitted by "
                                               r"`python -m calibration flow-rule FILE`"):
         Experiment.from_toml(path)
+
+
+def test_a_joint_fits_figures_draw_its_incline(tmp_path):
+    """``fit_figures`` of a fit holding a flow-rule table (here alone; beside a collapse in a joint
+    fit, whose profiles panel skips it): the history and the table against the model at the fit's
+    values. It used to raise, so that `calibration fit collapse.toml incline.toml --plot` printed
+    a traceback and no JSON."""
+    from calibration import FlowRuleObjective, fit
+    from calibration.plots.fits import fit_figures
+
+    objective = FlowRuleObjective(load_flow_rule(dataset_path("synthetic/flow_rule_twin")))
+    result = fit(objective, {"mu1": 0.35, "mu2": 0.7, "I0": 0.3}, steps=3, uncertainty=False)
+    figures = fit_figures(tmp_path / "figs", objective, result)
+    assert [pathlib.Path(f).name for f in figures] == ["fit_history.png", "fit_flow_rule.png"]
+    assert all(pathlib.Path(f).stat().st_size > 10_000 for f in figures)

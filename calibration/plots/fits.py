@@ -9,6 +9,7 @@ import pathlib
 import numpy as np
 
 from ..problem.protocol import ObjectiveLike
+from .flow_rule import plot_flow_rule_member
 
 __all__ = [
     "plot_fit", "plot_history", "plot_landscape", "plot_loss_curve", "plot_runout_law", "plot_coverage",
@@ -46,6 +47,8 @@ def plot_fit(objective: ObjectiveLike, result, path, *, title: str | None = None
         result.prediction]
     panels = []  # (member, x or t, data, model, the profile's time or None for the front)
     for i, (obj, pred) in enumerate(zip(members, preds)):
+        if not hasattr(obj, "observations"):
+            continue  # a closed form's table (an incline): its own figure (fit_figures)
         offset, obs, h_all = 0, obj.observations, np.asarray(obj.data["h"], float)
         for x, t in zip(obs.profile_x, obs.profile_times):
             sl = slice(offset, offset + x.size)
@@ -255,8 +258,14 @@ def fit_figures(directory, objective, result, *, prefix: str = "fit", truth=None
     """A fit's figures in ``directory`` (made if missing): ``PREFIX_profiles.png`` (``plot_fit``)
     and ``PREFIX_history.png`` (``plot_history``, ``truth`` drawn where given); their paths."""
     d = _folder(directory)
-    figs = [plot_fit(objective, result, d / f"{prefix}_profiles.png"),
-            plot_history(result.history, result.keys, d / f"{prefix}_history.png", truth=truth)]
+    figs = [plot_fit(objective, result, d / f"{prefix}_profiles.png")] if any(
+        hasattr(member, "observations") for member, _, _ in objective.parts) else []
+    figs.append(plot_history(result.history, result.keys, d / f"{prefix}_history.png", truth=truth))
+    theta = np.array([result.theta[k] for k in result.keys])
+    inclines = [(member, index) for member, index, _ in objective.parts if hasattr(member, "table")]
+    for n, (member, index) in enumerate(inclines):  # an incline in a joint fit: its table against the model
+        name = f"{prefix}_flow_rule.png" if len(inclines) == 1 else f"{prefix}_flow_rule_{n + 1}.png"
+        figs.append(plot_flow_rule_member(member, theta[np.asarray(index)], d / name, result))
     return [str(f) for f in figs]
 
 

@@ -4,19 +4,32 @@ the fitted model's lines (``calibration.studies.flow_rule``)."""
 from __future__ import annotations
 
 import pathlib
+import types
 
 import numpy as np
 
 from jaxmpm.precision import x64
 from jaxmpm.scenes.incline import steady_velocity
 
-__all__ = ["plot_flow_rule"]
+__all__ = ["plot_flow_rule", "plot_flow_rule_member"]
 
 
-def plot_flow_rule(result, directory) -> pathlib.Path:
+def plot_flow_rule_member(objective, theta, path, result) -> pathlib.Path:
+    """The table of ``objective`` (a ``FlowRuleObjective`` in a joint fit) against the model at its
+    keys' values ``theta`` (an array in its keys' order), titled with ``result``'s (a fit's) end;
+    written to ``path``."""
+    theta = np.asarray(theta, float)
+    member = types.SimpleNamespace(table=objective.table, material=objective.material,
+                                   theta=dict(zip(objective.keys, theta.tolist())),
+                                   residuals=np.asarray(objective.residuals(theta)[0], float),
+                                   message=result.message, iterations=result.iterations)
+    return plot_flow_rule(member, pathlib.Path(path).parent, pathlib.Path(path).name)
+
+
+def plot_flow_rule(result, directory, name: str = "flow_rule.png") -> pathlib.Path:
     """Draw ``result`` (a ``FlowRuleResult``): u/sqrt(g h) against h/d at each slope, the data as
     points and the fit as lines, and each row's relative residual beside it; written to
-    ``directory``/flow_rule.png (the folder made if missing), whose path it returns."""
+    ``directory``/``name`` (the folder made if missing), whose path it returns."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -47,7 +60,7 @@ def plot_flow_rule(result, directory) -> pathlib.Path:
     res.set(xlabel="h / d", ylabel="model / data − 1 (%)")
     res.set_title(f"{result.message.split(':')[0]} after {result.iterations} iterations", fontsize=9)
     fig.tight_layout()
-    path = pathlib.Path(directory) / "flow_rule.png"
+    path = pathlib.Path(directory) / name
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=120)
     plt.close(fig)
