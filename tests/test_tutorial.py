@@ -29,6 +29,28 @@ def test_tutorial_files_load_and_make_their_objective():
         assert "# synthetic: true" in head and any(line.startswith("# truth:") for line in head)
 
 
+def test_the_tutorial_chute_is_fitted_from_its_guess_with_the_truth_in_every_interval():
+    """Step 6's first command: the chute's stand-in table (the column's beads) from the file's guess;
+    the stand-in's truth lies inside every 95 % interval."""
+    from calibration.data.flow_rule import load_flow_rule
+    from calibration.data.incline import load_incline
+    from calibration.studies.flow_rule import fit_flow_rule
+
+    chute = load_incline(TUTORIAL / "chute.toml")
+    column = Experiment.from_toml(TUTORIAL / "column.toml")
+    same = ("rho", "rho_s", "d")
+    assert {k: chute.material[k] for k in same} == {k: column.material[k] for k in same}
+    head = (TUTORIAL / "chute.csv").read_text().splitlines()[:4]
+    assert "# synthetic: true" in head
+    truth = json.loads(next(line for line in head if line.startswith("# truth:")).split(":", 1)[1])
+    result = fit_flow_rule(load_flow_rule(chute.table_file), chute.keys, init=chute.init,
+                           values=chute.material).to_json()
+    assert result["verdict"]["is_fit"] and result["start"] == {"mu1": 0.35, "mu2": 0.8, "I0": 0.5}
+    for key, value in truth.items():
+        low, high = result["ci95"][key]
+        assert low <= value <= high, (key, low, value, high)
+
+
 @pytest.mark.slow
 def test_tutorial_fit_and_prediction_run_as_written(tmp_path):
     fit = subprocess.run([sys.executable, "-m", "calibration", "fit", str(TUTORIAL / "column.toml"), "--json",

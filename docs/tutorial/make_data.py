@@ -1,13 +1,17 @@
 """The tutorial's stand-in measurements (docs/tutorial.md): column.toml's collapse at a hidden
 truth, run on a grid twice as fine as the fit's and with another particle draw, with noise: 1 % of
 the peak height on the deposit (a photo, digitised) and 1 mm on the front (a video at 20 frames
-a second). Files in millimetres and milliseconds, as a digitiser writes them.
+a second). Files in millimetres and milliseconds, as a digitiser writes them. And the same beads'
+steady flows down a rough chute (chute.toml's flow-rule table, chute.csv): the depth-averaged
+velocity of the steady μ(I) flow at the same truth, four slopes and four thicknesses, 1 % noise.
 
-    python docs/tutorial/make_data.py      # writes docs/tutorial/deposit.csv and front.csv
+    python docs/tutorial/make_data.py          # writes docs/tutorial/deposit.csv and front.csv
+    python docs/tutorial/make_data.py chute    # writes docs/tutorial/chute.csv
 """
 
 import json
 import pathlib
+import sys
 
 import numpy as np
 
@@ -16,6 +20,8 @@ from jaxmpm import Experiment
 
 HERE = pathlib.Path(__file__).resolve().parent
 TRUTH = {"beta": 0.2, "mu1": 0.42}  # what the tutorial's fit should find
+CHUTE_TRUTH = {"mu1": 0.42, "mu2": 0.6434683848584607, "I0": 0.279}  # μ2, I0: the model's defaults
+CHUTE_SLOPES, CHUTE_DEPTHS, NOISE_VELOCITY = (24.0, 26.0, 28.0, 30.0), (0.005, 0.01, 0.015, 0.02), 0.01
 FRONT_TIMES = np.arange(0.05, 0.401, 0.05)
 NOISE_PROFILE, NOISE_FRONT = 0.01, 1e-3
 
@@ -46,5 +52,24 @@ def main():
         + "\n")
 
 
+def chute():
+    """chute.csv: the depth-averaged velocity (docs/model.md §6, ``steady_velocity``) of column.toml's
+    beads (its ρ, ρ_s, d) at ``CHUTE_TRUTH``, times 1 + 1 % N(0, 1) (seed 2026), in mm and m/s."""
+    from jaxmpm.precision import x64
+    from jaxmpm.scenes.incline import steady_velocity
+
+    material = Experiment.from_toml(HERE / "column.toml").material
+    slope, h = (a.ravel() for a in np.meshgrid(CHUTE_SLOPES, CHUTE_DEPTHS, indexing="ij"))
+    with x64():
+        u = np.asarray(steady_velocity(h, slope, CHUTE_TRUTH["mu1"], CHUTE_TRUTH["mu2"], CHUTE_TRUTH["I0"],
+                                       material["rho"], material["rho_s"], material["d"], "depth_averaged"))
+    u = u * (1.0 + NOISE_VELOCITY * np.random.default_rng(2026).standard_normal(u.size))
+    header = ["# experiment: tutorial-chute (synthetic stand-in, docs/tutorial/make_data.py)", "# synthetic: true",
+              f"# truth: {json.dumps(CHUTE_TRUTH)}", "# source: python docs/tutorial/make_data.py chute",
+              "# secondary: false", "# quantity: depth_averaged", f"# noise: {NOISE_VELOCITY}", "slope_deg,h_m,u_m_s"]
+    (HERE / "chute.csv").write_text("\n".join(header + [f"{a:g},{b:g},{c:.5g}" for a, b, c in zip(slope, h, u)])
+                                    + "\n")
+
+
 if __name__ == "__main__":
-    main()
+    chute() if sys.argv[1:] == ["chute"] else main()
