@@ -207,16 +207,20 @@ def _flow_rule(args) -> int:
     from ..studies.flow_rule import FLOW_RULE_KEYS, fit_flow_rule
 
     init, values = parse_pairs(args.init, "--init"), parse_pairs(args.set, "--set")
-    keys = parse_keys(args.fit) if args.fit else FLOW_RULE_KEYS
-    if str(args.table).endswith(".toml"):  # an incline experiment: its material, table and [fit]; flags win
+    keys, walls = (parse_keys(args.fit) if args.fit else FLOW_RULE_KEYS), args.side_walls
+    if str(args.table).endswith(".toml"):  # an incline experiment: its material, table, walls and [fit]; flags win
         experiment = load_incline(args.table)
         keys = parse_keys(args.fit) if args.fit else experiment.keys
         init = {**{k: v for k, v in experiment.init.items() if k in keys}, **init}
         values = {**experiment.material, **values}
+        walls = walls if walls is not None else experiment.side_walls
         table = load_flow_rule(experiment.table_file)
     else:
         table = load_flow_rule(args.table)
-    result = fit_flow_rule(table, keys, init=init, values=values, steps=args.steps)
+    if walls is not None and walls.friction == "mu_w" and "mu_w" not in values and "mu_w" not in init:
+        raise ValueError("--side-walls: the walls' friction is the parameter mu_w; give its value with --set mu_w=... "
+                         "(or fit it: --fit ...,mu_w --init mu_w=...)")
+    result = fit_flow_rule(table, keys, init=init, values=values, steps=args.steps, side_walls=walls)
     return _print_with_figures(result.to_json(), args, lambda: [str(plot_flow_rule(result, args.plot))])
 
 

@@ -210,7 +210,8 @@ def _add_bench(sub) -> None:
 
 
 def _add_flow_rule(sub) -> None:
-    rule = sub.add_parser("flow-rule", help="fit mu1, mu2 and I0 to steady flows down an incline (a flow-rule table)")
+    rule = sub.add_parser("flow-rule", help="fit mu1, mu2 and I0 (and the side walls' mu_w) to steady flows down "
+                                             "an incline (a flow-rule table)")
     rule.add_argument("table", metavar="TABLE.csv|EXPERIMENT.toml",
                       help="a flow-rule table (slope_deg,h_m,u_m_s; docs/data_files.md) or an incline experiment "
                            "file ([experiment] kind = \"incline\": its material, table and [fit])")
@@ -220,6 +221,10 @@ def _add_flow_rule(sub) -> None:
                       help="start of a fitted key (default: the material's value)")
     rule.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                       help="a parameter held fixed: the grain diameter d, rho, rho_s, or a key not fitted")
+    rule.add_argument("--side-walls", type=side_walls_argument, default=None, metavar="WIDTH,FRICTION[,K]",
+                      help="the chute's side walls: its width (m), the walls' Coulomb friction (a number, or mu_w: "
+                           "the parameter, set with --set mu_w=... and fitted with --fit ...,mu_w) and the lateral "
+                           "pressure ratio K (default 1), e.g. 0.05,0.3 (default: the incline file's, else none)")
     rule.add_argument("--steps", type=int, default=100)
     rule.add_argument("--plot", default=None, metavar="DIR", help="draw flow_rule.png in DIR (made if missing)")
     rule.add_argument("--json", action="store_true")

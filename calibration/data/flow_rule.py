@@ -15,7 +15,8 @@ import numpy as np
 
 from jaxmpm import tables
 
-__all__ = ["FLOW_RULE_COLUMNS", "FLOW_RULE_KEYS", "QUANTITIES", "FlowRuleTable", "load_flow_rule"]
+__all__ = ["FLOW_RULE_COLUMNS", "FLOW_RULE_KEYS", "QUANTITIES", "FlowRuleTable", "flow_rule_keys", "load_flow_rule",
+           "flow_rule_keys_problem"]
 
 #: The columns of a flow-rule table: slope (degrees), layer thickness (m), velocity (m/s).
 FLOW_RULE_COLUMNS = ("slope_deg", "h_m", "u_m_s")
@@ -23,6 +24,26 @@ FLOW_RULE_COLUMNS = ("slope_deg", "h_m", "u_m_s")
 FLOW_RULE_KEYS = ("mu1", "mu2", "I0")
 #: What the velocity column measures: the depth-averaged velocity (the flow rule) or the free surface's.
 QUANTITIES = ("depth_averaged", "surface")
+
+
+def flow_rule_keys(side_walls=None) -> tuple[str, ...]:
+    """The keys a flow rule can fit: μ1, μ2 and I0, and μ_w between ``side_walls`` (a
+    ``jaxmpm.SideWalls`` or None) whose friction is the parameter "mu_w"."""
+    reads = side_walls is not None and side_walls.friction == "mu_w"
+    return FLOW_RULE_KEYS + (("mu_w",) if reads else ())
+
+
+def flow_rule_keys_problem(keys, side_walls=None) -> str | None:
+    """Why ``keys`` are not a flow rule's keys between ``side_walls`` (None: they are)."""
+    keys, allowed = tuple(keys), flow_rule_keys(side_walls)
+    if keys and not set(keys) - set(allowed) and len(set(keys)) == len(keys):
+        return None
+    why = ""
+    if "mu_w" in keys and "mu_w" not in allowed:
+        why = (" (mu_w is the side walls' friction: it is fitted only between walls whose friction is "
+               "\"mu_w\", e.g. side_walls = { width = \"5 cm\", friction = \"mu_w\" } or --side-walls 0.05,mu_w; "
+               + ("these walls' friction is a number)" if side_walls is not None else "this chute has no side walls)"))
+    return f"a flow rule fits distinct keys among {list(allowed)}, got {list(keys)}{why}"
 
 
 @dataclasses.dataclass(frozen=True, eq=False)

@@ -12,6 +12,8 @@ flow-rule table measured on them, and what to fit (docs/incline_fits.md).
     rho_s = "2500 kg/m^3"
     [flow_rule]
     file = "rule.csv"                    # slope_deg,h_m,u_m_s (docs/data_files.md), relative to this file
+    [boundaries]                         # optional: the chute's side walls, as a collapse file's
+    side_walls = { width = "5 cm", friction = 0.3 }   # friction = "mu_w": [material] mu_w, fittable
     [fit]
     keys = ["mu1", "mu2", "I0"]
     init = { mu1 = 0.3, mu2 = 0.9, I0 = 0.8 }
@@ -33,10 +35,12 @@ if sys.version_info >= (3, 11):
 else:  # pragma: no cover - Python 3.10
     import tomli as tomllib
 
+from jaxmpm import SideWalls
+from jaxmpm._experiment_checks import SIDE_WALLS, Invalid, side_walls_of
 from jaxmpm._toml import ExperimentError, Units, Where, read_section
 from jaxmpm.params import DEFAULTS, PARAMS, param_help, validate_params
 
-from .flow_rule import FLOW_RULE_KEYS
+from .flow_rule import FLOW_RULE_KEYS, flow_rule_keys_problem
 
 __all__ = ["InclineExperiment", "incline_from_text", "is_incline_file", "load_incline"]
 
@@ -45,6 +49,7 @@ _SCHEMA = {
     "experiment": {"kind": "str", "name": "str", "title": "str", "source": "str", "note": "str"},
     "material": {key: Units(spec.units, spec.unit) for key, spec in PARAMS.items()},
     "flow_rule": {"file": "path"},
+    "boundaries": {"side_walls": SIDE_WALLS},
     "fit": {"keys": "strings", "init": "numbers"},
 }
 
@@ -52,7 +57,8 @@ _SCHEMA = {
 @dataclasses.dataclass(frozen=True)
 class InclineExperiment:
     """One incline experiment: its ``material`` (SI values, as given), the flow-rule table's
-    ``table_file``, the ``keys`` to fit and their ``init`` (empty: not stated), and where every
+    ``table_file``, the ``keys`` to fit and their ``init`` (empty: not stated), the chute's
+    ``side_walls`` (a ``jaxmpm.SideWalls``; None: none), and where every
     value came from (``sources``: "section.key" -> its ``source``/``note``/``unit`` entries);
     ``text``: the file's text as read (None: not read from a file), which a fit's record keeps
     (``calibration.problem.build.FitSetup.to_json``)."""
@@ -63,6 +69,7 @@ class InclineExperiment:
     keys: tuple[str, ...] = FLOW_RULE_KEYS
     init: Mapping[str, float] = dataclasses.field(default_factory=dict)
     title: str = ""
+    side_walls: SideWalls | None = None
     sources: Mapping[str, Mapping[str, str]] = dataclasses.field(default_factory=dict, compare=False)
     path: pathlib.Path | None = dataclasses.field(default=None, compare=False)
     text: str | None = dataclasses.field(default=None, compare=False, repr=False)
@@ -125,15 +132,33 @@ def incline_from_text(text: str, path=None, *, check_files: bool = True) -> Incl
     table_file = (path.parent / sections["flow_rule"]["file"])
     if check_files and not table_file.is_file():
         raise where.error("flow_rule", "file", f"no such file: {table_file}")
+    side_walls = _side_walls(sections["boundaries"], material, where)
     fit = sections["fit"]
     keys = tuple(fit.get("keys", FLOW_RULE_KEYS))
-    if not keys or set(keys) - set(FLOW_RULE_KEYS) or len(set(keys)) != len(keys):
-        raise where.error("fit", "keys",
-                          f"a flow rule fits distinct keys among {list(FLOW_RULE_KEYS)}, got {list(keys)}")
+    problem = flow_rule_keys_problem(keys, side_walls)
+    if problem:
+        raise where.error("fit", "keys", problem)
     init = dict(fit.get("init", {}))
     if set(init) - set(keys):
         raise where.error("fit", "init", f"{sorted(set(init) - set(keys))} are not among the fitted keys {list(keys)}")
     experiment = sections["experiment"]
     return InclineExperiment(name=experiment.get("name", path.stem), material=material, table_file=table_file,
-                             keys=keys, init=init, title=experiment.get("title", ""), sources=sources,
+                             keys=keys, init=init, title=experiment.get("title", ""), side_walls=side_walls,
+                             sources=sources,
                              path=None if given is None else path, text=text)
+
+
+def _side_walls(boundaries, material, where: Where) -> SideWalls | None:
+    """``[boundaries] side_walls`` read and checked as a collapse file's (``side_walls_of``); walls
+    whose friction is "mu_w" need ``[material] mu_w`` (its value, or a fit's start)."""
+    if "side_walls" not in boundaries:
+        return None
+    try:
+        walls = side_walls_of(boundaries["side_walls"])
+    except Invalid as err:
+        raise where.error(err.section, err.key, err.what) from None
+    if walls.friction == "mu_w" and "mu_w" not in material:
+        raise where.error("material", "mu_w", "missing: the side walls' friction is the parameter mu_w (friction = "
+                                              "\"mu_w\"); give its value here (the walls' friction, or a fit's "
+                                              "start where [fit] keys has mu_w)")
+    return walls

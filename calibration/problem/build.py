@@ -14,7 +14,7 @@ from typing import Any
 
 from jaxmpm import Experiment
 
-from ..data.flow_rule import FLOW_RULE_KEYS, load_flow_rule
+from ..data.flow_rule import flow_rule_keys, load_flow_rule
 from ..data.incline import InclineExperiment, incline_from_text
 from ..data.measurements import check_run_status, load_measurements
 from .composite import CompositeObjective
@@ -47,15 +47,17 @@ def member_objective(source, keys: Sequence[str], profiles=(), front=None,
 def incline_objective(incline: InclineExperiment, table, keys: Sequence[str], *, alone: bool = True,
                       dtype=None) -> FlowRuleObjective:
     """The ``FlowRuleObjective`` of an incline experiment's ``table`` (its material as the fixed
-    values) fitting those of ``keys`` a flow rule fixes (μ1, μ2, I0): all of ``keys`` when it is
-    fitted ``alone``, some of them in a joint fit; none is an error naming the file."""
-    own = tuple(k for k in keys if k in FLOW_RULE_KEYS)
+    values, between its side walls) fitting those of ``keys`` a flow rule fixes (μ1, μ2, I0; and μ_w
+    between walls whose friction is "mu_w"): all of ``keys`` when it is fitted ``alone``, some of
+    them in a joint fit; none is an error naming the file."""
+    allowed = flow_rule_keys(incline.side_walls)
+    own = tuple(k for k in keys if k in allowed)
     name = incline.path or incline.name
     if not own or (alone and len(own) < len(tuple(keys))):
-        other = [k for k in keys if k not in FLOW_RULE_KEYS]
-        raise ValueError(f"{name}: an incline's flow rule fits only {', '.join(FLOW_RULE_KEYS)}; it cannot fit "
+        other = [k for k in keys if k not in allowed]
+        raise ValueError(f"{name}: an incline's flow rule fits only {', '.join(allowed)}; it cannot fit "
                          f"{', '.join(other)}" + ("" if own else " (fit one of its keys, or leave the file out)"))
-    return FlowRuleObjective(table, own, values=incline.material, dtype=dtype)
+    return FlowRuleObjective(table, own, values=incline.material, dtype=dtype, side_walls=incline.side_walls)
 
 
 def objective_of(sources: Sequence, keys: Sequence[str], data: Sequence, options: DataOptions | None = None,

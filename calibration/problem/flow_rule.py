@@ -3,7 +3,8 @@ table's velocities, with the members a fit, a search and a composite call
 (``calibration.problem.protocol.ObjectiveLike``), so that an incline and a collapse can be fitted
 together with shared keys (``CompositeObjective.sharing``).
 
-The model is ``jaxmpm.scenes.incline.steady_velocity`` (docs/incline_fits.md); the residuals are
+The model is ``jaxmpm.scenes.incline.steady_velocity`` (docs/incline_fits.md), between the chute's
+side walls where it has them (``side_walls``: their friction "mu_w" makes μ_w a key); the residuals are
 relative, u_model / u_data − 1, one block ("velocity"), NaN at a row whose slope would not flow
 steadily (a run that failed: a fit rejects the step). A closed form has no grid and no particles:
 ``coarsened`` raises ``NotImplementedError`` (the grid term says so; in a composite the member
@@ -12,6 +13,7 @@ stays as it is), and a resampled run is the same run.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Mapping, Sequence
 from typing import Any
@@ -20,15 +22,16 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxmpm import SideWalls
 from jaxmpm.params import DEFAULTS, validate_params
 from jaxmpm.scenes.incline import steady_velocity
 
-from ..data.flow_rule import FLOW_RULE_KEYS
+from ..data.flow_rule import FLOW_RULE_KEYS, flow_rule_keys_problem
 from .bounds import Bounds, physical
 from .objective import _digest
 from .protocol import as_theta
 
-__all__ = ["FLOW_RULE_KEYS", "FlowRuleObjective", "flow_rule_residuals", "flow_rule_material"]
+__all__ = ["FLOW_RULE_KEYS", "FlowRuleObjective", "flow_rule_residuals", "flow_rule_material", "measured_keys"]
 
 
 
@@ -39,37 +42,54 @@ def flow_rule_material(values: Mapping[str, float] | None) -> dict[str, float]:
     return {k: float(v) for k, v in material.items()}
 
 
-def flow_rule_residuals(table, keys: Sequence[str], material: Mapping[str, float], dtype=None):
+def flow_rule_residuals(table, keys: Sequence[str], material: Mapping[str, float], dtype=None, side_walls=None):
     """The pure, traceable θ -> r of ``table`` (θ: the values of ``keys``; the other parameters
     from ``material``): r = u_model / u_data − 1 at every row, NaN where the row's slope allows
-    no steady flow; computed in ``dtype`` (default: θ's)."""
+    no steady flow; computed in ``dtype`` (default: θ's), between ``side_walls`` (a
+    ``jaxmpm.SideWalls``; None: none)."""
     keys = tuple(keys)
 
     def residuals(theta):
         kind = theta.dtype if dtype is None else dtype
         slope, h, u = (jnp.asarray(a, kind) for a in (table.slope_deg, table.h, table.u))
         p = {**{k: jnp.asarray(v, kind) for k, v in material.items()}, **dict(zip(keys, theta))}
-        model = steady_velocity(h, slope, p["mu1"], p["mu2"], p["I0"], p["rho"], p["rho_s"], p["d"], table.quantity)
+        model = steady_velocity(h, slope, p["mu1"], p["mu2"], p["I0"], p["rho"], p["rho_s"], p["d"], table.quantity,
+                                side_walls, p["mu_w"])
         return model / u - 1.0
 
     return residuals
 
 
-def _check_keys(keys) -> tuple[str, ...]:
+def measured_keys(keys: Sequence[str], side_walls=None) -> tuple[str, ...]:
+    """The measured parameters a flow rule's model reads and does not fit: ρ, ρ_s, d, and μ_w
+    between ``side_walls`` whose friction is "mu_w" where it is not among ``keys``."""
+    reads = side_walls is not None and side_walls.friction == "mu_w" and "mu_w" not in keys
+    return ("rho", "rho_s", "d") + (("mu_w",) if reads else ())
+
+
+def _check_keys(keys, side_walls) -> tuple[str, ...]:
     keys = tuple(keys)
-    if not keys or set(keys) - set(FLOW_RULE_KEYS) or len(set(keys)) != len(keys):
-        raise ValueError(f"keys: a flow rule fits distinct keys among {FLOW_RULE_KEYS}, got {keys}")
+    problem = flow_rule_keys_problem(keys, side_walls)
+    if problem:
+        raise ValueError(f"keys: {problem}")
     return keys
 
 
 class FlowRuleObjective:
-    """``table`` (a ``calibration.data.FlowRuleTable``) fitted for ``keys`` (some of μ1, μ2, I0),
-    the other parameters from ``values`` over the model's defaults; runs in ``dtype`` (default:
-    JAX's default float)."""
+    """``table`` (a ``calibration.data.FlowRuleTable``) fitted for ``keys`` (some of μ1, μ2, I0;
+    and μ_w between ``side_walls`` whose friction is "mu_w"), the other parameters from ``values``
+    over the model's defaults; the chute's ``side_walls`` (a ``jaxmpm.SideWalls``; None: a
+    wall-free chute); runs in ``dtype`` (default: JAX's default float)."""
 
     def __init__(self, table, keys: Sequence[str] = FLOW_RULE_KEYS, *, values: Mapping[str, float] | None = None,
-                 bounds: Mapping[str, tuple[float, float]] | None = None, dtype=None):
-        self.table, self.keys = table, _check_keys(keys)
+                 bounds: Mapping[str, tuple[float, float]] | None = None, dtype=None, side_walls=None):
+        if side_walls is not None and not isinstance(side_walls, SideWalls):
+            raise ValueError(f"side_walls must be a jaxmpm.SideWalls or None, got {type(side_walls).__name__}")
+        self.table, self.side_walls, self.keys = table, side_walls, _check_keys(keys, side_walls)
+        if side_walls is not None and side_walls.friction == "mu_w" and "mu_w" not in {**(values or {})}:
+            if "mu_w" not in self.keys:
+                raise ValueError("values: the side walls' friction is the parameter mu_w (SideWalls(width, \"mu_w\")); "
+                                 "give its value, values={'mu_w': ...}, or fit it (keys with mu_w)")
         self.material = flow_rule_material(values)
         self.bounds = Bounds.create(self.keys, bounds)
         self.bound_notes: tuple[str, ...] = ()
@@ -78,7 +98,7 @@ class FlowRuleObjective:
         self.blocks = {"velocity": slice(0, table.n)}
         self.row_scale = np.ones(table.n)
         self.jacobian = "ad"
-        self._r = flow_rule_residuals(table, self.keys, self.material, self.dtype)
+        self._r = flow_rule_residuals(table, self.keys, self.material, self.dtype, side_walls)
         self._residuals = jax.jit(self.residual_fn)
 
         def with_aux(theta):
@@ -205,7 +225,8 @@ class FlowRuleObjective:
 
     def fingerprint(self) -> dict[str, Any]:
         t = self.table
-        return {"model": "steady incline flow (closed form)", "quantity": t.quantity,
+        walls = {} if self.side_walls is None else {"side_walls": self._walls()}  # a wall-free record as before
+        return {"model": "steady incline flow (closed form)", "quantity": t.quantity, **walls,
                 "data": _digest(t.slope_deg, t.h, t.u), "keys": list(self.keys),
                 "fixed": {k: v for k, v in self.material.items() if k not in self.keys},
                 "bounds": {k: [lo, hi] for k, lo, hi in zip(self.keys, self.bounds.lower, self.bounds.upper)},
@@ -216,7 +237,14 @@ class FlowRuleObjective:
         return {"model": "steady incline flow (closed form, docs/incline_fits.md)", "keys": list(self.keys),
                 "data": {"path": t.path, "experiment": t.experiment, "quantity": t.quantity, "rows": t.n,
                          "slopes_deg": t.slopes.tolist()},
-                "fixed": {k: v for k, v in self.material.items() if k in ("rho", "rho_s", "d")}}
+                "fixed": {k: v for k, v in self.material.items() if k in self.fixed_keys}, "side_walls": self._walls()}
+
+    @property
+    def fixed_keys(self) -> tuple[str, ...]:
+        return measured_keys(self.keys, self.side_walls)
+
+    def _walls(self) -> dict[str, Any] | None:
+        return None if self.side_walls is None else dataclasses.asdict(self.side_walls)
 
 
 def _constant(outs):

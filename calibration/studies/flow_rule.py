@@ -11,7 +11,9 @@ glass-bead constants every scene here uses were obtained (docs/incline_fits.md).
 The model is that closed form, not an MPM run (``calibration.problem.flow_rule.FlowRuleObjective``):
 the periodic strip the engine runs for S1 reaches it within 1.2-1.6 % in float64 (docs/validation.md
 §2), and a closed form costs microseconds. It holds where the flow is uniform, wall-free and thick
-(h ≫ h_stop, which the local model does not predict). The residuals are relative
+(h ≫ h_stop, which the local model does not predict); between a chute's side walls the model is
+their closed form (``steady_velocity(side_walls=)``: the walls' friction μ_w K p / W at each
+depth, docs/incline_fits.md "A chute with side walls"). The residuals are relative
 (u_model / u_data − 1), so a table's ``noise`` is a relative standard deviation. The fit is
 ``calibration.fit`` in float64 (its verdict and Gauss–Newton intervals; no grid term: a closed form
 has no grid). Fitted together with a collapse, the objective is a member of a
@@ -30,7 +32,7 @@ from jaxmpm.precision import x64
 
 from ..data.flow_rule import FlowRuleTable
 from ..optim.fit import FitResult, fit
-from ..problem.flow_rule import FLOW_RULE_KEYS, FlowRuleObjective
+from ..problem.flow_rule import FLOW_RULE_KEYS, FlowRuleObjective, measured_keys
 
 __all__ = ["FLOW_RULE_KEYS", "FlowRuleResult", "fit_flow_rule"]
 
@@ -38,12 +40,14 @@ __all__ = ["FLOW_RULE_KEYS", "FlowRuleResult", "fit_flow_rule"]
 @dataclasses.dataclass(frozen=True, eq=False)
 class FlowRuleResult:
     """The fit of a flow-rule table: the package's ``FitResult`` (``fit``: the point, its
-    verdict and intervals), the table, the start and the material the other parameters came from."""
+    verdict and intervals), the table, the start, the material the other parameters came from and
+    the chute's side walls (None: none)."""
 
     fit: FitResult
     table: FlowRuleTable
     start: dict[str, float]
     material: dict[str, float]
+    side_walls: Any = None
 
     keys = property(lambda self: self.fit.keys)
     theta = property(lambda self: self.fit.theta)
@@ -58,10 +62,12 @@ class FlowRuleResult:
 
     def to_json(self) -> dict[str, Any]:
         """What ``python -m calibration flow-rule --json`` prints: the fit's JSON, the material held
-        fixed, the relative residuals' RMS and the table's description."""
+        fixed, the chute's side walls (null: none), the relative residuals' RMS and the table's description."""
         t = self.table
         out = self.fit.to_json()
-        out.update({"start": dict(self.start), "fixed": {k: self.material[k] for k in ("rho", "rho_s", "d")},
+        fixed = measured_keys(self.keys, self.side_walls)
+        out.update({"start": dict(self.start), "fixed": {k: self.material[k] for k in fixed},
+                    "side_walls": None if self.side_walls is None else dataclasses.asdict(self.side_walls),
                     "rms_relative_residual": float(np.sqrt(np.mean(self.residuals ** 2))),
                     "data": {"path": t.path, "experiment": t.experiment, "source": t.source,
                              "secondary": t.secondary, "quantity": t.quantity, "rows": t.n,
@@ -71,18 +77,21 @@ class FlowRuleResult:
 
 def fit_flow_rule(table: FlowRuleTable, keys: Sequence[str] = FLOW_RULE_KEYS, *,
                   init: Mapping[str, float] | None = None, values: Mapping[str, float] | None = None,
-                  bounds: Mapping[str, tuple[float, float]] | None = None, steps: int = 100) -> FlowRuleResult:
-    """Fit ``keys`` (some of μ1, μ2, I0) to ``table`` from ``init`` (default: the material's own
-    values), the other parameters (ρ, ρ_s, d and the keys not fitted) from ``values`` over the
-    defaults of docs/model.md §4: ``calibration.fit`` of a ``FlowRuleObjective`` in float64, the
-    table's noise (if it states one) for the intervals. A start at which some slope of the table
-    has no steady flow is refused, naming the key."""
+                  bounds: Mapping[str, tuple[float, float]] | None = None, steps: int = 100,
+                  side_walls=None) -> FlowRuleResult:
+    """Fit ``keys`` (some of μ1, μ2, I0; and μ_w between ``side_walls`` whose friction is "mu_w")
+    to ``table`` from ``init`` (default: the material's own values), the other parameters (ρ, ρ_s,
+    d, μ_w and the keys not fitted) from ``values`` over the defaults of docs/model.md §4, the
+    chute's ``side_walls`` (a ``jaxmpm.SideWalls``; None: none): ``calibration.fit`` of a
+    ``FlowRuleObjective`` in float64, the table's noise (if it states one) for the intervals. A
+    start at which some slope of the table has no steady flow is refused, naming the key."""
     keys = tuple(keys)
     unknown = set(init or {}) - set(keys)
     if unknown:
         raise ValueError(f"init: {sorted(unknown)} are not among the fitted keys {keys}")
     with x64():
-        objective = FlowRuleObjective(table, keys, values=values, bounds=bounds, dtype="float64")
+        objective = FlowRuleObjective(table, keys, values=values, bounds=bounds, dtype="float64",
+                                      side_walls=side_walls)
         start = {k: float((init or {}).get(k, objective.material[k])) for k in objective.keys}
         objective.bounds.check(np.array([start[k] for k in objective.keys]), "init")
         problem = objective.no_steady_flow(start)
@@ -91,4 +100,4 @@ def fit_flow_rule(table: FlowRuleTable, keys: Sequence[str] = FLOW_RULE_KEYS, *,
         if table.n <= len(keys):
             raise ValueError(f"{table.path or 'table'}: {table.n} rows cannot fix {len(keys)} keys")
         result = fit(objective, start, steps=steps, noise=table.noise, workers=1)
-    return FlowRuleResult(fit=result, table=table, start=start, material=objective.material)
+    return FlowRuleResult(fit=result, table=table, start=start, material=objective.material, side_walls=side_walls)

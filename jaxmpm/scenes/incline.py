@@ -23,7 +23,8 @@ from .base import Scene
 from .collapse import G, floor_lift
 from .info import SceneInfo
 
-__all__ = ["incline", "S1_DEPTH", "S1_PARAMS", "bagnold_velocity", "side_wall_velocity", "steady_velocity"]
+__all__ = ["incline", "S1_DEPTH", "S1_PARAMS", "bagnold_velocity", "side_wall_velocity", "steady_velocity",
+           "wall_drag"]
 
 #: S1's layer depth h (docs/scenes.md S1), m.
 S1_DEPTH = 0.038
@@ -56,22 +57,77 @@ def bagnold_velocity(z, depth, slope_deg, params):
     return scale * (depth**1.5 - (depth - z) ** 1.5)
 
 
-def steady_velocity(depth, slope_deg, mu1, mu2, I0, rho, rho_s, d, quantity: str = "surface"):
-    """The steady flow's velocity at the free surface (``quantity="surface"``: ``bagnold_velocity``
-    at z = h) or averaged over the depth (``"depth_averaged"``: 3/5 of it), for a layer of depth
-    ``depth`` at ``slope_deg``: (2/3) I_θ sqrt(ρ g cos θ / ρ_s) h^{3/2} / d. Traceable, on arrays
-    that broadcast; NaN where tan θ does not lie strictly between μ1 and μ2 (no steady flow: the
-    layer stops, or accelerates)."""
+def steady_velocity(depth, slope_deg, mu1, mu2, I0, rho, rho_s, d, quantity: str = "surface", side_walls=None,
+                    mu_w=None):
+    """The steady flow's velocity at the free surface (``quantity="surface"``) or averaged over the
+    depth (``"depth_averaged"``) for a layer of depth ``depth`` at ``slope_deg``. Traceable, on
+    arrays that broadcast; NaN where tan θ does not lie strictly between μ1 and μ2 (no steady flow:
+    the layer stops, or accelerates).
+
+    Without ``side_walls`` it is Bagnold's (``bagnold_velocity`` at z = h):
+    (2/3) I_θ sqrt(ρ g cos θ / ρ_s) h^{3/2} / d at the surface, 3/5 of it averaged over the depth.
+    Between ``side_walls`` (a ``jaxmpm.SideWalls``; its friction "mu_w" reads ``mu_w``) it is the
+    flow of ``side_wall_velocity`` (docs/model.md §6): μ(I(ζ)) = tan θ − a ζ at the depth ζ, with
+    the walls' drag a = μ_w K / W, the flow stopping below ζ* = (tan θ − μ1) / a, so that with
+    γ̇ = I(ζ) sqrt(ρ g cos θ ζ / ρ_s) / d and L = min(h, ζ*) the surface moves at ∫_0^L γ̇ dζ and
+    the depth average is (1/h) ∫_0^L ζ γ̇ dζ. Both integrals are in closed form (``_wall_integral``),
+    exact for a = 0 and finite, with their derivatives, wherever the flow is steady."""
     import jax.numpy as jnp
 
     if quantity not in ("surface", "depth_averaged"):
         raise ValueError(f"quantity must be 'surface' or 'depth_averaged', got {quantity!r}")
+    drag = wall_drag(side_walls, mu_w)
     theta = jnp.deg2rad(slope_deg)
     tan = jnp.tan(theta)
     steady = (mu1 < tan) & (tan < mu2)
-    i_theta = I0 * (tan - mu1) / jnp.where(steady, mu2 - tan, 1.0)
-    surface = (2.0 / 3.0) * i_theta * jnp.sqrt(rho * G * jnp.cos(theta) / rho_s) / d * depth**1.5
-    return jnp.where(steady, surface if quantity == "surface" else 0.6 * surface, jnp.nan)
+    above = jnp.where(steady, tan - mu1, 1.0)  # A = tan θ − μ1 > 0: the surface flows
+    below = jnp.where(steady, mu2 - tan, 1.0)  # B = μ2 − tan θ > 0: it does not accelerate
+    to_bed = drag * depth < above  # the flow reaches the bed (always without walls)
+    flowing = jnp.where(to_bed, depth, above / jnp.where(to_bed, 1.0, drag))  # L = min(h, ζ*)
+    u = drag * flowing / below  # a L / B >= 0
+    scale = 2.0 * I0 * jnp.sqrt(rho * G * jnp.cos(theta) / rho_s) / d / below
+    if quantity == "surface":  # 2 I0 c L^{3/2} (A/3 − (A + B) u g2(u)) / B
+        value = scale * flowing**1.5 * (above / 3.0 - (above + below) * u * _wall_integral(u, 2))
+    else:  # 2 I0 c L^{5/2} (A/5 − (A + B) u g3(u)) / (B h)
+        value = scale * flowing**2.5 * (above / 5.0 - (above + below) * u * _wall_integral(u, 3)) / depth
+    return jnp.where(steady, value, jnp.nan)
+
+
+def wall_drag(side_walls, mu_w=None):
+    """The side walls' drag a = μ_w K / W (1/m) of ``steady_velocity``: 0.0 without ``side_walls``;
+    ``mu_w`` (traceable) where their friction is the parameter "mu_w"."""
+    if side_walls is None:
+        return 0.0
+    friction = side_walls.friction
+    if isinstance(friction, str):
+        if mu_w is None:
+            raise ValueError("mu_w: the side walls' friction is the parameter mu_w (friction=\"mu_w\"); give its value")
+        friction = mu_w
+    return friction * side_walls.lateral_pressure_ratio / side_walls.width
+
+
+#: Below this u = a L / B, ``_wall_integral`` sums its series (60 terms: the first left out is
+#: below 0.5^60 / 125 < 1e-20); above it, the arctan form's cancellation costs at most ~3 digits.
+_SERIES_BELOW = 0.5
+
+
+def _wall_integral(u, k: int):
+    """g_k(u) = ∫_0^1 t^{2k} / (1 + u t²) dt (u >= 0, k = 2 or 3): the series Σ_j (−u)^j / (2j + 2k + 1)
+    for small u, else g_1 = (X − atan X) / X³ (X = √u) and g_{k+1} = (1/(2k + 1) − g_k) / u. Each
+    branch sees only arguments it is accurate on (the double ``where``: finite derivatives)."""
+    import jax.numpy as jnp
+
+    small = u < _SERIES_BELOW
+    us = jnp.where(small, u, 0.0)
+    series = 0.0
+    for j in reversed(range(60)):
+        series = 1.0 / (2 * j + 2 * k + 1) - us * series
+    ul = jnp.where(small, 1.0, u)
+    x = jnp.sqrt(ul)
+    closed = (x - jnp.arctan(x)) / (x * ul)
+    for m in range(1, k):
+        closed = (1.0 / (2 * m + 1) - closed) / ul
+    return jnp.where(small, series, closed)
 
 
 def side_wall_velocity(z, depth, slope_deg, params, side_walls, points: int = 4001):
