@@ -84,7 +84,8 @@ def objective_of(sources: Sequence, keys: Sequence[str], data: Sequence, options
 class FitSetup:
     """What a fit's objective is built from. ``experiments``: one or more ``jaxmpm.Experiment``
     with their measurements or ``InclineExperiment`` with their flow-rule tables (which fit
-    the keys among μ1, μ2, I0 (and μ_w between walls whose friction is "mu_w") and read no ``options``); ``keys``: the fitted keys;
+    the keys among μ1, μ2, I0, and μ_w between walls whose friction is "mu_w", and read no
+    ``options``); ``keys``: the fitted keys;
     ``options``: how the data are read and weighed; ``shared`` and ``labels``: with several
     experiments, the keys they share and the names of each one's own (``objective_of``);
     ``sort``, ``clip_noise``: how the measurement files are read (``load_profile``); ``dtype``:
