@@ -8,6 +8,7 @@ import pathlib
 
 import numpy as np
 
+from ..problem.flow_rule import FlowRuleObjective
 from ..problem.protocol import ObjectiveLike
 from .flow_rule import plot_flow_rule_member
 
@@ -47,7 +48,7 @@ def plot_fit(objective: ObjectiveLike, result, path, *, title: str | None = None
         result.prediction]
     panels = []  # (member, x or t, data, model, the profile's time or None for the front)
     for i, (obj, pred) in enumerate(zip(members, preds)):
-        if not hasattr(obj, "observations"):
+        if isinstance(obj, FlowRuleObjective):
             continue  # a closed form's table (an incline): its own figure (fit_figures)
         offset, obs, h_all = 0, obj.observations, np.asarray(obj.data["h"], float)
         for x, t in zip(obs.profile_x, obs.profile_times):
@@ -258,11 +259,11 @@ def fit_figures(directory, objective, result, *, prefix: str = "fit", truth=None
     """A fit's figures in ``directory`` (made if missing): ``PREFIX_profiles.png`` (``plot_fit``)
     and ``PREFIX_history.png`` (``plot_history``, ``truth`` drawn where given); their paths."""
     d = _folder(directory)
-    figs = [plot_fit(objective, result, d / f"{prefix}_profiles.png")] if any(
-        hasattr(member, "observations") for member, _, _ in objective.parts) else []
+    figs = [plot_fit(objective, result, d / f"{prefix}_profiles.png")] if not all(
+        isinstance(member, FlowRuleObjective) for member, _, _ in objective.parts) else []
     figs.append(plot_history(result.history, result.keys, d / f"{prefix}_history.png", truth=truth))
     theta = np.array([result.theta[k] for k in result.keys])
-    inclines = [(member, index) for member, index, _ in objective.parts if hasattr(member, "table")]
+    inclines = [(member, index) for member, index, _ in objective.parts if isinstance(member, FlowRuleObjective)]
     for n, (member, index) in enumerate(inclines):  # an incline in a joint fit: its table against the model
         name = f"{prefix}_flow_rule.png" if len(inclines) == 1 else f"{prefix}_flow_rule_{n + 1}.png"
         figs.append(plot_flow_rule_member(member, theta[np.asarray(index)], d / name, result))

@@ -1,6 +1,7 @@
 """All five keys from several filmed collapses of one material: a twin, fitted from the command line.
 
     python docs/scripts/five_keys_twin.py data     # writes docs/five_keys/: 3 experiment files + CSVs
+    python docs/scripts/five_keys_twin.py chute    # writes docs/five_keys/chute.toml + chute.csv
     python docs/scripts/five_keys_twin.py data --only column --fit beta,mu1 --no-start \
         --fit-cells 16 --data-cells 24 --seed 11 --out heldout   # the defaults' held-out check
     python -m calibration fit docs/five_keys/column.toml docs/five_keys/slope20.toml \\
@@ -15,6 +16,12 @@ another particle draw, with noise of 2 % of each profile's peak where there is m
 reads zero) and 2 % of L on the front, so
 that the fit meets the grid's error and the particles' as a real one would. Each file's [fit]
 asks for all five keys from one start away from the truth.
+
+``chute`` writes the designer's other half of its recommended set (docs/what_collapses_tell.md,
+"Collapses and inclines in one design"): the same material's steady flows down a rough chute, a
+flow-rule table (the depth-averaged velocity of the closed form at the truth, slopes 22–28°,
+thicknesses 10–40 mm, 1 % noise, seed 0) in an incline experiment file that starts its keys
+where the collapses' files do.
 """
 
 import argparse
@@ -105,9 +112,42 @@ def make_data(seed: int = 7, fit_cells: int = FIT_CELLS, data_cells: int = DATA_
         print(f"{label}: {data_scene.state.n_particles} particles in the data's run; wrote {path.name}")
 
 
+CHUTE_SLOPES, CHUTE_DEPTHS, CHUTE_NOISE = (22.0, 24.0, 26.0, 28.0), (0.01, 0.02, 0.03, 0.04), 0.01
+
+
+def make_chute(out: pathlib.Path = OUT) -> None:
+    """docs/five_keys/chute.csv and chute.toml (see the module docstring)."""
+    from jaxmpm.precision import x64
+    from jaxmpm.scenes.incline import steady_velocity
+
+    material = base({}, L / FIT_CELLS).material
+    slope, h = (a.ravel() for a in np.meshgrid(CHUTE_SLOPES, CHUTE_DEPTHS, indexing="ij"))
+    with x64():
+        u = np.asarray(steady_velocity(h, slope, TRUTH["mu1"], TRUTH["mu2"], TRUTH["I0"], material["rho"],
+                                       material["rho_s"], material["d"], "depth_averaged"))
+    u = u * (1.0 + CHUTE_NOISE * np.random.default_rng(0).standard_normal(u.size))
+    truth = {k: TRUTH[k] for k in ("mu1", "mu2", "I0")}
+    header = ["# experiment: five-keys-chute (synthetic twin, docs/scripts/five_keys_twin.py chute)",
+              "# synthetic: true", f"# truth: {json.dumps(truth)}",
+              "# source: python docs/scripts/five_keys_twin.py chute",
+              "# secondary: false", "# quantity: depth_averaged", f"# noise: {CHUTE_NOISE}", "slope_deg,h_m,u_m_s"]
+    (out / "chute.csv").write_text("\n".join(header + [f"{a:g},{b:g},{c:.6g}" for a, b, c in zip(slope, h, u)]) + "\n")
+    lines = ["# chute: steady flows of S4's material down a rough chute, synthetic (docs/scripts/five_keys_twin.py)",
+             "format = 1", "", "[experiment]", 'kind = "incline"', 'name = "five-keys-chute"',
+             'title = "S4\'s material, steady layers on a rough chute at 22-28 degrees"',
+             'source = "python docs/scripts/five_keys_twin.py chute"', "", "[material]"]
+    lines += [f'{k} = {{ value = {material[k]!r}, source = "as docs/five_keys/column.toml" }}'
+              for k in ("rho", "rho_s", "d")]
+    init = ", ".join(f"{k} = {INIT[k]!r}" for k in truth)
+    lines += ["", "[flow_rule]", 'file = "chute.csv"', "", "[fit]", 'keys = ["mu1", "mu2", "I0"]',
+              f"init = {{ {init} }}"]
+    (out / "chute.toml").write_text("\n".join(lines) + "\n")
+    print(f"chute: {u.size} rows; wrote chute.toml and chute.csv")
+
+
 def main():
     parser = argparse.ArgumentParser()
-    parser.add_argument("what", choices=("data",))
+    parser.add_argument("what", choices=("data", "chute"))
     parser.add_argument("--seed", type=int, default=7, help="the data's particle draw")
     parser.add_argument("--fit-cells", type=int, default=FIT_CELLS, help="the files' dx = L/N (default 12)")
     parser.add_argument("--data-cells", type=int, default=DATA_CELLS, help="the data's dx = L/N (default 18)")
@@ -116,6 +156,8 @@ def main():
     parser.add_argument("--no-start", action="store_true", help="no [fit] init: the fit searches globally")
     parser.add_argument("--out", type=pathlib.Path, default=OUT, help="the folder (default docs/five_keys)")
     args = parser.parse_args()
+    if args.what == "chute":
+        return make_chute(args.out)
     make_data(args.seed, args.fit_cells, args.data_cells, args.out, tuple(args.only.split(",")),
               tuple(args.fit.split(",")), not args.no_start)
 
