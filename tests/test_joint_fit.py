@@ -7,7 +7,7 @@ import json
 
 import numpy as np
 import pytest
-from helpers import model_data, tiny_s4
+from helpers import ROOT, model_data, tiny_s4
 
 from calibration import CompositeObjective, Objective, fit
 from calibration.data import FlowRuleTable, dataset_path, load_flow_rule
@@ -88,3 +88,36 @@ def test_a_collapse_and_an_incline_fitted_together_fix_the_rate_dependence():
         name = "beta@collapse" if key == "beta" else key
         assert joint_se[name] < se_alone, (key, joint_se[name], se_alone)
     assert alone.stderr[3] > 1.0 and joint_se["I0"] < 0.01  # I0: unknown from the collapse, to 1 % jointly
+
+
+def test_a_block_the_noise_does_not_name_is_estimated_and_the_source_says_which():
+    from calibration.inference.noise import block_noise, structural_noise
+
+    rng = np.random.default_rng(3)
+    r = np.concatenate([0.03 * rng.standard_normal(40), 0.01 * rng.standard_normal(16)])
+    blocks = {"column/profile": slice(0, 40), "chute/velocity": slice(40, 56)}
+    sigma, counts, source = block_noise(r, np.ones(56), blocks, {"chute/velocity": 0.01})
+    assert sigma["chute/velocity"] == 0.01 and counts["chute/velocity"] == 0
+    assert (sigma["column/profile"], counts["column/profile"]) == structural_noise(r[:40])
+    assert source == "given for chute/velocity; estimated from the residuals' second differences for the others"
+    assert block_noise(r, np.ones(56), blocks, 0.02)[2] == "given"
+    assert block_noise(r, np.ones(56), blocks, None)[2] == "estimated from the residuals' second differences"
+
+
+def test_a_joint_fit_takes_each_tables_stated_noise_for_its_block(tmp_path):
+    """``FitSetup.stated_noise``: an incline table's header noise, under its block's name in the
+    objective (alone: "velocity"; beside another experiment: "label/velocity"); a collapse states
+    none, so its blocks are estimated. (Before, a joint fit estimated the table's noise from its
+    residuals too, and a lucky draw narrowed the intervals past the truth.)"""
+    from calibration.data.incline import load_incline
+    from calibration.problem.build import FitSetup
+    from jaxmpm import Experiment
+
+    twin = load_incline(dataset_path("synthetic/flow_rule_twin_experiment"))
+    assert FitSetup((twin,), ("mu1", "mu2", "I0")).stated_noise() == {"velocity": 0.02}
+    column = Experiment.from_toml(ROOT / "docs" / "five_keys" / "column.toml")
+    chute = load_incline(ROOT / "docs" / "five_keys" / "chute.toml")
+    setup = FitSetup((column, chute), ("beta", "mu1", "mu2", "I0"), shared=("mu1", "mu2", "I0"),
+                     labels=("column", "chute"))
+    assert setup.stated_noise() == {"chute/velocity": 0.01}
+    assert "chute/velocity" in setup.objective().blocks

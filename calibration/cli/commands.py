@@ -62,7 +62,8 @@ def _fit(args) -> int:
     setup = setup_of(args, request.keys)
     objective = setup.objective()
     init = objective.expand(request.init)  # a plain key's start for each experiment's own value
-    options, judge = fit_options(args, request.noise)
+    # No --noise and none in the collapse files: the tables' stated noise for their blocks, the others estimated.
+    options, judge = fit_options(args, request.noise if request.noise is not None else setup.stated_noise() or None)
     coarse = coarse_setup(setup, args.coarse).objective() if starts > 1 and args.coarse is not None else None
     with Workers(worker_count(args)) as workers:
         result, found = fit_from_starts(objective, init, starts=starts, options=options, judge=judge, coarse=coarse,

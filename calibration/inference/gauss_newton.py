@@ -175,7 +175,7 @@ def _sandwich_terms(e, Je, row_scale, blocks, noise, reference_noise):
         dof = max(mb - n * mb / m, 1.0)
         s = math.sqrt(float(np.sum(e[sl] ** 2)) / dof)
         estimated[name] = s
-        sigma = float(noise[name]) if noise is not None else s
+        sigma = float(noise[name]) if noise is not None and name in noise else s  # a block not named: estimated
         used[name] = sigma
         reference[name] = max(s, reference_noise)
         Jb, wb = Je[sl], weight[sl]

@@ -72,18 +72,24 @@ def front_correlation(t, e) -> dict[str, float | None]:
 
 def block_noise(r, row_scale, blocks: Mapping[str, slice], noise: Mapping[str, float] | float | None = None
                 ) -> tuple[dict[str, float | None], dict[str, int], str]:
-    """σ of each block (relative units): the given ``noise`` (a float applies to every block),
-    or ``structural_noise`` of the block's residuals. Returns ``(sigma, counts, source)``, counts
-    the number of second differences behind each estimate (0 for given noise)."""
+    """σ of each block (relative units): the given ``noise`` (a float applies to every block; a
+    mapping gives the blocks it names), else ``structural_noise`` of the block's residuals.
+    Returns ``(sigma, counts, source)``, counts the number of second differences behind each
+    estimate (0 for given noise)."""
     e = np.asarray(r, float) / np.asarray(row_scale, float)
-    if noise is not None:
-        if not isinstance(noise, Mapping):
-            noise = {name: float(noise) for name in blocks}
-        return {name: float(noise[name]) for name in blocks}, {name: 0 for name in blocks}, "given"
-    sigma, counts = {}, {}
+    if noise is not None and not isinstance(noise, Mapping):
+        noise = {name: float(noise) for name in blocks}
+    given = {name: float(noise[name]) for name in blocks if name in noise} if noise is not None else {}
+    sigma, counts = dict(given), {name: 0 for name in given}
     for name, sl in blocks.items():
-        sigma[name], counts[name] = structural_noise(e[sl])
-    return sigma, counts, "estimated from the residuals' second differences"
+        if name not in given:
+            sigma[name], counts[name] = structural_noise(e[sl])
+    estimated = "estimated from the residuals' second differences"
+    if len(given) == len(blocks):
+        return sigma, counts, "given"
+    if not given:
+        return sigma, counts, estimated
+    return sigma, counts, f"given for {', '.join(given)}; {estimated} for the others"
 
 
 def chi2_of(r, row_scale, blocks: Mapping[str, slice], sigma: Mapping[str, float | None]) -> float:

@@ -17,7 +17,8 @@ __all__ = ["JudgeOptions"]
 @dataclasses.dataclass(frozen=True)
 class JudgeOptions:
     """How a fit's end point is judged (``calibration.inference.verdict.judge_point``). ``noise``:
-    the known noise (a number, or one per residual block; None: estimated); ``uncertainty``:
+    the known noise (a number, or by residual block: a block not named is estimated; None: every
+    block estimated); ``uncertainty``:
     compute intervals at all; ``roundoff_samples`` perturbed runs for the run's own scatter and
     ``sampling_seeds`` other particle draws (0, or 2 and more: 0 is not measured);
     ``reference_noise`` and ``threshold`` decide which parameters count as constrained;

@@ -116,6 +116,16 @@ class FitSetup:
             data.append((profiles, front))
         return data
 
+    def stated_noise(self) -> dict[str, float]:
+        """The noise the measurements state, by the objective's block: an incline table's relative
+        σ (its header's ``noise``) for its "velocity" block; a collapse's profiles state none."""
+        out = {}
+        for i, (e, data) in enumerate(zip(self.experiments, self.measurements())):
+            if isinstance(e, InclineExperiment) and data.noise is not None:
+                prefix = "" if len(self.experiments) == 1 else f"{self.labels[i] if self.labels else i}/"
+                out[f"{prefix}velocity"] = float(data.noise)
+        return out
+
     def objective(self):
         """The objective (``objective_of``) of the experiments against their measurements."""
         return objective_of(self.experiments, self.keys, self.measurements(), self.options, shared=self.shared,

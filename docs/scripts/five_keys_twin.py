@@ -20,8 +20,8 @@ asks for all five keys from one start away from the truth.
 ``chute`` writes the designer's other half of its recommended set (docs/what_collapses_tell.md,
 "Collapses and inclines in one design"): the same material's steady flows down a rough chute, a
 flow-rule table (the depth-averaged velocity of the closed form at the truth, slopes 22–28°,
-thicknesses 10–40 mm, 1 % noise, seed 0) in an incline experiment file that starts its keys
-where the collapses' files do.
+thicknesses 10–40 mm, 1 % noise, seed 0) in an incline experiment file (no start of its own: a
+joint fit takes its start from --init).
 """
 
 import argparse
@@ -138,9 +138,7 @@ def make_chute(out: pathlib.Path = OUT) -> None:
              'source = "python docs/scripts/five_keys_twin.py chute"', "", "[material]"]
     lines += [f'{k} = {{ value = {material[k]!r}, source = "as docs/five_keys/column.toml" }}'
               for k in ("rho", "rho_s", "d")]
-    init = ", ".join(f"{k} = {INIT[k]!r}" for k in truth)
-    lines += ["", "[flow_rule]", 'file = "chute.csv"', "", "[fit]", 'keys = ["mu1", "mu2", "I0"]',
-              f"init = {{ {init} }}"]
+    lines += ["", "[flow_rule]", 'file = "chute.csv"', "", "[fit]", 'keys = ["mu1", "mu2", "I0"]']
     (out / "chute.toml").write_text("\n".join(lines) + "\n")
     print(f"chute: {u.size} rows; wrote chute.toml and chute.csv")
 
