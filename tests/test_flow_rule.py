@@ -219,3 +219,18 @@ def test_a_joint_fits_figures_draw_its_incline(tmp_path):
     figures = fit_figures(tmp_path / "figs", objective, result)
     assert [pathlib.Path(f).name for f in figures] == ["fit_history.png", "fit_flow_rule.png"]
     assert all(pathlib.Path(f).stat().st_size > 10_000 for f in figures)
+
+
+def test_an_output_step_that_fails_in_any_way_keeps_the_work():
+    """``guard``: an output step's failure, a defect included (the figure bug above was an
+    AttributeError, which used to escape and lose a finished fit's JSON), is reported under its
+    option and returns None."""
+    from calibration.cli.args import guard
+
+    def broken():
+        raise AttributeError("'FlowRuleObjective' object has no attribute 'observations'")
+
+    errors = {}
+    assert guard(errors, "--plot", broken) is None
+    assert errors == {"--plot": "AttributeError: 'FlowRuleObjective' object has no attribute 'observations'"}
+    assert guard(errors, "--out", lambda: "written") == "written" and "--out" not in errors

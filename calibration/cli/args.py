@@ -379,11 +379,12 @@ def coarse_setup(setup: FitSetup, factor: float) -> FitSetup:
 
 
 def guard(errors: dict, option: str, write):
-    """Run one output step after the work; on failure keep the message under ``option`` in
-    ``errors`` (the JSON still prints) and return None."""
+    """Run one output step after the work; on any failure (a full disk, a missing extra, or a
+    defect in a figure) keep the message under ``option`` in ``errors`` and return None: the
+    work is done, and its JSON still prints (the exit status says the output failed)."""
     try:
         return write()
-    except (OSError, ValueError, RuntimeError, ImportError) as err:
+    except Exception as err:  # noqa: BLE001 - nothing an output step raises may lose a finished fit
         errors[option] = f"{type(err).__name__}: {err}"
         return None
 
