@@ -250,3 +250,28 @@ def test_command_line_inclines_are_refused_naming_the_option(argv, message, caps
     with pytest.raises(SystemExit) as stop:
         main(["design", *TINY, "--fit", ",".join(KEYS), *argv])
     assert stop.value.code == 2 and message in capsys.readouterr().err
+
+
+def test_the_design_figure_keeps_its_axes_on_the_sets_that_see_both_keys(tmp_path, monkeypatch):
+    """An incline alone does not see β: its region is thousands of |β| wide. It is drawn but left
+    beyond the axes, and its legend says so, so that the collapses' regions stay readable."""
+    from types import SimpleNamespace
+
+    import calibration.plots.fits as fits
+
+    def candidate(name, cost, sd):
+        cov = np.diag(np.square(sd))
+        return SimpleNamespace(name=name, cost=cost, cov=cov, cov_data=cov, halfwidth=1.96 * np.asarray(sd),
+                               halfwidth_data=1.96 * np.asarray(sd))
+
+    collapse, incline = candidate("final profile", 1.0, [0.03, 0.01]), candidate("incline", 4.0, [1e3, 1e-4])
+    result = SimpleNamespace(keys=("beta", "mu1"), theta=np.array([0.25, 0.38]), tolerance=0.1,
+                             candidates=(collapse, incline), recommended=None)
+    seen = {}
+    monkeypatch.setattr(fits, "_save", lambda fig, path, dpi: seen.setdefault("fig", fig) and path)
+    fits.plot_design(result, tmp_path / "design.png")
+    ax = seen["fig"].axes[0]
+    low, high = ax.get_xlim()
+    assert 0.25 - 0.2 < low < 0.25 - 0.03 * 2.4 and 0.25 + 0.03 * 2.4 < high < 0.25 + 0.2  # the collapse's region
+    labels = [line.get_label() for line in ax.get_lines()]
+    assert "incline (cost 4) (beyond the axes)" in labels and "final profile (cost 1)" in labels

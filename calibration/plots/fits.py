@@ -231,14 +231,23 @@ def plot_design(result, path, *, title: str | None = None, data_only: bool = Fal
     t = np.linspace(0.0, 2.0 * np.pi, 200)
     circle = np.stack([np.cos(t), np.sin(t)])
     radius = np.sqrt(5.991)  # the 95 % quantile of chi-square with two degrees of freedom
-    for i, c in enumerate(chosen[:8]):
-        cov = (c.cov_data if data_only else c.cov)[:2, :2]
-        evals, evecs = np.linalg.eigh(cov)
-        xy = (evecs * np.sqrt(np.maximum(evals, 0.0))) @ circle * radius + theta[:2, None]
-        style = "-" if c is result.recommended else "--"
-        ax.plot(xy[0], xy[1], style, color=f"C{i}", lw=2 if c is result.recommended else 1.2,
-                label=f"{c.name} (cost {c.cost:g})" + (": recommended" if c is result.recommended else ""))
     tol = result.tolerance * np.abs(theta[:2])
+    regions = []
+    for c in chosen[:8]:
+        evals, evecs = np.linalg.eigh((c.cov_data if data_only else c.cov)[:2, :2])
+        regions.append((evecs * np.sqrt(np.maximum(evals, 0.0))) @ circle * radius)
+    # The window: every region within twice |θ| of it (a key a set does not see, e.g. β from an
+    # incline alone, has a region of thousands of |θ|: drawn, but beyond the axes, and said so).
+    span = np.abs(np.stack(regions)).max(axis=2)  # (regions, 2) half-extents
+    shown = span[np.all(span <= 2.0 * np.abs(theta[:2]), axis=1)]
+    window = np.maximum(1.5 * tol, shown.max(axis=0) if shown.size else 2.0 * tol)
+    for i, (c, xy, extent) in enumerate(zip(chosen, regions, span)):
+        beyond = " (beyond the axes)" if np.any(extent > 1.001 * window) else ""
+        style = "-" if c is result.recommended else "--"
+        ax.plot(xy[0] + theta[0], xy[1] + theta[1], style, color=f"C{i}", lw=2 if c is result.recommended else 1.2,
+                label=f"{c.name} (cost {c.cost:g})" + (": recommended" if c is result.recommended else "") + beyond)
+    ax.set(xlim=(theta[0] - 1.05 * window[0], theta[0] + 1.05 * window[0]),
+           ylim=(theta[1] - 1.05 * window[1], theta[1] + 1.05 * window[1]))
     ax.plot(theta[0] + tol[0] * np.array([-1, 1, 1, -1, -1]), theta[1] + tol[1] * np.array([-1, -1, 1, 1, -1]),
             ":", color="k", lw=1, label=f"±{100 * result.tolerance:g} %")
     ax.plot(theta[0], theta[1], "k+", ms=10)
