@@ -210,8 +210,37 @@ def test_the_joint_fit_builds_the_incline_with_its_walls(tmp_path):
     for objective in (setup.objective(), again.objective()):
         assert objective.side_walls == SideWalls(0.05, 0.3)
         np.testing.assert_allclose(np.asarray(objective.residuals(list(TRUTH.values()))[0]), 0.0, atol=1e-12)
-    with pytest.raises(ValueError, match="its chute has side walls, which design's incline model"):
-        design_inclines([str(path)])
+    ((table, material, walls),) = design_inclines([str(path)]).values()  # the designer plans with the walls
+    assert walls == SideWalls(0.05, 0.3) and material["mu_w"] == 0.2 and table.n == 16
+
+
+def test_the_designer_plans_a_walled_chute_with_the_walled_flow():
+    """An incline plan with side walls whose friction is "mu_w": its Jacobian (μ1, μ2, I0, μ_w and a
+    key it does not see, β) is the central difference of the walled closed form's relative
+    velocities (float64), and μ_w's column is not zero."""
+    from calibration.design.design import Experiment
+    from calibration.design.inclines import incline_experiment, incline_plans
+    from jaxmpm import Params
+
+    walls, keys = SideWalls(0.05, "mu_w"), ("beta", "mu1", "mu2", "I0", "mu_w")
+    plain = twin(0.05)  # a plan: its velocities are not used
+    ((table, material, got),) = incline_plans({"chute": (plain, {}, walls)}, ["main"]).values()
+    assert got == walls
+    values = {"beta": 0.25, **TRUTH, "mu_w": 0.3}
+    experiment = incline_experiment("chute", table, {**FIXED, **material}, Params.create(**FIXED), keys, values, 0.01,
+                                    Experiment, walls)
+
+    def relative(p):
+        model = steady_velocity(table.h, table.slope_deg, p["mu1"], p["mu2"], p["I0"], *FIXED.values(),
+                                table.quantity, walls, p["mu_w"])
+        at = steady_velocity(table.h, table.slope_deg, *TRUTH.values(), *FIXED.values(), table.quantity, walls, 0.3)
+        return np.asarray(model) / np.asarray(at) - 1.0
+
+    for i, key in enumerate(keys):
+        h = 1e-6 * values[key]
+        fd = (relative({**values, key: values[key] + h}) - relative({**values, key: values[key] - h})) / (2 * h)
+        np.testing.assert_allclose(experiment.J[:, i], fd, rtol=1e-6, atol=1e-9, err_msg=key)
+    assert np.all(experiment.J[:, 0] == 0.0) and np.all(np.abs(experiment.J[:, 4]) > 0)
 
 
 @pytest.mark.parametrize("edit, message", [

@@ -146,7 +146,8 @@ def design_noise(args) -> dict[str, float]:
 
 def design_inclines(files) -> dict:
     """``design --incline FILE`` (repeatable) -> {the file's stem: its flow-rule table, or (table, the
-    file's material) for an incline experiment file}; an unreadable file is refused naming the option."""
+    file's material, its chute's side walls or None) for an incline experiment file}; an unreadable
+    file is refused naming the option."""
     out: dict = {}
     for file in files:
         label = pathlib.Path(file).stem
@@ -155,10 +156,7 @@ def design_inclines(files) -> dict:
         try:
             if is_incline_file(file):
                 experiment = load_incline(file)
-                if experiment.side_walls is not None:
-                    raise ValueError("its chute has side walls, which design's incline model (the wall-free closed "
-                                     "form) does not have yet; plan with the file without [boundaries] side_walls")
-                out[label] = (load_flow_rule(experiment.table_file), dict(experiment.material))
+                out[label] = (load_flow_rule(experiment.table_file), dict(experiment.material), experiment.side_walls)
             else:
                 out[label] = load_flow_rule(file)
         except (OSError, ValueError) as err:

@@ -387,9 +387,10 @@ def design(scene, keys: Sequence[str], theta: Mapping[str, float] | None = None,
             raise ValueError("variants: 'main' names the scene itself; choose another label")
         scenes[label] = scene.variant(**dict(changes))
     plans = incline_plans(inclines, list(scenes))
-    sigmas = {label: incline_sigma(table, noise, velocity_given) for label, (table, _) in plans.items()}
-    incline_runs = [incline_experiment(label, table, material, scene.params, keys, values, sigmas[label], Experiment)
-                    for label, (table, material) in plans.items()]  # refused here, before any collapse runs
+    sigmas = {label: incline_sigma(table, noise, velocity_given) for label, (table, _, _) in plans.items()}
+    incline_runs = [incline_experiment(label, table, material, scene.params, keys, values, sigmas[label], Experiment,
+                                       walls)
+                    for label, (table, material, walls) in plans.items()]  # refused here, before any collapse runs
     candidate_sets = _candidate_sets(sets, scenes, plans)
     length = float(scene.info.length)
     grid = scene.config.grid
@@ -398,7 +399,7 @@ def design(scene, keys: Sequence[str], theta: Mapping[str, float] | None = None,
     experiments = [_experiment(label, s, keys, values, xs, times, front_times, top_x, noise, sampling_seeds,
                                grid_ratio, grid_draws, workers) for label, s in scenes.items()] + incline_runs
     theta_arr = np.array([values[k] for k in keys])
-    slopes = {label: int(table.slopes.size) for label, (table, _) in plans.items()}
+    slopes = {label: int(table.slopes.size) for label, (table, _, _) in plans.items()}
     candidates = []
     for name, parts, cost in candidate_sets:
         halfwidth, cov, data_only, weighted, cov_data = expected_halfwidths(experiments, parts)

@@ -12,9 +12,11 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping, Sequence
+from typing import Any
 
 import numpy as np
 
+from jaxmpm import SideWalls
 from jaxmpm.scenes.incline import steady_velocity
 
 from ..data.flow_rule import FLOW_RULE_KEYS, FlowRuleTable
@@ -28,26 +30,30 @@ INCLINE_KINDS = ("flow_rule",)
 INCLINE_MATERIAL = ("rho", "rho_s", "d")
 
 
-def incline_plans(inclines, taken: Sequence[str]) -> dict[str, tuple[FlowRuleTable, dict[str, float]]]:
-    """``design``'s ``inclines`` checked: {label: (table, the incline's own material)}. A value is a
-    ``FlowRuleTable`` (the scene's material) or a pair (table, {key: value}) whose values replace
-    the scene's for this incline (its measured ρ, ρ_s, d). Refuses a label among ``taken``."""
+def incline_plans(inclines, taken: Sequence[str]) -> dict[str, tuple[FlowRuleTable, dict[str, float], Any]]:
+    """``design``'s ``inclines`` checked: {label: (table, the incline's own material, its chute's
+    side walls or None)}. A value is a ``FlowRuleTable`` (the scene's material, no walls), a pair
+    (table, {key: value}) whose values replace the scene's for this incline (its measured ρ, ρ_s,
+    d; μ_w for walls whose friction is "mu_w"), or a triple (table, {key: value},
+    ``jaxmpm.SideWalls``). Refuses a label among ``taken``."""
     plans = {}
     for label, value in dict(inclines or {}).items():
         label = str(label)
         if label in taken:
             raise ValueError(f"inclines: the label {label!r} is already an experiment's ({list(taken)}); "
                              "choose another")
-        table, material = (value, {}) if isinstance(value, FlowRuleTable) else _pair(label, value)
-        plans[label] = (table, {str(k): float(v) for k, v in dict(material).items()})
+        table, material, walls = (value, {}, None) if isinstance(value, FlowRuleTable) else _pair(label, value)
+        plans[label] = (table, {str(k): float(v) for k, v in dict(material).items()}, walls)
     return plans
 
 
 def _pair(label, value):
-    if (isinstance(value, Sequence) and len(value) == 2 and isinstance(value[0], FlowRuleTable)
-            and isinstance(value[1], Mapping)):
-        return value
-    raise ValueError(f"inclines[{label!r}] must be a FlowRuleTable or a pair (FlowRuleTable, {{key: value}}), "
+    if (isinstance(value, Sequence) and len(value) in (2, 3) and isinstance(value[0], FlowRuleTable)
+            and isinstance(value[1], Mapping) and (len(value) == 2 or value[2] is None
+                                                    or isinstance(value[2], SideWalls))):
+        return (*value, None) if len(value) == 2 else tuple(value)
+    raise ValueError(f"inclines[{label!r}] must be a FlowRuleTable, a pair (FlowRuleTable, {{key: value}}) or a "
+                     "triple (FlowRuleTable, {key: value}, jaxmpm.SideWalls), "
                      f"got {type(value).__name__}")
 
 
@@ -58,19 +64,22 @@ def incline_sigma(table: FlowRuleTable, noise: Mapping[str, float], given: bool)
 
 
 def incline_experiment(label: str, table: FlowRuleTable, material: Mapping[str, float], scene_params,
-                       keys: Sequence[str], values: Mapping[str, float], sigma: float, experiment_type):
+                       keys: Sequence[str], values: Mapping[str, float], sigma: float, experiment_type,
+                       side_walls=None):
     """The ``experiment_type`` (``design.Experiment``) of an incline: its rows ("flow_rule"), σ, the
     Jacobian of the relative residuals with respect to ``keys`` at ``values`` (zero columns for
-    the keys the flow rule does not depend on), unit weights, no draws and no coarse grid."""
+    the keys the flow rule does not depend on), unit weights, no draws and no coarse grid; the
+    walled steady flow between ``side_walls`` (μ_w a key where their friction is "mu_w")."""
     keys = tuple(keys)
-    base = {k: float(np.asarray(getattr(scene_params, k))) for k in (*INCLINE_MATERIAL, *FLOW_RULE_KEYS)}
+    base = {k: float(np.asarray(getattr(scene_params, k))) for k in (*INCLINE_MATERIAL, *FLOW_RULE_KEYS, "mu_w")}
     at = {**base, **{k: v for k, v in material.items() if k not in keys}, **{k: values[k] for k in keys}}
     try:
         at = flow_rule_material(at)
     except ValueError as err:
         raise ValueError(f"inclines[{label!r}]: the material at theta is not valid: {err}") from None
-    own = tuple(k for k in keys if k in FLOW_RULE_KEYS)
-    probe = FlowRuleObjective(table, FLOW_RULE_KEYS, values=at)
+    reads_mu_w = side_walls is not None and side_walls.friction == "mu_w"
+    own = tuple(k for k in keys if k in FLOW_RULE_KEYS or (k == "mu_w" and reads_mu_w))
+    probe = FlowRuleObjective(table, FLOW_RULE_KEYS, values=at, side_walls=side_walls)
     why = probe.no_steady_flow({k: at[k] for k in FLOW_RULE_KEYS})
     if why is not None:
         raise ValueError(f"inclines[{label!r}]: at theta the table's slopes give no steady flow: {why}")
@@ -79,10 +88,10 @@ def incline_experiment(label: str, table: FlowRuleTable, material: Mapping[str, 
     objective = None
     if own:
         u = np.asarray(steady_velocity(table.h, table.slope_deg, *(at[k] for k in (*FLOW_RULE_KEYS, *INCLINE_MATERIAL)),
-                                       table.quantity), float)
+                                       table.quantity, side_walls, at["mu_w"] if reads_mu_w else None), float)
         twin = FlowRuleTable(table.slope_deg, table.h, u, table.quantity, table.source, table.secondary,
                              table.experiment, table.noise, dict(table.meta), table.path)
-        objective = FlowRuleObjective(twin, own, values=at)
+        objective = FlowRuleObjective(twin, own, values=at, side_walls=side_walls)
         r, J_own, _ = objective.residuals_and_jacobian([at[k] for k in own])
         if not (np.all(np.isfinite(np.asarray(J_own))) and np.max(np.abs(np.asarray(r))) < 1e-4):
             raise ValueError(f"inclines[{label!r}]: the closed form is not finite at theta (residuals {np.asarray(r)})")
