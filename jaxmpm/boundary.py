@@ -133,11 +133,12 @@ class SideWalls:
             object.__setattr__(self, name, number)
 
 
-def friction_value(friction, params, dtype):
-    """A boundary's μ_w: its number, or ``params.mu_w`` where it is declared ``"mu_w"``."""
+def friction_value(friction, params, dtype, owner: str = "SideWalls"):
+    """A boundary's μ_w: its number, or ``params.mu_w`` where it is declared ``"mu_w"`` (an error
+    naming ``owner`` without ``params``)."""
     if isinstance(friction, str):
         if params is None:
-            raise ValueError("a friction of 'mu_w' needs the parameters (params=None)")
+            raise ValueError(f"{owner} friction 'mu_w' needs the parameters (params=None)")
         return jnp.asarray(params.mu_w, dtype)
     return friction
 
@@ -316,9 +317,7 @@ def apply_walls(walls, v, node_x, t, dt, params=None, mass=None):
     grid velocities, and this is the momentum they remove)."""
     impulses = []
     for wall in walls:
-        if isinstance(wall.friction, str) and params is None:
-            raise ValueError(f"{type(wall).__name__} friction 'mu_w' needs the parameters (params=None)")
-        friction = friction_value(wall.friction, params, v.dtype)
+        friction = friction_value(wall.friction, params, v.dtype, type(wall).__name__)
         after = _apply_wall(wall, v, node_x, t, dt, friction)
         if mass is not None:
             impulses.append(jnp.sum(mass * (v - after), axis=1))

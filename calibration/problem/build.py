@@ -120,10 +120,11 @@ class FitSetup:
         """The noise the measurements state, by the objective's block: an incline table's relative
         σ (its header's ``noise``) for its "velocity" block; a collapse's profiles state none."""
         out = {}
-        for i, (e, data) in enumerate(zip(self.experiments, self.measurements())):
-            if isinstance(e, InclineExperiment) and data.noise is not None:
+        for i, e in enumerate(self.experiments):
+            noise = load_flow_rule(e.table_file).noise if isinstance(e, InclineExperiment) else None
+            if noise is not None:  # the block named as CompositeObjective names it: "label/velocity"
                 prefix = "" if len(self.experiments) == 1 else f"{self.labels[i] if self.labels else i}/"
-                out[f"{prefix}velocity"] = float(data.noise)
+                out[f"{prefix}velocity"] = float(noise)
         return out
 
     def objective(self):

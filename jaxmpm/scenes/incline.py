@@ -139,8 +139,7 @@ def side_wall_velocity(z, depth, slope_deg, params, side_walls, points: int = 40
     import numpy as np
 
     get, theta, tan, mu1, mu2 = _steady_flow(params, slope_deg)
-    friction = get("mu_w") if isinstance(side_walls.friction, str) else side_walls.friction
-    drag = friction * side_walls.lateral_pressure_ratio / side_walls.width
+    drag = wall_drag(side_walls, get("mu_w") if side_walls.friction == "mu_w" else None)
     stop = (tan - mu1) / drag if drag > 0 else math.inf
     height = np.linspace(0.0, depth, points)
     zeta = depth - height
