@@ -175,6 +175,10 @@ def test_structural_noise_sees_the_white_part_only():
     (["--coarse", "0.5"], "--coarse must be a finite factor > 1 of the grid spacing, got 0.5"),
     (["--coarse", "2", "--init", "beta=0.2"], "--coarse is a stage of the global search"),
     (["--refine", "0"], "--refine must be an integer >= 1, got 0"),
+    (["--grid-ladder", "4"], "--grid-ladder must be one of 2, 3 (grids, the fit's included), got 4"),
+    (["--grid-ladder", "3", "--coarse", "2"], "--grid-ladder 3 with --coarse: the ladder's coarsest rung is where"),
+    (["--grid-ladder", "2", "--grid-check", "0"], "--grid-ladder 2 with --grid-check 0"),
+    (["--grid-ladder", "3", "--grid-levels", "2"], "--grid-ladder 3 with --grid-levels 2"),
 ])
 def test_bad_search_options_are_refused_before_any_work(monkeypatch, tmp_path, capsys, extra, message):
     def tripwire(*args, **kwargs):

@@ -73,6 +73,24 @@ def check_options(args) -> None:
                                  "default without --init; with --init give --starts K)")
         if args.refine < 1:
             raise ValueError(f"--refine must be an integer >= 1, got {args.refine}")
+        if args.grid_ladder is not None:
+            _check_ladder(args)
+
+
+def _check_ladder(args) -> None:
+    """--grid-ladder N against the options it replaces or cannot continue."""
+    from ..optim.ladder import LADDER_RUNGS
+
+    if args.grid_ladder not in LADDER_RUNGS:
+        raise ValueError(f"--grid-ladder must be one of {', '.join(map(str, LADDER_RUNGS))} (grids, the fit's "
+                         f"included), got {args.grid_ladder}")
+    for option, given, why in (
+            ("--coarse", args.coarse is not None, "the ladder's coarsest rung is where the starts run"),
+            ("--grid-check 0", not args.grid_check, "the ladder's coarser grids are RHO x dx (--grid-check RHO)"),
+            ("--grid-levels 2", args.grid_levels != 1, "the ladder's rungs are its grids"),
+            ("--resume", args.resume, "a ladder starts from its coarsest rung")):
+        if given:
+            raise ValueError(f"--grid-ladder {args.grid_ladder} with {option}: {why}; drop one of them")
 
 
 def check_command(args) -> None:

@@ -14,7 +14,15 @@ from jaxmpm.scenes.collapse import S4_SIDE
 from jaxmpm.threads import apply_threads
 
 from ..batch.workers import Workers
-from ..plots.fits import fit_figures, law_figures, plot_coverage, plot_design, sweep_figures, twin_landscape_figure
+from ..plots.fits import (
+    fit_figures,
+    law_figures,
+    plot_coverage,
+    plot_design,
+    plot_ladder,
+    sweep_figures,
+    twin_landscape_figure,
+)
 from ..plots.posteriors import likelihood_figures
 from .args import (
     coarse_setup,
@@ -64,6 +72,8 @@ def _fit(args) -> int:
     init = objective.expand(request.init)  # a plain key's start for each experiment's own value
     # No --noise and none in the collapse files: the tables' stated noise for their blocks, the others estimated.
     options, judge = fit_options(args, request.noise if request.noise is not None else setup.stated_noise() or None)
+    if args.grid_ladder is not None:
+        return _fit_ladder(args, setup, objective, init, starts, options, judge)
     coarse = coarse_setup(setup, args.coarse).objective() if starts > 1 and args.coarse is not None else None
     with Workers(worker_count(args)) as workers:
         result, found = fit_from_starts(objective, init, starts=starts, options=options, judge=judge, coarse=coarse,
@@ -72,6 +82,25 @@ def _fit(args) -> int:
                                         meta=fit_meta(setup), workers=workers)
     out = {**fit_report(objective, result, found), **fit_fields(args, setup, init, found)}
     return _print_with_figures(out, args, lambda: fit_figures(args.plot, objective, result))
+
+
+def _fit_ladder(args, setup, objective, init, starts, options, judge) -> int:
+    """``fit --grid-ladder N``: the fits on N grids (``calibration.optim.ladder.grid_ladder``);
+    the report is the finest fit's, with the ladder's point, interval and rungs under "ladder"."""
+    from ..optim.ladder import grid_ladder
+    from ..optim.report import fit_report
+
+    with Workers(worker_count(args)) as workers:
+        ladder = grid_ladder(objective, init, rungs=args.grid_ladder, ratio=args.grid_check, starts=starts,
+                             seed=args.search_seed, options=options, judge=judge, out=args.out,
+                             overwrite=args.overwrite, progress=not args.no_progress, workers=workers)
+    out = {**fit_report(objective, ladder.fit, None), "ladder": ladder.to_json(),
+           **fit_fields(args, setup, init, ladder.search if starts > 1 else None)}
+    if starts > 1:
+        out["search"] = {"starts": starts, "rung": "coarsest", "why": "the global search runs on the ladder's "
+                                                                      "coarsest grid"}
+    return _print_with_figures(out, args, lambda: fit_figures(args.plot, objective, ladder.fit) + [
+        str(plot_ladder(out["ladder"], pathlib.Path(args.plot) / "fit_ladder.png"))])
 
 
 def _posterior(args) -> int:

@@ -127,6 +127,11 @@ def _add_fit(sub) -> None:
                           "spacing, two particle draws there at the end point (stderr_grid, grid; about two thirds "
                           "of one forward run in 2D; default 1.5; 0: not measured)")
     _grid_levels(fit)
+    fit.add_argument("--grid-ladder", type=int, default=None, metavar="N",
+                     help="fit on N grids (2 or 3: dx x RHO^(N-1) ... dx, RHO from --grid-check), the coarsest from "
+                          "the starts and each finer from the coarser one's point; the grid term from the fitted "
+                          "points, and with 3 grids that converge the point extrapolated to dx -> 0 (ladder in the "
+                          "JSON; docs/grid_term.md)")
 
 
 def _grid_levels(p) -> None:

@@ -85,16 +85,14 @@ def two_grid_index(shift, ratio: float) -> np.ndarray:
     return GCI_SAFETY * np.abs(np.asarray(shift, float)) / (ratio**GRID_ORDER - 1.0)
 
 
-def three_grid_index(shift1, shift2, ratio: float, scale=None,
-                     what: str = "grids") -> tuple[np.ndarray, float | None, str]:
-    """The grid convergence index from three grids (dx, ρ dx, ρ² dx) by the shifts of θ to the
-    two coarser ones: (95 % half-width per key, the observed order or None, how it was made).
-    With e21 = shift1 and e32 = shift2 − shift1, q = e32·e21 / |e21|² is ρ^p on a grid converging
-    with order p: where q > 1, Roache's three-grid index 1.25 |e21| / (ρ^p − 1), p limited to
-    [0.5, 2]; else the two-grid one on the larger change (docs/grid_term.md). Each key is
-    measured in its ``scale`` (the data's standard error or the posterior's sd), lest a key in
-    large units decide the order alone. ``what``: the three things compared (grids, or
-    posteriors' means)."""
+#: The orders of convergence a three-grid index believes: an observed one outside is clamped to it.
+ORDER_RANGE = (0.5, 2.0)
+
+
+def convergence_ratio(shift1, shift2, scale=None) -> float:
+    """q = e32·e21 / |e21|² of three grids (dx, ρ dx, ρ² dx) by θ's shifts to the two coarser ones
+    (e21 = ``shift1``, e32 = ``shift2`` − ``shift1``), each key measured in its ``scale``: ρ^p on a
+    grid converging with order p, ≤ 0 where the grids oscillate, inf where e21 is nil."""
     e21 = np.asarray(shift1, float)
     e32 = np.asarray(shift2, float) - e21
     scale = np.ones_like(e21) if scale is None else np.asarray(scale, float)
@@ -102,9 +100,25 @@ def three_grid_index(shift1, shift2, ratio: float, scale=None,
         raise ValueError(f"scale must be positive and finite for every key, got {scale!r}")
     w = 1.0 / scale**2
     norm2 = float(e21 @ (w * e21))
-    q = float(e32 @ (w * e21)) / norm2 if norm2 > 0 else math.inf
-    if norm2 > 0 and q > 1.0:
-        order = min(max(math.log(q) / math.log(ratio), 0.5), 2.0)
+    return float(e32 @ (w * e21)) / norm2 if norm2 > 0 else math.inf
+
+
+def three_grid_index(shift1, shift2, ratio: float, scale=None,
+                     what: str = "grids") -> tuple[np.ndarray, float | None, str]:
+    """The grid convergence index from three grids (dx, ρ dx, ρ² dx) by the shifts of θ to the
+    two coarser ones: (95 % half-width per key, the observed order or None, how it was made).
+    With e21 = shift1 and e32 = shift2 − shift1, q = e32·e21 / |e21|² is ρ^p on a grid converging
+    with order p (``convergence_ratio``): where q > 1, Roache's three-grid index
+    1.25 |e21| / (ρ^p − 1), p limited to ``ORDER_RANGE``; else the two-grid one on the larger
+    change (docs/grid_term.md). Each key is
+    measured in its ``scale`` (the data's standard error or the posterior's sd), lest a key in
+    large units decide the order alone. ``what``: the three things compared (grids, or
+    posteriors' means)."""
+    e21 = np.asarray(shift1, float)
+    e32 = np.asarray(shift2, float) - e21
+    q = convergence_ratio(shift1, shift2, scale)
+    if 1.0 < q < math.inf:
+        order = min(max(math.log(q) / math.log(ratio), ORDER_RANGE[0]), ORDER_RANGE[1])
         return (1.25 * np.abs(e21) / (ratio ** order - 1.0), order,
                 f"three {what} converging with observed order {order:.2g}: Roache's GCI, safety factor 1.25")
     kind = "oscillate" if q <= 0 else "do not yet converge (the finer change is the larger)"

@@ -15,7 +15,7 @@ from jaxmpm.params import RELATIONS
 
 from ..problem.protocol import ObjectiveLike
 from .gauss_newton import gauss_newton_uncertainty
-from .gridcheck import GRID_DRAWS, check_grid_options, grid_shift
+from .gridcheck import GRID_DRAWS, GridCheck, check_grid_options, grid_shift
 from .noise import ABOVE_NOISE_P, NOISE_FLOOR, block_noise, chi2_quantile
 from .scatter import ROUNDOFF_SAMPLES, ModelScatter, model_scatter, roundoff_limit, sampling_scatter
 
@@ -124,14 +124,17 @@ def judge_point(objective: ObjectiveLike, r, J, theta, *, converged: bool, messa
                 noise: Mapping[str, float] | float | None = None, uncertainty: bool = True,
                 roundoff_samples: int = ROUNDOFF_SAMPLES, sampling_seeds: int = 0, reference_noise: float = 0.01,
                 threshold: float = 0.1, grid_ratio: float | None = None, grid_draws: int = GRID_DRAWS,
-                grid_levels: int = 1, workers=None, scatter: ModelScatter | None = None):
+                grid_levels: int = 1, workers=None, scatter: ModelScatter | None = None,
+                grid: GridCheck | None = None):
     """The verdict on a fit's end point and, when ``uncertainty``, its Gauss–Newton uncertainty
     (intervals withheld unless the verdict is a fit): what ``fit`` and ``search`` report for
     their best point. The other options are ``JudgeOptions``': ``roundoff_samples`` for
     ``model_scatter``, ``sampling_seeds`` for ``sampling_scatter``, ``grid_ratio``, ``grid_draws``
     and ``grid_levels`` for ``grid_shift`` (0 or None: not measured; unmeasured, the round-off is
     taken as nil). ``scatter``: the round-off scatter already measured at θ with
-    ``roundoff_samples`` runs (the optimiser's, ``calibration.optim.fit.roundoff_stop``), reused.
+    ``roundoff_samples`` runs (the optimiser's, ``calibration.optim.fit.roundoff_stop``), reused;
+    ``grid``: the grid term already measured (a ladder of fits, ``calibration.optim.ladder``), used
+    instead of ``grid_shift``.
     All runs go to ``workers`` (a ``calibration.batch.workers.Workers``) when given.
     Returns ``(verdict, uncertainty or None)``."""
     check_grid_options(grid_ratio, grid_draws, grid_levels)
@@ -149,8 +152,8 @@ def judge_point(objective: ObjectiveLike, r, J, theta, *, converged: bool, messa
     sampling = None
     if sampling_seeds and finite:
         sampling = sampling_scatter(objective, theta, r, J, seeds=sampling_seeds, workers=workers)
-    grid, grid_note = None, ""
-    if grid_ratio is not None and finite:
+    grid_note = ""
+    if grid is None and grid_ratio is not None and finite:
         try:
             grid = grid_shift(objective, theta, J, ratio=grid_ratio, draws=grid_draws, levels=grid_levels,
                               workers=workers)

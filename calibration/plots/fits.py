@@ -14,7 +14,7 @@ from .flow_rule import plot_flow_rule_member
 
 __all__ = [
     "plot_fit", "plot_history", "plot_landscape", "plot_loss_curve", "plot_runout_law", "plot_coverage",
-    "fit_figures", "sweep_figures", "twin_landscape_figure", "law_figures",
+    "plot_ladder", "fit_figures", "sweep_figures", "twin_landscape_figure", "law_figures",
 ]
 
 
@@ -258,6 +258,42 @@ def plot_design(result, path, *, title: str | None = None, data_only: bool = Fal
 
 
 # ---- the figure sets of the command line's studies ----------------------------------------------
+def plot_ladder(ladder, path, *, truth=None, title: str | None = None):
+    """A ladder of fits (``LadderResult.to_json()``, as the fit's JSON holds it under "ladder"),
+    one panel per key: each rung's fitted value against its dx, the reported point with its 95 %
+    interval where there is one (at dx = 0 where it is Richardson's extrapolation, else the finest
+    fit's at its dx), the power law the three rungs fix where they converge, and ``truth``
+    ({key: value}) where given."""
+    plt = _plt()
+    keys, rungs, ci95 = list(ladder["point"]), ladder["rungs"], ladder["ci95"]
+    extrapolated = ladder["extrapolated"]
+    fig, axes = plt.subplots(1, len(keys), figsize=(3.6 * len(keys), 3.2), squeeze=False)
+    dx = np.array([r["dx"] for r in rungs]) * 1e3
+    for ax, k in zip(axes[0], keys):
+        values = np.array([r["theta"][k] for r in rungs])
+        ax.plot(dx, values, "o-", color="C0", label="fit at each grid")
+        point = ladder["point"][k]
+        at = 0.0 if extrapolated else dx[-1]  # a point not extrapolated stays at its grid
+        if extrapolated:
+            h = np.linspace(0.0, dx.max(), 50)
+            p = ladder["grid"]["order_observed"]
+            ax.plot(h, point + (values[-1] - point) * (h / dx[-1]) ** p, ":", color="C0", lw=1,
+                    label=f"θ* + C dx^{p:.2g}")
+        if ci95 is not None:
+            lo, hi = ci95[k]
+            ax.errorbar([at], [point], yerr=[[point - lo], [hi - point]], fmt="none", ecolor="C3", capsize=4)
+        what = "extrapolated to dx = 0" if extrapolated else "finest fit (not extrapolated)"
+        ax.plot([at], [point], "*", color="C3", ms=11,
+                label=what + (", 95 % interval" if ci95 is not None else ", no interval: not a fit"))
+        if truth is not None and k in truth:
+            ax.axhline(truth[k], color="k", ls="--", lw=1, label="truth")
+        ax.set_xlabel("dx (mm)")
+        ax.set_ylabel(k)
+        ax.set_xlim(left=-0.05 * dx.max())
+    axes[0][0].legend(fontsize=7)
+    return _save(fig, path, 130, title or f"Fits on {len(dx)} grids, ratio {ladder['ratio']:g}")
+
+
 def _folder(directory) -> pathlib.Path:
     d = pathlib.Path(directory)
     d.mkdir(parents=True, exist_ok=True)
