@@ -69,9 +69,14 @@ def test_a_noisy_profile_twin_is_recovered_within_its_intervals():
     assert out["verdict"]["verdict"] == "a fit of the data"
 
 
-def test_between_walls_a_profile_fixes_mu_w_with_the_rheology():
+def test_between_walls_a_profile_fixes_mu_w_with_the_rheology(tmp_path, monkeypatch):
     """A 5 cm chute (μ_w = 0.3): the rows in the static base (v = 0, which a relative residual
-    cannot hold) are left out; the rest fix μ1, μ2, I0 and μ_w from a start away from all four."""
+    cannot hold) are left out; the rest fix μ1, μ2, I0 and μ_w from a start away from all four.
+    The figure draws the walled model through the data (it used to draw the wall-free one)."""
+    import matplotlib.pyplot as plt
+
+    from calibration.plots.flow_rule import plot_flow_rule
+
     walls = SideWalls(0.05, "mu_w")
     u = profile(walls=walls, mu_w=0.3)
     moving = u > 0
@@ -80,6 +85,15 @@ def test_between_walls_a_profile_fixes_mu_w_with_the_rheology():
                            values=FIXED, side_walls=walls)
     assert result.converged, result.message
     assert result.theta == pytest.approx({**TRUTH, "mu_w": 0.3}, rel=1e-6)
+    figures = []
+    monkeypatch.setattr(plt, "close", figures.append)
+    assert plot_flow_rule(result, tmp_path).stat().st_size > 10_000
+    lines = [line for line in figures[0].axes[0].lines if line.get_linestyle() == "-"]
+    assert len(lines) == 15  # one per slope and thickness
+    for line, (slope, h) in zip(lines, [(s, h) for s in np.unique(SLOPES) for h in np.unique(THICK)]):
+        rows = moving & (SLOPES == slope) & (THICK == h)
+        drawn = np.interp(SHARE[rows], line.get_ydata(), line.get_xdata())  # the line's u at the data's z/h
+        np.testing.assert_allclose(drawn, u[rows], rtol=0.02, atol=0.01 * u[rows].max())
 
 
 GOOD = "# source: a test\n# secondary: false\n# quantity: profile\nslope_deg,h_m,z_m,u_m_s\n25,0.02,0.01,0.2\n" \

@@ -19,7 +19,7 @@ def plot_flow_rule_member(objective, theta, path, result) -> pathlib.Path:
     keys' values ``theta`` (an array in its keys' order), titled with ``result``'s (a fit's) end;
     written to ``path``."""
     theta = np.asarray(theta, float)
-    member = types.SimpleNamespace(table=objective.table, material=objective.material,
+    member = types.SimpleNamespace(table=objective.table, material=objective.material, side_walls=objective.side_walls,
                                    theta=dict(zip(objective.keys, theta.tolist())),
                                    residuals=np.asarray(objective.residuals(theta)[0], float),
                                    message=result.message, iterations=result.iterations)
@@ -37,6 +37,7 @@ def plot_flow_rule(result, directory, name: str = "flow_rule.png") -> pathlib.Pa
     import matplotlib.pyplot as plt
 
     table, p = result.table, {**result.material, **result.theta}
+    p["side_walls"] = getattr(result, "side_walls", None)  # the model between the chute's walls, as fitted
     fig, (ax, res) = plt.subplots(1, 2, figsize=(10, 4.2), gridspec_kw={"width_ratios": [3, 2]})
     colours = plt.cm.viridis(np.linspace(0.0, 0.9, table.slopes.size))
     draw = _draw_profile if table.quantity == "profile" else _draw_flow_rule
@@ -61,9 +62,11 @@ def plot_flow_rule(result, directory, name: str = "flow_rule.png") -> pathlib.Pa
 
 
 def _model(p, h, slope, quantity, height=None):
+    walls = p["side_walls"]
+    mu_w = p["mu_w"] if walls is not None and walls.friction == "mu_w" else None
     with x64():
         return np.asarray(steady_velocity(h, slope, p["mu1"], p["mu2"], p["I0"], p["rho"], p["rho_s"], p["d"], quantity,
-                                          height=height))
+                                          walls, mu_w, height=height))
 
 
 def _draw_flow_rule(ax, table, rows, slope, p, colour) -> None:
