@@ -247,10 +247,15 @@ def test_a_joint_fits_h_stop_blocks_read_each_inclines_mu1():
     held = h_stop_fields(tables, {"mu2": 0.6})["h_stop"]["chute"]
     assert held["mu1"] == DEFAULTS["mu1"] and not held["mu1_fitted"]
     assert h_stop_fields({}, {"mu1": 0.3}) == {}
-    code, out, err = call_main(main, ["fit", dataset_path(SHIPPED), "--json", "--no-progress"])
+    # A flow rule and a profile of one chute: two incline files fitted together, each with its own noise.
+    code, out, err = call_main(main, ["fit", dataset_path("synthetic/flow_rule_twin_experiment"), dataset_path(SHIPPED),
+                                      "--init", "mu1=0.36", "--init", "mu2=0.75", "--init", "I0=0.5", "--dtype",
+                                      "float64", "--json", "--no-progress"])
     assert code == 0, err
     out = json.loads(out)
-    assert out["h_stop"]["flow_profile_twin"]["mu1"] == out["params"]["mu1"]
+    assert out["converged"] and out["noise"] == {"0/velocity": 0.02, "1/velocity": 0.01}
+    assert list(out["h_stop"]) == ["flow_profile_twin"] and out["h_stop"]["flow_profile_twin"]["mu1"] == out["params"][
+        "mu1"]
 
 
 def test_a_designs_profile_jacobian_is_the_finite_difference_of_its_relative_residual():
