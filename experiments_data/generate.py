@@ -1,6 +1,7 @@
 """Regenerate the computed files of experiments_data/ (run from the repository root).
 
     python experiments_data/generate.py tables    # scaling_laws/*.csv, bagnold/*.csv, synthetic/flow_rule_twin.csv,
+                                                  # synthetic/flow_profile_twin.csv, synthetic/h_stop_example.csv,
                                                   # examples/wpd_example.csv
     python experiments_data/generate.py profiles  # synthetic/S4_beta0.25.csv, S4_beta0.csv, S3_10deg.csv (~20 s)
     python experiments_data/generate.py front     # synthetic/S3_10deg_front.csv (one ~15 s run)
@@ -134,6 +135,64 @@ def flow_rule_twin() -> None:
     }, ("slope_deg", "h_m", "u_m_s"), zip(slope, h, u))
 
 
+def flow_profile_twin() -> None:
+    """A synthetic velocity profile's table: the velocity v(z) = U_s(h) − U_s(h − z) of the steady
+    flow (docs/model.md section 6) of S1's material at four slopes, two thicknesses and five
+    heights each, with 1 % Gaussian noise (seed 0); the example of docs/incline_fits.md "A velocity
+    profile, and h_stop"."""
+    from jaxmpm.params import DEFAULTS
+    from jaxmpm.precision import x64
+    from jaxmpm.scenes import S1_PARAMS
+    from jaxmpm.scenes.incline import steady_velocity
+
+    p = {**DEFAULTS, **S1_PARAMS}
+    slope, h, share = (a.ravel() for a in np.meshgrid((22.0, 25.0, 28.0, 31.0), (0.01, 0.03),
+                                                      (0.2, 0.4, 0.6, 0.8, 1.0), indexing="ij"))
+    z = share * h
+    with x64():
+        u = np.asarray(steady_velocity(h, slope, p["mu1"], p["mu2"], p["I0"], p["rho"], p["rho_s"], p["d"],
+                                       "profile", height=z))
+    u = u * (1.0 + 0.01 * np.random.default_rng(0).standard_normal(u.size))
+    _write(HERE / "synthetic" / "flow_profile_twin.csv", {
+        "experiment": "velocity profiles of steady flows down a rough incline, S1's glass beads (synthetic twin, "
+                      "not a measurement)",
+        "synthetic": True,
+        "secondary": False,
+        "quantity": "profile",
+        "noise": 0.01,
+        "source": "docs/model.md section 6 (jaxmpm.scenes.incline.steady_velocity, quantity profile) at S1's "
+                  "material, times 1 + 0.01 N(0, 1) (numpy default_rng(0))",
+        "parameters": {k: p[k] for k in ("rho", "rho_s", "d", "mu1", "mu2", "I0")},
+        "parameter_sources": "docs/scenes.md S1 (rho, rho_s, d, mu1 = tan 20.9 deg, mu2 = tan 32.76 deg, I0)",
+        "columns": {"slope_deg": "bed angle, degrees", "h_m": "layer thickness, m",
+                    "z_m": "height above the bed, m", "u_m_s": "downslope velocity at that height, m/s"},
+        "generated_by": "python experiments_data/generate.py tables",
+    }, ("slope_deg", "h_m", "z_m", "u_m_s"), zip(slope, h, z, u))
+
+
+def h_stop_example() -> None:
+    """An illustrative h_stop table (no model here predicts h_stop, so nothing makes a twin of
+    one): Pouliquen's (1999) form h_stop = L (tan θ2 − tan θ) / (tan θ − tan θ1) at S1's θ1 and θ2,
+    with L = 2 d chosen for illustration only."""
+    from jaxmpm.params import DEFAULTS
+    from jaxmpm.scenes import S1_PARAMS
+
+    p = {**DEFAULTS, **S1_PARAMS}
+    slope = np.array([22.0, 24.0, 26.0, 28.0, 30.0])
+    tan, length = np.tan(np.radians(slope)), 2.0 * p["d"]
+    h_stop = length * (p["mu2"] - tan) / (tan - p["mu1"])
+    _write(HERE / "synthetic" / "h_stop_example.csv", {
+        "experiment": "h_stop of S1's glass beads, an illustration (synthetic, not a measurement)",
+        "synthetic": True,
+        "secondary": True,
+        "source": "the form of Pouliquen (1999), h_stop = L (tan theta2 - tan theta) / (tan theta - tan theta1), at "
+                  "S1's mu1 = tan theta1 and mu2 = tan theta2 with L = 2 d = 1.4 mm, chosen for illustration (the "
+                  "published L was not read in a primary source here): not data to draw conclusions from",
+        "columns": {"slope_deg": "bed angle, degrees", "h_stop_m": "thickness at which a layer stops, m"},
+        "generated_by": "python experiments_data/generate.py tables",
+    }, ("slope_deg", "h_stop_m"), zip(slope, h_stop))
+
+
 def wpd_example() -> None:
     from jaxmpm.tables import PROFILE_COLUMNS, read_columns
 
@@ -185,6 +244,8 @@ if __name__ == "__main__":
             scaling_laws()
             bagnold()
             flow_rule_twin()
+            flow_profile_twin()
+            h_stop_example()
             wpd_example()
         elif item == "profiles":
             profiles()

@@ -23,7 +23,7 @@ class DatasetInfo:
 
     name: str
     path: pathlib.Path
-    kind: str  # setup, scaling_law, analytic, synthetic, flow_rule, example, measured, terrain or experiment
+    kind: str  # the manifest's "kinds": setup, scaling_law, flow_rule, h_stop, incline, experiment, ...
     description: str
     synthetic: bool
     secondary: bool

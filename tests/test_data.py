@@ -10,7 +10,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import jaxmpm as jm
-from calibration.data.flow_rule import load_flow_rule
+from calibration.data.flow_rule import load_flow_rule, load_h_stop
 from calibration.data.incline import load_incline
 from calibration.data.loaders import (
     FrontHistory,
@@ -270,7 +270,7 @@ def test_manifest_lists_every_file():
     assert listed == shipped
     for info in datasets.values():
         assert info.kind in ("setup", "experiment", "incline", "scaling_law", "analytic", "synthetic", "flow_rule",
-                             "example", "measured", "terrain")
+                             "h_stop", "example", "measured", "terrain")
         # a third party's file: whose, what licence
         assert info.kind not in ("measured", "terrain") or (info.source and info.licence)
         assert info.description and "\n" not in info.description
@@ -303,6 +303,9 @@ def test_every_shipped_file_loads():
         elif info.kind == "flow_rule":
             table = load_flow_rule(info.path)
             assert table.n >= 4 and table.slopes.size >= 3 and table.meta["synthetic"] is info.synthetic
+        elif info.kind == "h_stop":
+            table = load_h_stop(info.path)
+            assert table.n >= 3 and table.meta["synthetic"] is info.synthetic and table.secondary is info.secondary
         elif info.kind == "incline":
             incline = load_incline(info.path)
             assert incline.table_file.is_file() and set(incline.keys) <= {"mu1", "mu2", "I0"}

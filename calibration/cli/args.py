@@ -284,6 +284,30 @@ def fit_fields(args, setup: FitSetup, init, found) -> dict:
     return out
 
 
+def h_stop_tables(setup: FitSetup) -> dict:
+    """{file name: (its ``HStopTable``, its material)} of the setup's incline files that name an
+    [h_stop] table: read, and refused naming the file, before anything runs."""
+    from ..data.flow_rule import load_h_stop
+
+    return {pathlib.Path(e.path).stem if e.path is not None else e.name: (load_h_stop(e.h_stop_file), e.material)
+            for e in setup.experiments if isinstance(e, InclineExperiment) and e.h_stop_file is not None}
+
+
+def h_stop_fields(tables: dict, params) -> dict:
+    """The ``h_stop`` blocks (``calibration.studies.flow_rule.h_stop_report``) of ``tables``
+    (``h_stop_tables``) by file name, each at its incline's μ1 in ``params`` (the fitted values by
+    name: its own "mu1@NAME", or "mu1"), else its material's; {} without tables."""
+    from ..problem.flow_rule import flow_rule_material
+    from ..studies.flow_rule import h_stop_report
+
+    blocks = {}
+    for label, (table, material) in tables.items():
+        name = next((k for k in (f"mu1@{label}", "mu1") if k in params), None)
+        mu1 = params[name] if name is not None else flow_rule_material(material)["mu1"]
+        blocks[label] = h_stop_report(table, mu1, fitted=name is not None)
+    return {"h_stop": blocks} if blocks else {}
+
+
 # ---- the setup ---------------------------------------------------------------------------------
 def experiments_of(args) -> list[Experiment | InclineExperiment]:
     """The experiments of ``fit``/``sweep``: each experiment file (positional) with the command

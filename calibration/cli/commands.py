@@ -35,6 +35,8 @@ from .args import (
     fit_options,
     fit_request,
     guard,
+    h_stop_fields,
+    h_stop_tables,
     parse_floats,
     parse_keys,
     parse_over,
@@ -68,12 +70,13 @@ def _fit(args) -> int:
     request = fit_request(args, experiments)
     starts = start_count(args, request.init)
     setup = setup_of(args, request.keys)
+    h_stops = h_stop_tables(setup)  # reported beside the fit, never fitted: read before anything runs
     objective = setup.objective()
     init = objective.expand(request.init)  # a plain key's start for each experiment's own value
     # No --noise and none in the collapse files: the tables' stated noise for their blocks, the others estimated.
     options, judge = fit_options(args, request.noise if request.noise is not None else setup.stated_noise() or None)
     if args.grid_ladder is not None:
-        return _fit_ladder(args, setup, objective, init, starts, options, judge)
+        return _fit_ladder(args, setup, objective, init, starts, options, judge, h_stops)
     coarse = coarse_setup(setup, args.coarse).objective() if starts > 1 and args.coarse is not None else None
     with Workers(worker_count(args)) as workers:
         result, found = fit_from_starts(objective, init, starts=starts, options=options, judge=judge, coarse=coarse,
@@ -81,10 +84,11 @@ def _fit(args) -> int:
                                         overwrite=args.overwrite, progress=not args.no_progress,
                                         meta=fit_meta(setup), workers=workers)
     out = {**fit_report(objective, result, found), **fit_fields(args, setup, init, found)}
+    out.update(h_stop_fields(h_stops, out["params"]))
     return _print_with_figures(out, args, lambda: fit_figures(args.plot, objective, result))
 
 
-def _fit_ladder(args, setup, objective, init, starts, options, judge) -> int:
+def _fit_ladder(args, setup, objective, init, starts, options, judge, h_stops) -> int:
     """``fit --grid-ladder N``: the fits on N grids (``calibration.optim.ladder.grid_ladder``);
     the report is the finest fit's, with the ladder's point, interval and rungs under "ladder"."""
     from ..optim.ladder import grid_ladder
@@ -96,6 +100,7 @@ def _fit_ladder(args, setup, objective, init, starts, options, judge) -> int:
                              overwrite=args.overwrite, progress=not args.no_progress, workers=workers)
     out = {**fit_report(objective, ladder.fit, None), "ladder": ladder.to_json(),
            **fit_fields(args, setup, init, ladder.search if starts > 1 else None)}
+    out.update(h_stop_fields(h_stops, out["params"]))
     if starts > 1:
         out["search"] = {"starts": starts, "rung": "coarsest", "why": "the global search runs on the ladder's "
                                                                       "coarsest grid"}
@@ -231,13 +236,13 @@ def _law(args) -> int:
 
 
 def _flow_rule(args) -> int:
-    from ..data.flow_rule import load_flow_rule
+    from ..data.flow_rule import load_flow_rule, load_h_stop
     from ..data.incline import load_incline
     from ..plots.flow_rule import plot_flow_rule
     from ..studies.flow_rule import FLOW_RULE_KEYS, fit_flow_rule
 
     init, values = parse_pairs(args.init, "--init"), parse_pairs(args.set, "--set")
-    keys, walls = (parse_keys(args.fit) if args.fit else FLOW_RULE_KEYS), args.side_walls
+    keys, walls, h_stop = (parse_keys(args.fit) if args.fit else FLOW_RULE_KEYS), args.side_walls, None
     if str(args.table).endswith(".toml"):  # an incline experiment: its material, table, walls and [fit]; flags win
         experiment = load_incline(args.table)
         keys = parse_keys(args.fit) if args.fit else experiment.keys
@@ -245,12 +250,13 @@ def _flow_rule(args) -> int:
         values = {**experiment.material, **values}
         walls = walls if walls is not None else experiment.side_walls
         table = load_flow_rule(experiment.table_file)
+        h_stop = None if experiment.h_stop_file is None else load_h_stop(experiment.h_stop_file)
     else:
         table = load_flow_rule(args.table)
     if walls is not None and walls.friction == "mu_w" and "mu_w" not in values and "mu_w" not in init:
         raise ValueError("--side-walls: the walls' friction is the parameter mu_w; give its value with --set mu_w=... "
                          "(or fit it: --fit ...,mu_w --init mu_w=...)")
-    result = fit_flow_rule(table, keys, init=init, values=values, steps=args.steps, side_walls=walls)
+    result = fit_flow_rule(table, keys, init=init, values=values, steps=args.steps, side_walls=walls, h_stop=h_stop)
     return _print_with_figures(result.to_json(), args, lambda: [str(plot_flow_rule(result, args.plot))])
 
 

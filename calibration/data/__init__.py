@@ -1,13 +1,13 @@
-"""What was measured: deposit profiles, front histories, scaling laws and flow rules read from files,
+"""What was measured: deposit profiles, front histories, scaling laws, flow rules and h_stop read from files,
 validated, and the shipped data (``jaxmpm.datasets``' finder, re-exported: ``list_datasets``, ``dataset_path``,
 ``data_dir``)."""
 
 from jaxmpm.datasets import DatasetInfo, data_dir, dataset_path, list_datasets
 
-from .flow_rule import FlowRuleTable, load_flow_rule
+from .flow_rule import FlowRuleTable, HStopTable, load_flow_rule, load_h_stop
 from .loaders import FrontHistory, Profile, RunoutLaw, load_front_history, load_profile, load_scaling_law
 from .measurements import check_run_status, data_end_time, load_data, load_measurements, load_setup
 
-__all__ = ["DatasetInfo", "FlowRuleTable", "FrontHistory", "Profile", "RunoutLaw", "check_run_status", "data_dir",
-           "data_end_time", "dataset_path", "list_datasets", "load_data", "load_flow_rule", "load_front_history",
-           "load_measurements", "load_profile", "load_scaling_law", "load_setup"]
+__all__ = ["DatasetInfo", "FlowRuleTable", "FrontHistory", "HStopTable", "Profile", "RunoutLaw", "check_run_status",
+           "data_dir", "data_end_time", "dataset_path", "list_datasets", "load_data", "load_flow_rule",
+           "load_front_history", "load_h_stop", "load_measurements", "load_profile", "load_scaling_law", "load_setup"]

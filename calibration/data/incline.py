@@ -1,5 +1,6 @@
 """An incline experiment in one file: steady flows of one material down a rough incline, the
-flow-rule table measured on them, and what to fit (docs/incline_fits.md).
+flow-rule table measured on them (or a velocity profile's), optionally the thickness h_stop(θ) at
+which its layers stop, and what to fit (docs/incline_fits.md).
 
     format = 1
     [experiment]
@@ -11,7 +12,10 @@ flow-rule table measured on them, and what to fit (docs/incline_fits.md).
     rho = "1550 kg/m^3"
     rho_s = "2500 kg/m^3"
     [flow_rule]
-    file = "rule.csv"                    # slope_deg,h_m,u_m_s (docs/data_files.md), relative to this file
+    file = "rule.csv"                    # slope_deg,h_m,u_m_s (docs/data_files.md), relative to this file;
+                                         # or a profile's slope_deg,h_m,z_m,u_m_s (its header says which)
+    [h_stop]                             # optional: reported beside the fit, never fitted
+    file = "hstop.csv"                   # slope_deg,h_stop_m
     [boundaries]                         # optional: the chute's side walls, as a collapse file's
     side_walls = { width = "5 cm", friction = 0.3 }   # friction = "mu_w": [material] mu_w, fittable
     [fit]
@@ -49,6 +53,7 @@ _SCHEMA = {
     "experiment": {"kind": "str", "name": "str", "title": "str", "source": "str", "note": "str"},
     "material": {key: Units(spec.units, spec.unit) for key, spec in PARAMS.items()},
     "flow_rule": {"file": "path"},
+    "h_stop": {"file": "path"},
     "boundaries": {"side_walls": SIDE_WALLS},
     "fit": {"keys": "strings", "init": "numbers"},
 }
@@ -58,7 +63,8 @@ _SCHEMA = {
 class InclineExperiment:
     """One incline experiment: its ``material`` (SI values, as given), the flow-rule table's
     ``table_file``, the ``keys`` to fit and their ``init`` (empty: not stated), the chute's
-    ``side_walls`` (a ``jaxmpm.SideWalls``; None: none), and where every
+    ``side_walls`` (a ``jaxmpm.SideWalls``; None: none), the h_stop table's ``h_stop_file`` (None:
+    none; it is reported, never fitted: the local model does not predict h_stop), and where every
     value came from (``sources``: "section.key" -> its ``source``/``note``/``unit`` entries);
     ``text``: the file's text as read (None: not read from a file), which a fit's record keeps
     (``calibration.problem.build.FitSetup.to_json``)."""
@@ -70,6 +76,7 @@ class InclineExperiment:
     init: Mapping[str, float] = dataclasses.field(default_factory=dict)
     title: str = ""
     side_walls: SideWalls | None = None
+    h_stop_file: pathlib.Path | None = None
     sources: Mapping[str, Mapping[str, str]] = dataclasses.field(default_factory=dict, compare=False)
     path: pathlib.Path | None = dataclasses.field(default=None, compare=False)
     text: str | None = dataclasses.field(default=None, compare=False, repr=False)
@@ -89,8 +96,8 @@ def is_incline_file(path) -> bool:
 
 
 def load_incline(path, *, check_files: bool = True) -> InclineExperiment:
-    """Read and check an incline experiment file (its flow-rule table relative to its folder and,
-    with ``check_files``, present); every error is an ``ExperimentError`` naming the file, the
+    """Read and check an incline experiment file (its flow-rule and h_stop tables relative to its
+    folder and, with ``check_files``, present); every error is an ``ExperimentError`` naming the file, the
     line and the key."""
     path = pathlib.Path(path)
     try:
@@ -132,6 +139,13 @@ def incline_from_text(text: str, path=None, *, check_files: bool = True) -> Incl
     table_file = (path.parent / sections["flow_rule"]["file"])
     if check_files and not table_file.is_file():
         raise where.error("flow_rule", "file", f"no such file: {table_file}")
+    h_stop_file = None
+    if "h_stop" in raw:
+        if "file" not in sections["h_stop"]:
+            raise where.error("h_stop", "file", "missing: the h_stop table's CSV file (slope_deg,h_stop_m)")
+        h_stop_file = path.parent / sections["h_stop"]["file"]
+        if check_files and not h_stop_file.is_file():
+            raise where.error("h_stop", "file", f"no such file: {h_stop_file}")
     side_walls = _side_walls(sections["boundaries"], material, where)
     fit = sections["fit"]
     keys = tuple(fit.get("keys", FLOW_RULE_KEYS))
@@ -144,7 +158,7 @@ def incline_from_text(text: str, path=None, *, check_files: bool = True) -> Incl
     experiment = sections["experiment"]
     return InclineExperiment(name=experiment.get("name", path.stem), material=material, table_file=table_file,
                              keys=keys, init=init, title=experiment.get("title", ""), side_walls=side_walls,
-                             sources=sources,
+                             h_stop_file=h_stop_file, sources=sources,
                              path=None if given is None else path, text=text)
 
 

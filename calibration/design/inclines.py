@@ -88,9 +88,10 @@ def incline_experiment(label: str, table: FlowRuleTable, material: Mapping[str, 
     objective = None
     if own:
         u = np.asarray(steady_velocity(table.h, table.slope_deg, *(at[k] for k in (*FLOW_RULE_KEYS, *INCLINE_MATERIAL)),
-                                       table.quantity, side_walls, at["mu_w"] if reads_mu_w else None), float)
+                                       table.quantity, side_walls, at["mu_w"] if reads_mu_w else None,
+                                       height=table.z), float)
         twin = FlowRuleTable(table.slope_deg, table.h, u, table.quantity, table.source, table.secondary,
-                             table.experiment, table.noise, dict(table.meta), table.path)
+                             table.experiment, table.noise, dict(table.meta), table.path, table.z)
         objective = FlowRuleObjective(twin, own, values=at, side_walls=side_walls)
         r, J_own, _ = objective.residuals_and_jacobian([at[k] for k in own])
         if not (np.all(np.isfinite(np.asarray(J_own))) and np.max(np.abs(np.asarray(r))) < 1e-4):

@@ -4,8 +4,9 @@ table's velocities, with the members a fit, a search and a composite call
 together with shared keys (``CompositeObjective.sharing``).
 
 The model is ``jaxmpm.scenes.incline.steady_velocity`` (docs/incline_fits.md), between the chute's
-side walls where it has them (``side_walls``: their friction "mu_w" makes μ_w a key); the residuals are
-relative, u_model / u_data − 1, one block ("velocity"), NaN at a row whose slope would not flow
+side walls where it has them (``side_walls``: their friction "mu_w" makes μ_w a key); a profile's
+table is its velocity at each row's height z (``quantity="profile"``). The residuals are relative,
+u_model / u_data − 1, one block ("velocity"), NaN at a row whose slope would not flow
 steadily (a run that failed: a fit rejects the step). A closed form has no grid and no particles:
 ``coarsened`` raises ``NotImplementedError`` (the grid term says so; in a composite the member
 stays as it is), and a resampled run is the same run.
@@ -44,17 +45,18 @@ def flow_rule_material(values: Mapping[str, float] | None) -> dict[str, float]:
 
 def flow_rule_residuals(table, keys: Sequence[str], material: Mapping[str, float], dtype=None, side_walls=None):
     """The pure, traceable θ -> r of ``table`` (θ: the values of ``keys``; the other parameters
-    from ``material``): r = u_model / u_data − 1 at every row, NaN where the row's slope allows
-    no steady flow; computed in ``dtype`` (default: θ's), between ``side_walls`` (a
-    ``jaxmpm.SideWalls``; None: none)."""
+    from ``material``): r = u_model / u_data − 1 at every row (a profile's at its height z), NaN
+    where the row's slope allows no steady flow; computed in ``dtype`` (default: θ's), between
+    ``side_walls`` (a ``jaxmpm.SideWalls``; None: none)."""
     keys = tuple(keys)
 
     def residuals(theta):
         kind = theta.dtype if dtype is None else dtype
         slope, h, u = (jnp.asarray(a, kind) for a in (table.slope_deg, table.h, table.u))
+        z = None if table.z is None else jnp.asarray(table.z, kind)
         p = {**{k: jnp.asarray(v, kind) for k, v in material.items()}, **dict(zip(keys, theta))}
         model = steady_velocity(h, slope, p["mu1"], p["mu2"], p["I0"], p["rho"], p["rho_s"], p["d"], table.quantity,
-                                side_walls, p["mu_w"])
+                                side_walls, p["mu_w"], height=z)
         return model / u - 1.0
 
     return residuals
@@ -227,7 +229,7 @@ class FlowRuleObjective:
         t = self.table
         walls = {} if self.side_walls is None else {"side_walls": self._walls()}  # a wall-free record as before
         return {"model": "steady incline flow (closed form)", "quantity": t.quantity, **walls,
-                "data": _digest(t.slope_deg, t.h, t.u), "keys": list(self.keys),
+                "data": _digest(t.slope_deg, t.h, t.u, *(() if t.z is None else (t.z,))), "keys": list(self.keys),
                 "fixed": {k: v for k, v in self.material.items() if k not in self.keys},
                 "bounds": {k: [lo, hi] for k, lo, hi in zip(self.keys, self.bounds.lower, self.bounds.upper)},
                 "dtype": np.dtype(self.dtype).name}

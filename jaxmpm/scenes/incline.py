@@ -23,8 +23,8 @@ from .base import Scene
 from .collapse import G, floor_lift
 from .info import SceneInfo
 
-__all__ = ["incline", "S1_DEPTH", "S1_PARAMS", "bagnold_velocity", "side_wall_velocity", "steady_velocity",
-           "wall_drag"]
+__all__ = ["incline", "S1_DEPTH", "S1_PARAMS", "STEADY_QUANTITIES", "bagnold_velocity", "side_wall_velocity",
+           "steady_velocity", "wall_drag"]
 
 #: S1's layer depth h (docs/scenes.md S1), m.
 S1_DEPTH = 0.038
@@ -57,12 +57,18 @@ def bagnold_velocity(z, depth, slope_deg, params):
     return scale * (depth**1.5 - (depth - z) ** 1.5)
 
 
+#: What ``steady_velocity`` returns: the free surface's velocity, the depth average, or the
+#: velocity at a height above the bed (a velocity profile v(z)).
+STEADY_QUANTITIES = ("surface", "depth_averaged", "profile")
+
+
 def steady_velocity(depth, slope_deg, mu1, mu2, I0, rho, rho_s, d, quantity: str = "surface", side_walls=None,
-                    mu_w=None):
-    """The steady flow's velocity at the free surface (``quantity="surface"``) or averaged over the
-    depth (``"depth_averaged"``) for a layer of depth ``depth`` at ``slope_deg``. Traceable, on
+                    mu_w=None, height=None):
+    """The steady flow's velocity at the free surface (``quantity="surface"``), averaged over the
+    depth (``"depth_averaged"``) or at the heights ``height`` above the bed (``"profile"``, which
+    needs them; 0 <= z <= depth) for a layer of depth ``depth`` at ``slope_deg``. Traceable, on
     arrays that broadcast; NaN where tan θ does not lie strictly between μ1 and μ2 (no steady flow:
-    the layer stops, or accelerates).
+    the layer stops, or accelerates), and at a height outside [0, depth].
 
     Without ``side_walls`` it is Bagnold's (``bagnold_velocity`` at z = h):
     (2/3) I_θ sqrt(ρ g cos θ / ρ_s) h^{3/2} / d at the surface, 3/5 of it averaged over the depth.
@@ -71,26 +77,66 @@ def steady_velocity(depth, slope_deg, mu1, mu2, I0, rho, rho_s, d, quantity: str
     the walls' drag a = μ_w K / W, the flow stopping below ζ* = (tan θ − μ1) / a, so that with
     γ̇ = I(ζ) sqrt(ρ g cos θ ζ / ρ_s) / d and L = min(h, ζ*) the surface moves at ∫_0^L γ̇ dζ and
     the depth average is (1/h) ∫_0^L ζ γ̇ dζ. Both integrals are in closed form (``_wall_integral``),
-    exact for a = 0 and finite, with their derivatives, wherever the flow is steady."""
-    import jax.numpy as jnp
+    exact for a = 0 and finite, with their derivatives, wherever the flow is steady.
 
-    if quantity not in ("surface", "depth_averaged"):
-        raise ValueError(f"quantity must be 'surface' or 'depth_averaged', got {quantity!r}")
+    The shear rate depends only on the depth below the surface (the pressure and the walls' drag
+    grow with it), so the profile is v(z) = U_s(h) − U_s(h − z), U_s(D) the surface velocity of a
+    layer of depth D: 0 at the bed, U_s(h) at the surface, with finite derivatives at both."""
+    import jax.numpy as jnp
+    from jax import lax
+
+    if quantity not in STEADY_QUANTITIES:
+        raise ValueError(f"quantity must be one of {STEADY_QUANTITIES}, got {quantity!r}")
+    if (height is None) != (quantity != "profile"):
+        raise ValueError("height: the heights z above the bed are given with quantity=\"profile\" and only then, "
+                         f"got quantity={quantity!r} and height={'None' if height is None else 'heights'}")
     drag = wall_drag(side_walls, mu_w)
     theta = jnp.deg2rad(slope_deg)
     tan = jnp.tan(theta)
     steady = (mu1 < tan) & (tan < mu2)
     above = jnp.where(steady, tan - mu1, 1.0)  # A = tan θ − μ1 > 0: the surface flows
     below = jnp.where(steady, mu2 - tan, 1.0)  # B = μ2 − tan θ > 0: it does not accelerate
+    rate = 2.0 * I0 * jnp.sqrt(rho * G * jnp.cos(theta) / rho_s) / d  # 2 I0 c
+    flowing, u = _flowing_depth(depth, above, below, drag)
+    if quantity == "profile":
+        inside = (height >= 0.0) & (height <= depth)
+        lower, u_lower = _flowing_depth(jnp.where(inside, depth - height, 0.0), above, below, drag)  # at D = h − z
+        value = (_surface_velocity(flowing, u, above, below, rate)
+                 - _surface_velocity(lower, u_lower, above, below, rate, may_be_empty=True))
+        # At the bed, or in a static base (L = ζ* both), v = 0 exactly (not an ulp off), its derivatives kept.
+        value = jnp.where(lower < flowing, value, value - lax.stop_gradient(value))
+        return jnp.where(steady & inside, value, jnp.nan)
+    if quantity == "surface":
+        value = _surface_velocity(flowing, u, above, below, rate)
+    else:  # 2 I0 c L^{5/2} (A/5 − (A + B) u g3(u)) / (B h)
+        value = rate / below * flowing**2.5 * (above / 5.0 - (above + below) * u * _wall_integral(u, 3)) / depth
+    return jnp.where(steady, value, jnp.nan)
+
+
+def _flowing_depth(depth, above, below, drag):
+    """(L = min(D, ζ*), u = a L / B) of a layer of depth D >= 0 (A = ``above``, B = ``below``, a = ``drag``)."""
+    import jax.numpy as jnp
+
     to_bed = drag * depth < above  # the flow reaches the bed (always without walls)
     flowing = jnp.where(to_bed, depth, above / jnp.where(to_bed, 1.0, drag))  # L = min(h, ζ*)
-    u = drag * flowing / below  # a L / B >= 0
-    scale = 2.0 * I0 * jnp.sqrt(rho * G * jnp.cos(theta) / rho_s) / d / below
-    if quantity == "surface":  # 2 I0 c L^{3/2} (A/3 − (A + B) u g2(u)) / B
-        value = scale * flowing**1.5 * (above / 3.0 - (above + below) * u * _wall_integral(u, 2))
-    else:  # 2 I0 c L^{5/2} (A/5 − (A + B) u g3(u)) / (B h)
-        value = scale * flowing**2.5 * (above / 5.0 - (above + below) * u * _wall_integral(u, 3)) / depth
-    return jnp.where(steady, value, jnp.nan)
+    return flowing, drag * flowing / below  # a L / B >= 0
+
+
+def _surface_velocity(flowing, u, above, below, rate, may_be_empty: bool = False):
+    """U_s(D) = 2 I0 c L^{3/2} (A/3 − (A + B) u g2(u)) / B of ``steady_velocity`` for a layer of
+    depth D >= 0 from its (L, u) (``_flowing_depth``; ``rate`` = 2 I0 c). Where it ``may_be_empty``
+    (D = 0: L = 0, U_s = 0), L^{3/2} is taken
+    through a double ``where``: its first derivative, 1.5 L^{1/2}, is 0 there either way, but its
+    higher ones are infinite, and an infinite factor times a zero tangent is NaN (elsewhere the
+    same value as ``L**1.5``)."""
+    import jax.numpy as jnp
+
+    if may_be_empty:
+        empty = flowing == 0.0
+        power = jnp.where(empty, 0.0, jnp.where(empty, 1.0, flowing) ** 1.5)
+    else:
+        power = flowing**1.5
+    return rate / below * power * (above / 3.0 - (above + below) * u * _wall_integral(u, 2))
 
 
 def wall_drag(side_walls, mu_w=None):
