@@ -103,6 +103,13 @@ def convergence_ratio(shift1, shift2, scale=None) -> float:
     return float(e32 @ (w * e21)) / norm2 if norm2 > 0 else math.inf
 
 
+def observed_order(shift1, shift2, ratio: float, scale=None) -> float | None:
+    """The order p the three grids show (ρ^p = ``convergence_ratio``), unclamped; None where they
+    do not converge monotonically (q <= 1, or e21 nil)."""
+    q = convergence_ratio(shift1, shift2, scale)
+    return math.log(q) / math.log(ratio) if 1.0 < q < math.inf else None
+
+
 def three_grid_index(shift1, shift2, ratio: float, scale=None,
                      what: str = "grids") -> tuple[np.ndarray, float | None, str]:
     """The grid convergence index from three grids (dx, ρ dx, ρ² dx) by the shifts of θ to the
@@ -116,12 +123,13 @@ def three_grid_index(shift1, shift2, ratio: float, scale=None,
     posteriors' means)."""
     e21 = np.asarray(shift1, float)
     e32 = np.asarray(shift2, float) - e21
-    q = convergence_ratio(shift1, shift2, scale)
-    if 1.0 < q < math.inf:
-        order = min(max(math.log(q) / math.log(ratio), ORDER_RANGE[0]), ORDER_RANGE[1])
+    observed = observed_order(shift1, shift2, ratio, scale)
+    if observed is not None:
+        order = min(max(observed, ORDER_RANGE[0]), ORDER_RANGE[1])
         return (1.25 * np.abs(e21) / (ratio ** order - 1.0), order,
                 f"three {what} converging with observed order {order:.2g}: Roache's GCI, safety factor 1.25")
-    kind = "oscillate" if q <= 0 else "do not yet converge (the finer change is the larger)"
+    oscillate = convergence_ratio(shift1, shift2, scale) <= 0
+    kind = "oscillate" if oscillate else "do not yet converge (the finer change is the larger)"
     return (two_grid_index(np.maximum(np.abs(e21), np.abs(e32)), ratio), None,
             f"three {what} {kind}: the larger change with the order assumed 1 and safety factor 3")
 

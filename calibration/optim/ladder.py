@@ -20,7 +20,6 @@ order the fitted points show decides what is reported (docs/grid_term.md):
 from __future__ import annotations
 
 import dataclasses
-import math
 import time
 from collections.abc import Mapping
 from typing import Any
@@ -34,7 +33,7 @@ from ..inference.gridcheck import (
     ORDER_RANGE,
     GridCheck,
     check_grid_options,
-    convergence_ratio,
+    observed_order,
     three_grid_index,
     two_grid_index,
 )
@@ -123,8 +122,7 @@ def _ladder_term(rungs: tuple[Rung, ...], keys, ratio: float, scale) -> tuple[Gr
     shift2 = theta[0] - fine
     halfwidth, order, method = three_grid_index(shift, shift2, ratio, scale, what="grids' fits")
     grid = GridCheck(dx, dx_coarse, 1, shift, halfwidth, wall, shift2=shift2, order=order, method=method)
-    q = convergence_ratio(shift, shift2, scale)
-    observed = math.log(q) / math.log(ratio) if 1.0 < q < math.inf else None
+    observed = observed_order(shift, shift2, ratio, scale)
     if observed is None:
         return grid, None, f"The {method}; the point is the finest grid's fit."
     if not ORDER_RANGE[0] <= observed <= ORDER_RANGE[1]:
