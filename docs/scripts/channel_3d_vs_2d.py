@@ -46,7 +46,7 @@ for _w in (0.02, 0.05, 0.1):
     for _mu in (0.2, 0.3, 0.4):
         CASES[f"S4_W{_w * 100:g}cm_mu{_mu:g}"] = (S4, S4_DX, S4_H, _w, _mu)
 for _a in (0.5, 2, 6):
-    for _w in (0.02, 0.05):
+    for _w in (0.02, 0.05, 0.1):
         for _mu in (0.2, 0.4):
             CASES[f"S5_a{_a:g}_W{_w * 100:g}cm_mu{_mu:g}"] = (*_s5(_a), _w, _mu)
 
@@ -54,7 +54,9 @@ for _a in (0.5, 2, 6):
 #: 3D run on one core). The rest cost more than an afternoon on two cores.
 DEFAULT = ("S4_W2cm_mu0.3", "S4_W2cm_mu0.2", "S4_W2cm_mu0.4", "S5_a2_W2cm_mu0.2", "S5_a2_W2cm_mu0.4",
            "S5_a0.5_W2cm_mu0.2", "S5_a0.5_W2cm_mu0.4", "S5_a6_W2cm_mu0.2", "S5_a6_W2cm_mu0.4",
-           "S4_W5cm_mu0.2", "S4_W5cm_mu0.4", "S5_a2_W5cm_mu0.4", "S4_W10cm_mu0.2", "S4_W10cm_mu0.4")
+           "S4_W5cm_mu0.2", "S4_W5cm_mu0.4", "S5_a2_W5cm_mu0.4", "S4_W10cm_mu0.2", "S4_W10cm_mu0.4",
+           "S5_a0.5_W10cm_mu0.2", "S5_a0.5_W10cm_mu0.4", "S5_a2_W10cm_mu0.2", "S5_a2_W10cm_mu0.4",
+           "S5_a6_W10cm_mu0.2", "S5_a6_W10cm_mu0.4")
 
 
 def _aligned(dx, w):
@@ -112,12 +114,15 @@ def run_case(name, folder, dry=False, fine=False):
             if dry:
                 continue
             print(f"running {name} {kind}", file=sys.stderr, flush=True)
-            out = subprocess.run(command, check=True, capture_output=True, text=True).stdout
-            pathlib.Path(f"{stem}.json").write_text(out)
+            done = subprocess.run(command, capture_output=True, text=True)
+            if done.returncode and '"status"' not in done.stdout:  # not a run that ended with status bits
+                raise RuntimeError(f"{' '.join(command)} failed:\n{done.stderr}")
+            pathlib.Path(f"{stem}.json").write_text(done.stdout)
         run = json.loads(pathlib.Path(f"{stem}.json").read_text())
         rows[kind] = {"command": " ".join(["python", *command[1:-2]]), "runout_m": run["runout"],
                       "y_max_m": run["y_max"], "n_particles": run["n_particles"], "run_s": run["run_s"],
-                      "front_runout_m": _front_runout(f"{stem}.csv", H), "status": run["status"], "dx_m": run["dx"],
+                      "front_runout_m": _front_runout(f"{stem}.csv", H), "status": run["status"],
+                      "status_text": run["status_text"], "dx_m": run["dx"],
                       "profile": _profile(f"{stem}.csv")}
     if "3d" in rows:
         ref = rows["3d"]
@@ -177,6 +182,18 @@ def plot(results, path):
     fig.savefig(path, dpi=120)
 
 
+def _pct(v) -> str:
+    return f"{100 * v:+.1f} %"
+
+
+def _against(runs, kind) -> str:
+    """The runout of ``kind`` against 3D's; a failed run says so (its status bits), not a runout."""
+    if kind not in runs:
+        return ""
+    run = runs[kind]
+    return _pct(run["front_runout_rel"]) if not run["status"] else f"failed: status {run['status']}"
+
+
 def markdown(results) -> str:
     """One row a case: 3D's runout (read from the deposit) and final height, 2D's differences at
     the same dx and at dx/2, 3D's at about 2 dx, the deposits' RMS difference and the costs."""
@@ -188,12 +205,11 @@ def markdown(results) -> str:
         if "3d" not in runs:
             continue
         three, two = runs["3d"], runs["2d"]
-        pct = lambda v: f"{100 * v:+.1f} %"  # noqa: E731
+        pct = _pct
         lines.append(f"| {name.replace('_', ' ')} | {case['dx_m'] * 1000:.3g} mm | {case['W_m'] / case['H_m']:.2g} | "
                      f"{three['front_runout_m'] * 1000:.1f}, {three['y_max_m'] * 1000:.1f} | "
                      f"{pct(two['front_runout_rel'])}, {pct(two['y_max_rel'])}, {two['profile_rms_pct_of_H']:.1f} | "
-                     f"{pct(runs['2d_fine']['front_runout_rel']) if '2d_fine' in runs else ''} | "
-                     f"{pct(runs['3d_coarse']['front_runout_rel']) if '3d_coarse' in runs else ''} | "
+                     f"{_against(runs, '2d_fine')} | {_against(runs, '3d_coarse')} | "
                      f"{three['run_s']:.0f} / {two['run_s']:.1f} |")
     return "\n".join(lines)
 
