@@ -206,10 +206,9 @@ def markdown(results) -> str:
         if "3d" not in runs:
             continue
         three, two = runs["3d"], runs["2d"]
-        pct = _pct
         lines.append(f"| {name.replace('_', ' ')} | {case['dx_m'] * 1000:.3g} mm | {case['W_m'] / case['H_m']:.2g} | "
                      f"{three['front_runout_m'] * 1000:.1f}, {three['y_max_m'] * 1000:.1f} | "
-                     f"{pct(two['front_runout_rel'])}, {pct(two['y_max_rel'])}, {two['profile_rms_pct_of_H']:.1f} | "
+                     f"{_pct(two['front_runout_rel'])}, {_pct(two['y_max_rel'])}, {two['profile_rms_pct_of_H']:.1f} | "
                      f"{_against(runs, '2d_fine')} | {_against(runs, '3d_coarse')} | "
                      f"{three['run_s']:.0f} / {two['run_s']:.1f} |")
     return "\n".join(lines)

@@ -1,5 +1,7 @@
 r"""Levenberg–Marquardt with a structured secant term for large residuals, against plain LM, on a
-fit with model error: docs/results/secant_lm_width.json (a prototype, not the library's LM).
+fit with model error (a prototype, not the library's LM). docs/results/secant_lm_width.json holds
+two ``secant`` runs of this script (4 and 2 cm) beside plain LM's histories from the same fits
+made by ``calibration fit`` in ``width_invariance.py``.
 
 Where the model cannot reach the data (2D fitted to 3D deposits, docs/invariance.md), the
 residuals stay large and the loss's curvature is JᵀJ + Σ r_i ∇²r_i, whose second term is
