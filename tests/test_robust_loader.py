@@ -7,6 +7,7 @@ huge numbers, BOMs, CR/CRLF line ends) mixed with junk and random bytes."""
 import math
 
 import numpy as np
+import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
@@ -85,6 +86,16 @@ def files(draw) -> bytes:
 
 def check_error(err: ValueError, path) -> None:
     assert str(path) in str(err), f"the message does not name the file: {err}"
+
+
+@pytest.mark.parametrize("data", [b"x_mm,h_mm\n1,0\n2,0\n3,4.94066e-324",  # the peak underflows in metres
+                                  b"x_mm,h_mm\n1e-323,1\n1.5e-323,1\n3,1"])  # two x become one in metres
+def test_a_profile_that_vanishes_in_metres_is_refused(tmp_path, data):
+    path = tmp_path / "profile.csv"
+    path.write_bytes(data)
+    with pytest.raises(ValueError) as err:
+        load_profile(path)
+    check_error(err.value, path)
 
 
 @settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture,

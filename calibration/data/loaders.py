@@ -141,7 +141,7 @@ def load_profile(
     if _final_deposit(parsed):
         extra["time_s_text"] = parsed.header["time_s"]
     h_max = float(h_raw.max())
-    if h_max <= 0:
+    if not h_max * scale > 0:  # in metres: a peak of a few 1e-324 mm underflows to zero
         raise ValueError(f"{file}: h is zero or negative everywhere (max h = {h_max:g} {unit})")
     negative = np.nonzero(h_raw < 0)[0]
     if negative.size:
@@ -165,8 +165,12 @@ def load_profile(
     if source is None:
         source = (f"WebPlotDigitizer export {path.name}" + (f", dataset {wpd_dataset!r}" if wpd_dataset else "")
                   + f", units {unit}") if wpd else ""
+    x_m = x_raw * scale
+    if not np.all(np.diff(x_m) > 0):  # distinct in the file's units, equal in metres (underflow)
+        raise ValueError(f"{file}: x values that differ by less than float64 resolves in metres; x must be "
+                         "strictly increasing")
     return Profile(
-        x=x_raw * scale, h=h_raw * scale, experiment=name, time_s=_time(parsed, time_s), source=str(source),
+        x=x_m, h=h_raw * scale, experiment=name, time_s=_time(parsed, time_s), source=str(source),
         synthetic=_synthetic(parsed, name), meta=_meta(parsed, extra), path=str(path),
     )
 
