@@ -61,6 +61,20 @@ def test_two_inclines_share_their_material_and_a_composite_of_closed_forms_has_n
     assert np.isnan(both.dx)
 
 
+def test_the_posterior_of_a_flow_rule_samples_its_support():
+    """NUTS reads μ1 and μ2 of every part to keep μ2 ≥ μ1; a flow rule's part has them too (the
+    posterior of a joint fit with an incline raised AttributeError before its first draw)."""
+    pytest.importorskip("blackjax")
+    from calibration.inference.mcmc import nuts_posterior
+
+    objective = FlowRuleObjective(table((22.0, 25.0, 28.0), (0.01, 0.02, 0.04)), values=FIXED)
+    result = fit(objective, FAR, noise=0.01, workers=1)
+    posterior = nuts_posterior(objective, result, chains=2, warmup=30, draws=60, noise=0.01)
+    for key in objective.keys:  # a posterior about the fit, as wide as its standard error
+        assert abs(posterior.mean[key] - result.theta[key]) < posterior.gn_stderr[key], key
+        assert 0.5 < posterior.sd[key] / posterior.gn_stderr[key] < 2.0, key
+
+
 @pytest.mark.slow  # 20 s: a four-key fit of a collapse's runs; the objective's own fit runs by default
 def test_a_collapse_and_an_incline_fitted_together_fix_the_rate_dependence():
     keys = ("beta", "mu1", "mu2", "I0")

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import types
 from collections.abc import Mapping, Sequence
 from typing import Any
 
@@ -205,6 +206,11 @@ class FlowRuleObjective:
 
     def initial(self) -> dict[str, float]:
         return {k: self.material[k] for k in self.keys}
+
+    def params_of(self, theta):
+        """The material's values by name, the fitted keys set from θ (physical values; traceable),
+        as ``Objective.params_of`` gives a scene's (the posteriors' support check reads μ1, μ2)."""
+        return types.SimpleNamespace(**{**self.material, **{k: theta[i] for i, k in enumerate(self.keys)}})
 
     def expand(self, values: Mapping[str, float]) -> dict[str, float]:
         stray = [k for k in values if k not in self.keys]
