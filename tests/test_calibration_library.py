@@ -93,7 +93,7 @@ def test_fit_from_starts_runs_one_start_a_search_or_two_stages(monkeypatch):
     monkeypatch.setattr(fit_module, "fit", fake_fit)
     monkeypatch.setattr(search_module, "search", fake_search("search"))
     monkeypatch.setattr(search_module, "coarse_to_fine", fake_search("coarse_to_fine"))
-    options, judge = FitOptions(steps=7), JudgeOptions(roundoff_samples=0, grid_ratio=1.5)
+    options, judge = FitOptions(steps=7, lm_model="adaptive"), JudgeOptions(roundoff_samples=0, grid_ratio=1.5)
     assert search_module.fit_from_starts("obj", {"beta": 0.2}, options=options, judge=judge, out="f.h5",
                                          resume=True, meta={"a": 1}) == ("fitted", None)
     name, init, kw = calls[-1]
@@ -103,12 +103,23 @@ def test_fit_from_starts_runs_one_start_a_search_or_two_stages(monkeypatch):
     name, args, kw = calls[-1]
     assert (name, args, result, found.best) == ("search", ("obj", 3), "best", "best")
     assert kw["steps"] == 7 and kw["seed"] == 4 and kw["init"] is None and kw["grid_ratio"] == 1.5
-    assert kw["roundoff_samples"] == 0
+    assert kw["roundoff_samples"] == 0 and kw["lm_model"] == "adaptive"
     search_module.fit_from_starts("obj", None, starts=3, coarse="coarse", refine=5, options=options, judge=judge)
     name, args, kw = calls[-1]
     assert name == "coarse_to_fine" and args == ("obj", "coarse", 3) and kw["refine"] == 5 and kw["steps"] == 7
     with pytest.raises(ValueError, match="starts must be an integer >= 1, got 0"):
         search_module.fit_from_starts("obj", starts=0)
+
+
+def test_lm_model_is_checked_and_a_history_without_it_resumes_as_gauss_newton():
+    with pytest.raises(ValueError, match="lm_model must be one of"):
+        FitOptions(lm_model="secant")
+    with pytest.raises(ValueError, match="lm_model must be 'gauss-newton' with method 'adam'"):
+        FitOptions(method="adam", lm_model="adaptive")
+    saved = {k: v for k, v in FitOptions().to_json().items() if k != "lm_model"}  # a file from before the field
+    assert FitOptions().differences(saved) == []
+    assert FitOptions(lm_model="adaptive").differences(saved) == [
+        "lm_model: 'adaptive' now, not recorded in the file"]
 
 
 def test_posterior_checks_say_why_they_are_skipped():

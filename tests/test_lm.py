@@ -6,7 +6,7 @@ import pytest
 from scipy.optimize import least_squares
 
 from calibration.optim.evaluate import Evaluation
-from calibration.optim.lm import LMOptions, levenberg_marquardt, propose
+from calibration.optim.lm import LMOptions, levenberg_marquardt, propose, secant_update
 from calibration.optim.loop import run
 
 # Osborne 1 (Moré, Garbow & Hillstrom 1981, problem 17): 33 points, 5 parameters, a flat valley.
@@ -71,3 +71,82 @@ def test_a_statistical_stop_in_a_flat_valley_is_within_the_tolerance_it_states()
     se = np.sqrt(sigma2 * np.diag(np.linalg.inv(J.T @ J)))
     assert np.max(np.abs(state.z[0] - ref.x) / se) < 1.0
     assert state.z[0] == pytest.approx(ref.x, rel=0.05)
+
+
+# Brown & Dennis (MGH 16): 20 points, 4 parameters, a large residual at the minimum (loss 85822.2).
+BD_T = np.arange(1, 21) / 5.0
+
+
+def brown_dennis(x):
+    a = x[0] + BD_T * x[1] - np.exp(BD_T)
+    b = x[2] + x[3] * np.sin(BD_T) - np.cos(BD_T)
+    return a * a + b * b, np.stack([2 * a, 2 * a * BD_T, 2 * b, 2 * b * np.sin(BD_T)], axis=1)
+
+
+# Jennrich & Sampson (MGH 6): 10 points, 2 parameters, loss 124.362 at the minimum.
+JS_I = np.arange(1, 11.0)
+
+
+def jennrich_sampson(x):
+    r = 2 + 2 * JS_I - (np.exp(JS_I * x[0]) + np.exp(JS_I * x[1]))
+    return r, -np.stack([JS_I * np.exp(JS_I * x[0]), JS_I * np.exp(JS_I * x[1])], axis=1)
+
+
+def _solve(problem, x0, model, **options):
+    lm = levenberg_marquardt(LMOptions(model=model, **options))
+    rows = _Rows()
+    state = run(lm, lm.init(np.array([x0], float)), _evaluator(problem), rows, steps=300)
+    return state, rows.iterations
+
+
+def _evaluator(problem):
+    def evaluate(Z):
+        r, J = (np.stack(a) for a in zip(*(problem(z) for z in Z)))
+        g = 2 * np.einsum("kmn,km->kn", J, r)
+        k = len(Z)
+        return Evaluation(theta=np.asarray(Z, float), loss=np.sum(r * r, axis=1), status=np.zeros(k, int), grad=g,
+                          residuals=r, jacobian=J, jacobian_z=J, grad_z=g, prediction={"status": np.zeros(k, int)})
+
+    return evaluate
+
+
+def test_the_adaptive_model_reaches_a_large_residual_minimum_gauss_newton_does_not():
+    """NL2SOL's test case: Gauss–Newton's JᵀJ misses the residuals' own curvature, and its steps
+    stall far above the minimum; the secant term gets there."""
+    tight = dict(stat_tol=0.0, xtol=1e-10, ftol=1e-12)
+    plain, _ = _solve(brown_dennis, [25, 5, -5, -1], "gauss-newton", **tight)
+    adaptive, _ = _solve(brown_dennis, [25, 5, -5, -1], "adaptive", **tight)
+    assert plain.current.loss[0] > 10 * 85822.2, plain.message[0]
+    assert adaptive.message[0].startswith("converged"), adaptive.message[0]
+    assert adaptive.current.loss[0] == pytest.approx(85822.2016, rel=1e-8)
+    plain, n_plain = _solve(jennrich_sampson, [0.3, 0.4], "gauss-newton", **tight)
+    adaptive, n_adaptive = _solve(jennrich_sampson, [0.3, 0.4], "adaptive", **tight)
+    assert plain.current.loss[0] == pytest.approx(adaptive.current.loss[0], rel=1e-10)
+    assert adaptive.current.loss[0] == pytest.approx(124.362182, rel=1e-8)
+    assert n_adaptive < n_plain
+
+
+def test_the_adaptive_model_takes_gauss_newtons_path_on_a_small_residual():
+    """Where the residuals vanish at the minimum the secant term stays out of the way: Osborne 1's
+    fit ends at the same point in as many iterations."""
+    x0 = [0.5, 1.5, -1.0, 0.01, 0.02]
+    plain, n_plain = _solve(osborne, x0, "gauss-newton")
+    adaptive, n_adaptive = _solve(osborne, x0, "adaptive")
+    assert n_adaptive == n_plain
+    np.testing.assert_allclose(adaptive.z[0], plain.z[0], rtol=1e-6)
+
+
+def test_the_secant_update_meets_its_secant_condition_and_stays_symmetric():
+    rng = np.random.default_rng(1)
+    k, m, n = 3, 9, 4
+    S = rng.standard_normal((k, n, n))
+    S = S + np.swapaxes(S, 1, 2)
+    r, r_new = rng.standard_normal((2, k, m))
+    J, J_new = rng.standard_normal((2, k, m, n))
+    step = rng.standard_normal((k, n))
+    y = np.einsum("kmi,km->ki", J_new, r_new) - np.einsum("kmi,km->ki", J, r)
+    step = np.where((np.sum(y * step, 1) > 0)[:, None], step, -step)  # the update needs yᵀs > 0
+    new = secant_update(S, step, r, J, r_new, J_new)
+    y_sharp = np.einsum("kmi,km->ki", J_new - J, r_new)
+    np.testing.assert_allclose(np.einsum("kij,kj->ki", new, step), y_sharp, rtol=1e-10, atol=1e-10)
+    np.testing.assert_allclose(new, np.swapaxes(new, 1, 2), rtol=1e-12, atol=1e-12)

@@ -32,7 +32,7 @@ from ..problem.protocol import ObjectiveLike
 from .adam import adam
 from .evaluate import evaluator
 from .history import History, check_out
-from .lm import LMOptions, LMState, levenberg_marquardt
+from .lm import LMState, levenberg_marquardt
 from .loop import run, status_text
 from .options import FitOptions, split_fields
 from .record import write_record
@@ -157,8 +157,7 @@ def fit(objective: ObjectiveLike, init: Mapping[str, float] | None = None, *, op
     method = options.method
     path = check_out(out, resume=resume, overwrite=overwrite)
     header = None if path is None else file_header(objective, options, judge, meta)
-    optimiser = (levenberg_marquardt(LMOptions(xtol=options.xtol, ftol=options.ftol, stat_tol=options.stat_tol,
-                                               max_rejections=options.max_rejections)) if method == "lm"
+    optimiser = (levenberg_marquardt(options.lm_options()) if method == "lm"
                  else adam(options.learning_rate, steps=options.steps, clip=options.clip))
     start_note = ""
     if resume:

@@ -20,11 +20,18 @@ from ..problem.bounds import MAX_STEP
 from .evaluate import Evaluation
 from .loop import Optimiser, where_rows
 
-__all__ = ["LAM0", "LMOptions", "propose", "judge", "LMState", "levenberg_marquardt"]
+__all__ = ["LAM0", "MODELS", "LMOptions", "propose", "judge", "secant_update", "LMState", "levenberg_marquardt"]
 
 
 #: The damping of the first step.
 LAM0 = 1e-3
+
+#: The models of the loss's curvature a step may use: JᵀJ alone, or JᵀJ plus a secant estimate of
+#: Σ rᵢ ∇²rᵢ where that predicted the last step's decrease better (Dennis, Gay & Welsch 1981).
+MODELS = ("gauss-newton", "adaptive")
+
+#: The smallest eigenvalue of (JᵀJ + S), scaled to JᵀJ's unit diagonal, for the secant model to be used.
+SECANT_MIN_EIGENVALUE = 1e-2
 
 
 @dataclasses.dataclass(frozen=True)
@@ -33,11 +40,14 @@ class LMOptions:
     ftol: float = 1e-7
     stat_tol: float = 0.1
     max_rejections: int = 6
+    model: str = "gauss-newton"
 
 
-def propose(r, Jz, lam):
+def propose(r, Jz, lam, secant=None):
     """Steps δ (k, n) and promised decreases (k,) from residuals r (k, m), their Jacobian in z,
-    Jz (k, m, n), and the damping λ (k,). The promise is the linear model's decrease at its
+    Jz (k, m, n), and the damping λ (k,). The step solves (H + λ diag JᵀJ) δ = −Jᵀr with H = JᵀJ,
+    or JᵀJ + S where ``secant`` (k, n, n) gives S for a start (zeros: JᵀJ) and JᵀJ + S is
+    positive definite (``secant_usable``). The promise is the linear model's decrease at its
     minimum (the undamped Gauss–Newton step, by least squares where JᵀJ is singular), not the
     damped step's: after rejected steps λ is large and the damped promise small wherever the
     minimum is. The step is capped at ``MAX_STEP`` in every z, so that no step lands in the
@@ -47,13 +57,46 @@ def propose(r, Jz, lam):
     diag = np.diagonal(A, axis1=1, axis2=2)
     d = np.maximum(diag, 1e-12 * np.maximum(diag.max(axis=1, keepdims=True), 1e-300))
     rhs = -np.einsum("kmi,km->ki", Jz, r)
-    delta = np.linalg.solve(A + lam[:, None, None] * (d[:, :, None] * np.eye(A.shape[1])), rhs[..., None])[..., 0]
+    H = A if secant is None else np.where(secant_usable(A, secant)[:, None, None], A + secant, A)
+    delta = np.linalg.solve(H + lam[:, None, None] * (d[:, :, None] * np.eye(A.shape[1])), rhs[..., None])[..., 0]
     longest = np.max(np.abs(delta), axis=1, keepdims=True)
     delta = delta * np.minimum(1.0, MAX_STEP / np.maximum(longest, 1e-300))
     loss = np.sum(r * r, axis=1)
     gauss_newton = np.stack([np.linalg.lstsq(J, -ri, rcond=None)[0] for J, ri in zip(Jz, r)])
     promised = loss - np.sum((r + np.einsum("kmi,ki->km", Jz, gauss_newton)) ** 2, axis=1)
     return delta, promised
+
+
+def secant_usable(A, S):
+    """(k,) whether JᵀJ + S (A = JᵀJ and S, (k, n, n)) is positive definite enough to step with:
+    its smallest eigenvalue, scaled to A's unit diagonal, at least ``SECANT_MIN_EIGENVALUE``."""
+    scale = 1.0 / np.sqrt(np.maximum(np.diagonal(A, axis1=1, axis2=2), 1e-300))
+    H = (A + S) * scale[:, :, None] * scale[:, None, :]
+    return np.any(S != 0, axis=(1, 2)) & (np.linalg.eigvalsh(H)[:, 0] >= SECANT_MIN_EIGENVALUE)
+
+
+def secant_update(S, step, r, J, r_new, J_new):
+    """The structured secant estimate S (k, n, n) of Σ rᵢ ∇²rᵢ after accepted steps ``step``
+    (k, n) from (r, J) to (r_new, J_new): NL2SOL's update (Dennis, Gay & Welsch 1981). With
+    y = J₊ᵀr₊ − Jᵀr (the change of the gradient) and y♯ = (J₊ − J)ᵀ r₊ (its part from the
+    residuals' curvature), S is first sized by min(1, |sᵀy♯| / |sᵀSs|) and then changed by the
+    least symmetric amount that gives S s = y♯. Where yᵀs ≤ 0 (no positive curvature along the
+    step) S is only sized."""
+    S, s = np.asarray(S, float), np.asarray(step, float)
+    g_new = np.einsum("kmi,km->ki", J_new, r_new)
+    y = g_new - np.einsum("kmi,km->ki", J, r)
+    y_sharp = g_new - np.einsum("kmi,km->ki", J, r_new)
+    sSs = np.einsum("ki,kij,kj->k", s, S, s)
+    tau = np.where(np.abs(sSs) > 0, np.minimum(1.0, np.abs(np.sum(s * y_sharp, 1)) / np.maximum(np.abs(sSs), 1e-300)),
+                   1.0)
+    S = tau[:, None, None] * S
+    v = y_sharp - np.einsum("kij,kj->ki", S, s)
+    ys = np.sum(y * s, axis=1)
+    ok = ys > 1e-12 * np.linalg.norm(y, axis=1) * np.linalg.norm(s, axis=1)
+    ys = np.where(ok, ys, 1.0)
+    change = ((v[:, :, None] * y[:, None, :] + y[:, :, None] * v[:, None, :]) / ys[:, None, None]
+              - (np.sum(v * s, 1) / ys**2)[:, None, None] * y[:, :, None] * y[:, None, :])
+    return S + np.where(ok[:, None, None], change, 0.0)
 
 
 def judge(loss_c, theta_c, loss_t, theta_t, ok_t, promised, lam, rejections, m: int, options: LMOptions):
@@ -102,21 +145,30 @@ class LMState(NamedTuple):
     accepted: np.ndarray  # (k,) whether the last evaluation was accepted
     done: np.ndarray  # (k,)
     message: np.ndarray  # (k,) object: "" while a start goes on
+    secant: np.ndarray | None = None  # (k, n, n) the secant estimate S of Σ rᵢ ∇²rᵢ ("adaptive")
+    use_secant: np.ndarray | None = None  # (k,) whether the next step's model is JᵀJ + S
 
 
 def levenberg_marquardt(options: LMOptions = LMOptions()) -> Optimiser:
     """LM as ``(init, update)``: ``init(z)`` asks for the runs at the starts z (k, n);
     ``update(evaluation, state)`` judges the trials (the first evaluation: takes the starts
-    whose runs succeed) and proposes the next ones."""
+    whose runs succeed) and proposes the next ones. With ``options.model == "adaptive"`` each step
+    uses JᵀJ or JᵀJ + S, whichever forecast the last accepted step's decrease better
+    (``_choose_model``), S kept by ``secant_update``; "gauss-newton" steps with JᵀJ alone."""
+    if options.model not in MODELS:
+        raise ValueError(f"model must be one of {MODELS}, got {options.model!r}")
+    adaptive = options.model == "adaptive"
 
     def init(z):
         z = np.asarray(z, float)
         k = z.shape[0]
         return LMState(z=z, current=None, lam=np.full(k, LAM0), rejections=np.zeros(k, int), z_next=z,
                        promised=np.full(k, np.nan), accepted=np.zeros(k, bool), done=np.zeros(k, bool),
-                       message=np.full(k, "", object))
+                       message=np.full(k, "", object), secant=np.zeros((k, z.shape[1], z.shape[1])),
+                       use_secant=np.zeros(k, bool))
 
     def update(evaluation: Evaluation, state: LMState) -> LMState:
+        secant, use_secant = state.secant, state.use_secant
         if state.current is None:  # the runs at the starts
             accepted = (evaluation.status == 0) & np.isfinite(evaluation.loss)
             z, lam, rejections, stop = state.z_next, state.lam, state.rejections, ~accepted
@@ -128,6 +180,8 @@ def levenberg_marquardt(options: LMOptions = LMOptions()) -> Optimiser:
             accepted, lam, rejections, stop, messages = judge(
                 c.loss, c.theta, evaluation.loss, evaluation.theta, evaluation.status == 0, state.promised,
                 state.lam, state.rejections, c.residuals.shape[1], options)
+            if adaptive:
+                secant, use_secant = _choose_model(state, evaluation, accepted)
             z = np.where(accepted[:, None], state.z_next, state.z)
             current = where_rows(accepted, evaluation, c)
         done = state.done | stop
@@ -135,9 +189,31 @@ def levenberg_marquardt(options: LMOptions = LMOptions()) -> Optimiser:
         z_next, promised = z.copy(), np.full(len(z), np.nan)
         go = ~done
         if go.any():
-            delta, promised[go] = propose(current.residuals[go], current.jacobian_z[go], lam[go])
+            model = np.where(use_secant[go, None, None], secant[go], 0.0) if adaptive else None
+            delta, promised[go] = propose(current.residuals[go], current.jacobian_z[go], lam[go], model)
             z_next[go] = z[go] + delta
         return LMState(z=z, current=current, lam=lam, rejections=rejections, z_next=z_next, promised=promised,
-                       accepted=accepted, done=done, message=message)
+                       accepted=accepted, done=done, message=message, secant=secant, use_secant=use_secant)
 
     return Optimiser(init, update)
+
+
+def _choose_model(state: LMState, evaluation: Evaluation, accepted):
+    """The secant estimate and the next step's model after a batch of trials. Each accepted step
+    updates S (``secant_update``) and picks the model whose forecast of the step's decrease was
+    nearer the decrease the runs gave: Gauss–Newton's ‖r‖² − ‖r + J s‖², or that less sᵀ S s
+    with the S the step was taken with (the updated S while S was still zero, so that the first
+    accepted step can start using it). A rejected step taken with S makes the next one
+    Gauss–Newton's."""
+    c, secant = state.current, state.secant
+    step = state.z_next - state.z
+    r, J = c.residuals, c.jacobian_z
+    with np.errstate(all="ignore"):  # a rejected trial's residuals may be NaN; only accepted rows are used
+        updated = secant_update(secant, step, r, J, evaluation.residuals, evaluation.jacobian_z)
+        gauss_newton = c.loss - np.sum((r + np.einsum("kmi,ki->km", J, step)) ** 2, axis=1)
+        forecast_with = np.where(np.any(secant != 0, axis=(1, 2))[:, None, None], secant, updated)
+        with_secant = gauss_newton - np.einsum("ki,kij,kj->k", step, forecast_with, step)
+        actual = c.loss - evaluation.loss
+        better = np.abs(actual - with_secant) < np.abs(actual - gauss_newton)
+    secant = np.where(accepted[:, None, None] & np.isfinite(updated), updated, secant)
+    return secant, accepted & better

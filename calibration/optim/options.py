@@ -10,8 +10,10 @@ from typing import Any
 
 from ..inference.options import JudgeOptions
 from ..problem.options import _is_int, _is_number, _require
+from .lm import MODELS as LM_MODELS
+from .lm import LMOptions
 
-__all__ = ["METHODS", "GRAD_MODES", "FitOptions", "cli_steps"]
+__all__ = ["METHODS", "GRAD_MODES", "LM_MODELS", "FitOptions", "cli_steps"]
 
 
 METHODS = ("lm", "adam")
@@ -25,7 +27,9 @@ class FitOptions:
     """How a fit runs. ``method``: "lm" (Levenberg–Marquardt) or "adam"; ``steps``: the most
     iterations (model evaluations), counted over resumes; ``learning_rate``, ``clip``,
     ``grad_mode`` ("fwd" or "rev"): Adam's; ``xtol``, ``ftol``, ``stat_tol``, ``max_rejections``:
-    LM's stopping tests (``calibration.optim.lm``, docs/fitting.md)."""
+    LM's stopping tests (``calibration.optim.lm``, docs/fitting.md); ``lm_model``: LM's curvature,
+    JᵀJ ("gauss-newton") or JᵀJ plus a secant estimate of the residuals' curvature where that
+    forecasts better ("adaptive", for data the model cannot reach)."""
 
     method: str = "lm"
     steps: int = 30
@@ -36,6 +40,7 @@ class FitOptions:
     ftol: float = 1e-7
     stat_tol: float = 0.1
     max_rejections: int = 6
+    lm_model: str = "gauss-newton"
 
     def __post_init__(self):
         _require(self.method in METHODS, "method", f"one of {METHODS}", self.method)
@@ -49,6 +54,14 @@ class FitOptions:
             _require(_is_number(value) and value >= 0, name, "a finite number >= 0", value)
         _require(_is_int(self.max_rejections) and self.max_rejections >= 1, "max_rejections", "an integer >= 1",
                  self.max_rejections)
+        _require(self.lm_model in LM_MODELS, "lm_model", f"one of {LM_MODELS}", self.lm_model)
+        _require(self.method == "lm" or self.lm_model == "gauss-newton", "lm_model",
+                 "'gauss-newton' with method 'adam' (it is LM's)", self.lm_model)
+
+    def lm_options(self) -> LMOptions:
+        """LM's options (``calibration.optim.lm.LMOptions``) from these."""
+        return LMOptions(xtol=self.xtol, ftol=self.ftol, stat_tol=self.stat_tol, max_rejections=self.max_rejections,
+                         model=self.lm_model)
 
     def to_json(self) -> dict[str, Any]:
         return dataclasses.asdict(self)
@@ -62,6 +75,8 @@ class FitOptions:
             if field.name == "steps":
                 continue
             now = getattr(self, field.name)
+            if field.name not in saved and now == field.default:  # a field added since the file was written
+                continue
             if field.name not in saved:
                 out.append(f"{field.name}: {now!r} now, not recorded in the file")
             elif saved[field.name] != now:

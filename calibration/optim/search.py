@@ -274,7 +274,7 @@ def _run_starts(objective: ObjectiveLike, thetas, evaluate, steps: int, lm_optio
 
 def search(objective: ObjectiveLike, starts: int | np.ndarray = DEFAULT_STARTS, *, seed: int = 0, design: str = "sobol",
            init: Mapping[str, float] | None = None, steps: int = 30, xtol: float = 1e-6, ftol: float = 1e-7,
-           stat_tol: float = 0.1, max_rejections: int = 6, cluster_tol: float = 0.01,
+           stat_tol: float = 0.1, max_rejections: int = 6, lm_model: str = "gauss-newton", cluster_tol: float = 0.01,
            noise: Mapping[str, float] | float | None = None, uncertainty: bool = True, shrink: bool = True,
            roundoff_samples: int = ROUNDOFF_SAMPLES, sampling_seeds: int = 0, reference_noise: float = 0.01,
            threshold: float = 0.1, grid_ratio: float | None = None, grid_draws: int = GRID_DRAWS,
@@ -296,7 +296,8 @@ def search(objective: ObjectiveLike, starts: int | np.ndarray = DEFAULT_STARTS, 
     with using(workers) as workers:
         clock0 = time.perf_counter()
         steps = check_int("steps", steps, 1)
-        FitOptions(steps=int(steps), xtol=xtol, ftol=ftol, stat_tol=stat_tol, max_rejections=max_rejections)
+        lm_options = FitOptions(steps=int(steps), xtol=xtol, ftol=ftol, stat_tol=stat_tol,
+                                max_rejections=max_rejections, lm_model=lm_model).lm_options()
         if not (math.isfinite(cluster_tol) and 0 < cluster_tol < 1):
             raise ValueError(f"cluster_tol must be in (0, 1), got {cluster_tol!r}")
         if objective.jacobian != "ad":
@@ -305,7 +306,6 @@ def search(objective: ObjectiveLike, starts: int | np.ndarray = DEFAULT_STARTS, 
         keys = objective.keys
         thetas, start_note = _starts(objective, starts, init, seed, design)
         evaluate = BatchEvaluator(objective, len(thetas), shrink, workers)
-        lm_options = LMOptions(xtol=xtol, ftol=ftol, stat_tol=stat_tol, max_rejections=max_rejections)
         scatters: dict = {}
         dominated = dominated_stop(len(keys)) if drop_dominated and len(thetas) > 1 else None
         at_roundoff = roundoff_stop(objective, roundoff_samples if uncertainty else 0, workers, scatters)
@@ -361,7 +361,8 @@ def coarse_to_fine(objective: ObjectiveLike, coarse: ObjectiveLike, starts: int 
     opts = {**COARSE_OPTIONS, **dict(coarse_options or {})}
     with using(workers) as workers:  # one pool for both stages
         first = search(coarse, starts, seed=seed, design=design, init=init, uncertainty=False,
-                       noise=options.get("noise"), progress=progress, workers=workers, **opts)
+                       noise=options.get("noise"), lm_model=options.get("lm_model", "gauss-newton"),
+                       progress=progress, workers=workers, **opts)
 
         def placed(m):
             """The minimum, moved inside the bounds; if it breaks an engine rule, the last valid point
@@ -403,7 +404,7 @@ def fit_from_starts(objective, init: Mapping[str, float] | None = None, *, start
     with its history ``out``, ``resume``, ``overwrite`` and ``meta``), else the global search
     (``init`` one more start, ``seed`` its design's), in two stages (``coarse_to_fine``) when
     ``coarse`` (the objective on a coarser grid) is given. ``options`` and ``judge`` as for
-    ``fit`` (the search takes only ``steps``). Returns the best point and the search (None for
+    ``fit`` (the search takes only ``steps`` and ``lm_model``). Returns the best point and the search (None for
     one start). A search's ``out`` is its best start's file (``save_start``), which a resume
     continues as one start."""
     options, judge = options or FitOptions(), judge or JudgeOptions()
@@ -415,8 +416,8 @@ def fit_from_starts(objective, init: Mapping[str, float] | None = None, *, start
     if resume:
         raise ValueError("resume continues one start's history: a search (starts > 1) cannot resume")
     path = check_out(out, resume=False, overwrite=overwrite)
-    common = dict(seed=seed, init=init or None, steps=options.steps, progress=progress, workers=workers,
-                  **judge.kwargs())
+    common = dict(seed=seed, init=init or None, steps=options.steps, lm_model=options.lm_model, progress=progress,
+                  workers=workers, **judge.kwargs())
     found = (coarse_to_fine(objective, coarse, starts, refine=refine, **common) if coarse is not None
              else search(objective, starts, **common))
     if path is not None:
