@@ -193,8 +193,10 @@ def test_fit_emulated_posterior_where_the_verdict_refuses_an_interval(capsys, tm
                     "--init", "mu1=0.4", "--steps", "1", "--roundoff-samples", "0", "--grid-check", "0", "--out", fit,
                     *TINY)
     assert code == 0 and not out["verdict"]["is_fit"]
-    code, out = run(capsys, "posterior", fit, "--grid-check", "0", "--emulated", "30", "--chains", "2", "--json")
+    code, out = run(capsys, "posterior", fit, "--grid-check", "0", "--emulated", "30", "--chains", "2", "--plot",
+                    str(tmp_path / "figs"), "--json")
     assert code == 0
+    assert [pathlib.Path(f).name for f in out["figures"]] == ["posterior_emulated.png"]  # --plot drew nothing before
     em = out["emulated_posterior"]
     assert em["keys"] == ["mu1"] and em["model_runs"] == 30 and em["model_jacobians"] == 4 + 3 * (len(em["rounds"]) - 1)
     assert em["failed_checks"] == 0 and np.isfinite(em["pareto_k"]) and em["ess_importance"] > 0
@@ -241,7 +243,8 @@ def test_fit_with_profiles_and_posterior_draws_them(capsys, tmp_path):
     gn_lo, gn_hi = fitted["ci95"]["mu1"]
     assert 0.7 < (hi - lo) / (gn_hi - gn_lo) < 1.4
     assert 0.7 < out["posterior"]["sd_over_gauss_newton"]["mu1"] < 1.4
-    assert any(f.endswith("fit_likelihood.png") for f in out["figures"])
+    assert [pathlib.Path(f).name for f in out["figures"]] == ["fit_likelihood.png", "posterior_nuts.png"]
+    assert all(pathlib.Path(f).stat().st_size > 0 for f in out["figures"])
 
 
 @pytest.mark.slow  # four compilations of a tiny run (30-60 s)

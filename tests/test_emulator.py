@@ -4,6 +4,7 @@ curved two-key target against its quadrature on a fine grid."""
 
 import importlib.util
 import json
+import pathlib
 import types
 
 import jax.numpy as jnp
@@ -15,6 +16,7 @@ from calibration.inference import surrogates
 from calibration.inference.emulator import emulated_posterior, log_uniform
 from calibration.inference.gridpost import weighted_quantile
 from calibration.inference.surrogates import CorrectedQuadratic, EmulatedObjective, QuadraticEmulator, psis
+from calibration.plots.posteriors import likelihood_figures
 from calibration.problem.bounds import Bounds, dphysical_dz, physical
 
 SIGMA = 0.1
@@ -229,7 +231,7 @@ def banana():
 @pytest.mark.parametrize("whitening, emulator", [  # the first by default; the others 8 s each, slow
     ("fit", "quadratic"), *(pytest.param(*case, marks=pytest.mark.slow) for case in (
         ("laplace", "quadratic"), ("fit", "corrected"), ("laplace", "corrected")))])
-def test_emulated_posterior_matches_the_quadrature_of_a_curved_target(banana, whitening, emulator):
+def test_emulated_posterior_matches_the_quadrature_of_a_curved_target(banana, whitening, emulator, tmp_path):
     """Whitened by a fit's Gauss–Newton covariance or by the Laplace covariance at a point given by
     value (the model's Jacobian there, the prior's curvature): the corrected moments are the
     quadrature's. (The crescent is not quadratic in the whitened coordinates: the emulator alone is
@@ -277,6 +279,11 @@ def test_emulated_posterior_matches_the_quadrature_of_a_curved_target(banana, wh
     assert out["converged"] == (post.emulated.converged and post.pareto_k < 0.7 and post.ess_importance >= 100)
     assert out["model_runs"] == 400
     assert len(out["check_chi2"]) == 400 and out["noise"] == {"profile": SIGMA}
+    # What `calibration posterior --emulated N --plot DIR` draws (before, nothing).
+    pytest.importorskip("matplotlib")
+    figures = likelihood_figures(tmp_path, [], emulated=post)
+    assert [pathlib.Path(f).name for f in figures] == ["posterior_emulated.png"]
+    assert pathlib.Path(figures[0]).stat().st_size > 0
 
 
 @pytest.mark.slow  # 14 s; the emulated posterior's refusals before any run are tested by default

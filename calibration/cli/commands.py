@@ -134,8 +134,9 @@ def _posterior(args) -> int:
         checks = posterior_checks(objective, record, options, noise=args.noise, workers=workers,
                                   progress=not args.json)
     out = {"fit": str(args.fit_file), "keys": list(record.keys), "params": record.theta, **checks.report}
-    figures = lambda: likelihood_figures(args.plot, checks.profiles, posterior=checks.posterior)  # noqa: E731
-    return _print_with_figures(out, args, figures if checks.profiles else None)
+    figures = lambda: likelihood_figures(args.plot, checks.profiles, posterior=checks.posterior,  # noqa: E731
+                                         nuts=checks.nuts, emulated=checks.emulated)
+    return _print_with_figures(out, args, figures)
 
 
 def _sweep(args) -> int:

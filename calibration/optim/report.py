@@ -90,11 +90,14 @@ class PosteriorChecks:
     """The checks beyond Gauss–Newton on a fit's point: ``report``, the JSON blocks they add
     to the fit's ("profile_likelihood", "posterior", "nuts", or why one was skipped);
     ``profiles``, the ``ProfileLikelihood`` of every key scanned; ``posterior``, the
-    ``GridPosterior`` (None where not computed)."""
+    ``GridPosterior``; ``nuts``, the ``McmcPosterior``; ``emulated``, the ``EmulatedPosterior``
+    (each None where not computed)."""
 
     report: dict[str, Any] = dataclasses.field(default_factory=dict)
     profiles: list = dataclasses.field(default_factory=list)
     posterior: Any = None
+    nuts: Any = None
+    emulated: Any = None
 
 
 def posterior_checks(objective, result, options: PosteriorOptions, *, noise=None, workers=None,
@@ -123,14 +126,17 @@ def posterior_checks(objective, result, options: PosteriorOptions, *, noise=None
         else:
             sigma = noise = error.noise(sigma)
             report.update(model_error=error.to_dict(), posterior_noise=noise)
+    emulated = None
     if options.emulated:
-        report.update(_emulated(objective, result, options, sigma, workers, progress))
+        block, emulated = _emulated(objective, result, options, sigma, workers, progress)
+        report.update(block)
     if not (options.profiles or options.posterior or options.nuts):
-        return PosteriorChecks(report)
+        return PosteriorChecks(report, emulated=emulated)
     if unc is None or unc.withheld:
         return PosteriorChecks({**report, "profile_likelihood_skipped": "the point is not a fit of the data: no "
-                                                                        "interval to scan around"})
-    return _around_the_interval(objective, result, options, noise, report, progress)
+                                                                        "interval to scan around"}, emulated=emulated)
+    return dataclasses.replace(_around_the_interval(objective, result, options, noise, report, progress),
+                               emulated=emulated)
 
 
 def _model_error(objective, result, options: PosteriorOptions, workers):
@@ -145,16 +151,17 @@ def _model_error(objective, result, options: PosteriorOptions, workers):
         return str(err)
 
 
-def _emulated(objective, result, options: PosteriorOptions, sigma, workers, progress: bool) -> dict[str, Any]:
-    """The emulated posterior's block of the report, or why it was skipped."""
+def _emulated(objective, result, options: PosteriorOptions, sigma, workers, progress: bool):
+    """The emulated posterior's block of the report (or why it was skipped) and the posterior
+    (None where skipped)."""
     from ..inference.emulator import emulated_posterior, prior_sensitivity, scale_keys
 
     lower, upper = objective.bounds.lower, objective.bounds.upper
     at_bound = [k for k, lo, hi in zip(objective.keys, lower, upper) if not lo < result.theta[k] < hi]
     if at_bound:
-        return {"emulated_posterior_skipped": f"{at_bound} at a bound: the chains' coordinates end there"}
+        return {"emulated_posterior_skipped": f"{at_bound} at a bound: the chains' coordinates end there"}, None
     if sigma is None:
-        return {"emulated_posterior_skipped": "no noise level: give --noise"}
+        return {"emulated_posterior_skipped": "no noise level: give --noise"}, None
     unc = result.uncertainty  # a fit whitens by its interval; a point without one, by the Laplace covariance there
     interval = unc is not None and not unc.withheld
     found = emulated_posterior(objective, result if interval else dict(result.theta), noise=sigma,
@@ -165,7 +172,7 @@ def _emulated(objective, result, options: PosteriorOptions, sigma, workers, prog
     scale = scale_keys(objective.bounds)
     if scale:  # a key whose box spans decades: how much of its interval is the prior's
         block["prior_sensitivity"] = prior_sensitivity(found, scale)
-    return {"emulated_posterior": block}
+    return {"emulated_posterior": block}, found
 
 
 def _around_the_interval(objective, result, options: PosteriorOptions, noise, report, progress) -> PosteriorChecks:
@@ -173,6 +180,7 @@ def _around_the_interval(objective, result, options: PosteriorOptions, noise, re
     from ..inference.gridpost import grid_posterior
     from ..inference.likelihood import profile_likelihood
 
+    nuts = None
     if options.nuts:
         from ..inference.mcmc import nuts_posterior
 
@@ -180,6 +188,7 @@ def _around_the_interval(objective, result, options: PosteriorOptions, noise, re
                                draws=options.nuts, noise=noise, prior=options.prior, grid_ratio=options.grid_ratio,
                                grid_levels=options.grid_levels, progress=progress)
         report["nuts"] = {k: v for k, v in found.to_json().items() if k != "draws"}
+        nuts = found
     scans = ([profile_likelihood(objective, result, k, n=options.profiles, noise=noise) for k in result.keys]
              if options.profiles else [])
     if scans:
@@ -192,7 +201,7 @@ def _around_the_interval(objective, result, options: PosteriorOptions, noise, re
             grid = grid_posterior(objective, result, n=options.posterior, noise=noise)
             report["posterior"] = grid.to_json()
     _add_fit_grid_term(report, objective, result, scans, grid)
-    return PosteriorChecks(report, scans, grid)
+    return PosteriorChecks(report, scans, grid, nuts)
 
 
 def _add_fit_grid_term(report: dict[str, Any], objective, result, scans, grid) -> None:

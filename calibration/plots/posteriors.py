@@ -269,7 +269,18 @@ def plot_posterior_predictive(predictive, path, *, title: str | None = None, spl
     return _save(fig, path, dpi=120, title=title)
 
 
-def likelihood_figures(directory, profiles, *, posterior=None) -> list[str]:
-    """A fit's profile likelihoods (and its grid posterior, where given) as
-    ``fit_likelihood.png`` in ``directory`` (``plot_profile_likelihoods``); its path in a list."""
-    return [str(plot_profile_likelihoods(profiles, _folder(directory) / "fit_likelihood.png", posterior=posterior))]
+def likelihood_figures(directory, profiles, *, posterior=None, nuts=None, emulated=None) -> list[str]:
+    """The figures of a fit's posterior checks in ``directory``, their paths: the profile
+    likelihoods with the grid posterior (``fit_likelihood.png``, where there are profiles), NUTS's
+    traces and marginals (``posterior_nuts.png``), the emulated posterior's corner plot
+    (``posterior_emulated.png``) and its grid term (``posterior_grid_term.png``, where measured)."""
+    folder, paths = _folder(directory), []
+    if profiles:
+        paths.append(plot_profile_likelihoods(profiles, folder / "fit_likelihood.png", posterior=posterior))
+    if nuts is not None:
+        paths.append(plot_nuts(nuts, folder / "posterior_nuts.png", grid=posterior))
+    if emulated is not None:
+        paths.append(plot_emulated(emulated, folder / "posterior_emulated.png"))
+        if emulated.grid is not None:
+            paths.append(plot_grid_term(emulated, folder / "posterior_grid_term.png"))
+    return [str(p) for p in paths]
