@@ -13,6 +13,7 @@ from jaxmpm.scenes.collapse import S4_SIDE
 from ..batch.sweep import MODES as SWEEP_MODES
 from ..data.parse import TIME_UNITS, UNITS
 from ..inference.surrogates import EMULATORS
+from ..optim.lm import DEFAULT_MODEL
 from ..optim.options import LM_MODELS, METHODS
 from ..problem.options import JACOBIANS, WEIGHTINGS
 from .args import design_scene
@@ -64,11 +65,11 @@ def _fit_options(p, default_keys: str | None) -> None:
                         "file's [fit] keys)")
     p.add_argument("--method", choices=METHODS, default="lm")
     p.add_argument("--steps", type=int, default=None, help="maximum iterations (default 25 for lm, 150 for adam)")
-    p.add_argument("--lm-model", choices=LM_MODELS, default="gauss-newton",
-                   help="LM's model of the loss's curvature: J^T J (gauss-newton, the default), or J^T J plus a "
-                        "secant estimate of the residuals' own curvature wherever that forecast the last step "
-                        "better (adaptive: for data the model cannot reach, where Gauss-Newton's steps fall short; "
-                        "docs/fitting.md)")
+    p.add_argument("--lm-model", choices=LM_MODELS, default=DEFAULT_MODEL,
+                   help="LM's model of the loss's curvature: J^T J plus a secant estimate of the residuals' own "
+                        "curvature wherever that forecast the last step better (adaptive, the default: Gauss-Newton's "
+                        "steps where the residuals vanish, half the iterations where the model cannot reach the "
+                        "data), or J^T J alone (gauss-newton, before 2026-12; docs/fitting.md)")
     p.add_argument("--out", default=None, metavar="FILE.h5",
                    help="the fit's file: its history (written after every iteration), its setup and its end point, "
                         "what posterior reads (a search's: its best start's)")

@@ -20,7 +20,8 @@ from ..problem.bounds import MAX_STEP
 from .evaluate import Evaluation
 from .loop import Optimiser, where_rows
 
-__all__ = ["LAM0", "MODELS", "LMOptions", "propose", "judge", "secant_update", "LMState", "levenberg_marquardt"]
+__all__ = ["LAM0", "MODELS", "DEFAULT_MODEL", "LMOptions", "propose", "judge", "secant_update", "LMState",
+           "levenberg_marquardt"]
 
 
 #: The damping of the first step.
@@ -29,6 +30,10 @@ LAM0 = 1e-3
 #: The models of the loss's curvature a step may use: JᵀJ alone, or JᵀJ plus a secant estimate of
 #: Σ rᵢ ∇²rᵢ where that predicted the last step's decrease better (Dennis, Gay & Welsch 1981).
 MODELS = ("gauss-newton", "adaptive")
+
+#: The default model: "adaptive" takes Gauss–Newton's steps where the residuals vanish at the
+#: minimum and reaches a large-residual minimum in half the iterations (docs/fitting.md).
+DEFAULT_MODEL = "adaptive"
 
 #: The smallest eigenvalue of (JᵀJ + S), scaled to JᵀJ's unit diagonal, for the secant model to be used.
 SECANT_MIN_EIGENVALUE = 1e-2
@@ -40,7 +45,7 @@ class LMOptions:
     ftol: float = 1e-7
     stat_tol: float = 0.1
     max_rejections: int = 6
-    model: str = "gauss-newton"
+    model: str = DEFAULT_MODEL
 
 
 def propose(r, Jz, lam, secant=None):

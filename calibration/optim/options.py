@@ -10,8 +10,8 @@ from typing import Any
 
 from ..inference.options import JudgeOptions
 from ..problem.options import _is_int, _is_number, _require
+from .lm import DEFAULT_MODEL, LMOptions
 from .lm import MODELS as LM_MODELS
-from .lm import LMOptions
 
 __all__ = ["METHODS", "GRAD_MODES", "LM_MODELS", "FitOptions", "cli_steps"]
 
@@ -22,14 +22,18 @@ METHODS = ("lm", "adam")
 GRAD_MODES = ("fwd", "rev")
 
 
+#: What a field added since the first history files were written was before it was recorded there.
+BEFORE_RECORDED = {"lm_model": "gauss-newton"}
+
+
 @dataclasses.dataclass(frozen=True)
 class FitOptions:
     """How a fit runs. ``method``: "lm" (Levenberg–Marquardt) or "adam"; ``steps``: the most
     iterations (model evaluations), counted over resumes; ``learning_rate``, ``clip``,
     ``grad_mode`` ("fwd" or "rev"): Adam's; ``xtol``, ``ftol``, ``stat_tol``, ``max_rejections``:
     LM's stopping tests (``calibration.optim.lm``, docs/fitting.md); ``lm_model``: LM's curvature,
-    JᵀJ ("gauss-newton") or JᵀJ plus a secant estimate of the residuals' curvature where that
-    forecasts better ("adaptive", for data the model cannot reach)."""
+    JᵀJ plus a secant estimate of the residuals' own curvature wherever that forecast the last
+    step better ("adaptive", the default) or JᵀJ alone ("gauss-newton"); Adam ignores it."""
 
     method: str = "lm"
     steps: int = 30
@@ -40,7 +44,7 @@ class FitOptions:
     ftol: float = 1e-7
     stat_tol: float = 0.1
     max_rejections: int = 6
-    lm_model: str = "gauss-newton"
+    lm_model: str = DEFAULT_MODEL
 
     def __post_init__(self):
         _require(self.method in METHODS, "method", f"one of {METHODS}", self.method)
@@ -55,8 +59,6 @@ class FitOptions:
         _require(_is_int(self.max_rejections) and self.max_rejections >= 1, "max_rejections", "an integer >= 1",
                  self.max_rejections)
         _require(self.lm_model in LM_MODELS, "lm_model", f"one of {LM_MODELS}", self.lm_model)
-        _require(self.method == "lm" or self.lm_model == "gauss-newton", "lm_model",
-                 "'gauss-newton' with method 'adam' (it is LM's)", self.lm_model)
 
     def lm_options(self) -> LMOptions:
         """LM's options (``calibration.optim.lm.LMOptions``) from these."""
@@ -69,15 +71,18 @@ class FitOptions:
     def differences(self, saved: Mapping[str, Any]) -> list[str]:
         """The fields (``steps`` apart) whose value differs from ``saved`` (a history file's
         record, ``to_json``), as "field: now … , the file's …"; a field the file does not record
-        counts as different."""
+        counts as different, except one added since (``BEFORE_RECORDED``), which the file had at
+        its value from before."""
         out = []
         for field in dataclasses.fields(self):
             if field.name == "steps":
                 continue
             now = getattr(self, field.name)
-            if field.name not in saved and now == field.default:  # a field added since the file was written
-                continue
-            if field.name not in saved:
+            if field.name not in saved and field.name in BEFORE_RECORDED:
+                was = BEFORE_RECORDED[field.name]
+                if now != was:
+                    out.append(f"{field.name}: {now!r} now, {was!r} in the file (written before it was recorded)")
+            elif field.name not in saved:
                 out.append(f"{field.name}: {now!r} now, not recorded in the file")
             elif saved[field.name] != now:
                 out.append(f"{field.name}: {now!r} now, {saved[field.name]!r} in the file")

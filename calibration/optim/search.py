@@ -32,7 +32,7 @@ from ..problem.protocol import ObjectiveLike, is_valid
 from .evaluate import BatchEvaluator
 from .fit import FitResult, measured_at, roundoff_stop, save_start, start_theta
 from .history import History, check_out
-from .lm import LMOptions, levenberg_marquardt
+from .lm import DEFAULT_MODEL, LMOptions, levenberg_marquardt
 from .loop import run
 from .options import FitOptions
 
@@ -274,7 +274,7 @@ def _run_starts(objective: ObjectiveLike, thetas, evaluate, steps: int, lm_optio
 
 def search(objective: ObjectiveLike, starts: int | np.ndarray = DEFAULT_STARTS, *, seed: int = 0, design: str = "sobol",
            init: Mapping[str, float] | None = None, steps: int = 30, xtol: float = 1e-6, ftol: float = 1e-7,
-           stat_tol: float = 0.1, max_rejections: int = 6, lm_model: str = "gauss-newton", cluster_tol: float = 0.01,
+           stat_tol: float = 0.1, max_rejections: int = 6, lm_model: str = DEFAULT_MODEL, cluster_tol: float = 0.01,
            noise: Mapping[str, float] | float | None = None, uncertainty: bool = True, shrink: bool = True,
            roundoff_samples: int = ROUNDOFF_SAMPLES, sampling_seeds: int = 0, reference_noise: float = 0.01,
            threshold: float = 0.1, grid_ratio: float | None = None, grid_draws: int = GRID_DRAWS,
@@ -361,7 +361,7 @@ def coarse_to_fine(objective: ObjectiveLike, coarse: ObjectiveLike, starts: int 
     opts = {**COARSE_OPTIONS, **dict(coarse_options or {})}
     with using(workers) as workers:  # one pool for both stages
         first = search(coarse, starts, seed=seed, design=design, init=init, uncertainty=False,
-                       noise=options.get("noise"), lm_model=options.get("lm_model", "gauss-newton"),
+                       noise=options.get("noise"), lm_model=options.get("lm_model", DEFAULT_MODEL),
                        progress=progress, workers=workers, **opts)
 
         def placed(m):
