@@ -233,6 +233,7 @@ def plot_grid_term(posterior, path, *, truth=None, title: str | None = None):
             ax.axvline(truth[k], color="k", lw=1, label="truth")
         ax.set_title(k + ("" if posterior.grid_converged[k] else " (grid > data)"), fontsize=9)
         ax.set_ylim(0.6, max(lv[0] for lv in levels) / fine_dx + 0.3)
+        ax.locator_params(axis="x", nbins=4)  # a key fixed to 0.1 % has long tick labels
         ax.tick_params(labelsize=7)
     axes[0][0].set_ylabel("dx / the fit's dx")
     axes[0][0].legend(fontsize=6, loc="upper left")
