@@ -14,7 +14,7 @@ from ..inference.gridcheck import check_grid_options
 from ..problem.options import OptionError, _is_int, _require
 from ..problem.protocol import ObjectiveLike
 
-__all__ = ["fit_report", "PosteriorChecks", "PosteriorOptions", "posterior_checks"]
+__all__ = ["fit_report", "next_steps", "PosteriorChecks", "PosteriorOptions", "posterior_checks"]
 
 
 def fit_report(objective: ObjectiveLike, result, search=None) -> dict[str, Any]:
@@ -38,7 +38,42 @@ def fit_report(objective: ObjectiveLike, result, search=None) -> dict[str, Any]:
     near = objective.bounds.near_bound([result.theta[k] for k in result.keys])
     if near:
         out["warning"] = f"{near} ended at a bound: the data push them outside the physical range"
+    advice = next_steps(result)
+    if advice:
+        out["next"] = advice
     return out
+
+
+def next_steps(result) -> list[str]:
+    """What to run next where a fit (``FitResult``) did not end in a usable answer: one line per
+    reason the verdict or the interval gives (none for a fit of the data converged in the grid)."""
+    verdict, unc = result.verdict, result.uncertainty
+    if verdict is None:
+        return []
+    steps, reasons = [], " ".join(verdict.reasons)
+    if "stopped after" in reasons:
+        steps.append(f"LM ran out of iterations ({result.iterations}): continue it with --out FIT.h5 --resume "
+                     f"--steps {2 * result.iterations} (a fit without --out starts again: give --steps instead)")
+    if "rejected steps in a row" in reasons:
+        steps.append("LM found no lower loss near the point, yet the point is no verified minimum: the loss is "
+                     "rough at the scale of its last steps (the particles' draw and the grid, not the data). "
+                     "Look at the loss about it (python -m calibration posterior FIT.h5 --profiles 9), measure the "
+                     "draw's share (--sampling-seeds 4), or fit on a ladder of grids (--grid-ladder 3)")
+    if verdict.at_bound:
+        steps.append(f"{', '.join(verdict.at_bound)} ended at a bound: the data ask for what the model or the box "
+                     "does not allow. Check the scene against the experiment (a channel's side walls: "
+                     "--side-walls W,MU_W; the floor; the data's units), or fit fewer keys")
+    if "below" in reasons and "outside the model's rheology" in reasons:
+        steps.append("the point breaks a rule of the rheology (mu2 below mu1): start from a point that keeps it "
+                     "(--init), or hold one of the two (--set)")
+    if "misfit well above the noise" in reasons:
+        steps.append("the model does not reach the data: before reading any number, check what the scene leaves "
+                     "out (a channel's side walls, the floor's friction, the release), and give the data's "
+                     "known noise (--noise) where the residuals' own estimate is too small")
+    if unc is not None and unc.grid_converged is False:
+        steps.append("the grid's share of the interval exceeds the data's: refit at a finer --dx (the statement "
+                     "says how much finer), or read the grid term from a ladder of fits (--grid-ladder 3)")
+    return steps
 
 
 @dataclasses.dataclass(frozen=True)
