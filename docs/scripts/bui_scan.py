@@ -14,28 +14,20 @@ aluminium-bars --data ... --fit mu1`` from the starts in ``STARTS`` (draw 0, LM'
 import argparse
 import json
 import pathlib
-import subprocess
 import sys
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
 ROOT = pathlib.Path(__file__).resolve().parents[2]
+sys.path.insert(0, str(ROOT / "docs" / "scripts"))
+from lm_models import _json  # noqa: E402  (a command's JSON, kept in a file)
+
 DATA = "experiments_data/bui2008/bui2008_final_surface.csv"
 SEEDS = (0, 1, 2)
 #: The fits' starts (``--init``; none: the default global search).
 STARTS = {"0.30": ["--init", "mu1=0.30"], "0.36 (docs/real_data.md)": ["--init", "mu1=0.36"],
           "0.45": ["--init", "mu1=0.45"], "global search (the default)": []}
-
-
-def _json(command, path: pathlib.Path):
-    if not path.exists():
-        print("running", " ".join(command[2:]), file=sys.stderr, flush=True)
-        done = subprocess.run([sys.executable, *command], capture_output=True, text=True, cwd=ROOT)
-        if not done.stdout.strip():
-            raise RuntimeError(f"{' '.join(command)} failed:\n{done.stderr[-2000:]}")
-        path.write_text(done.stdout)
-    return json.loads(path.read_text())
 
 
 def scan(folder: pathlib.Path, seed: int) -> dict:
