@@ -113,22 +113,28 @@ def start_theta(objective: ObjectiveLike, init: Mapping[str, float] | None) -> t
 
 def _snapshot(state) -> dict[str, Any]:
     """What a resume needs from the state of one start, by the names of the history file: LM's
-    accepted point and λ; Adam's current point and optax state (λ NaN)."""
+    accepted point, λ, and its secant estimate and model choice; Adam's current point and optax
+    state (λ NaN)."""
     if isinstance(state, LMState):
-        return {"z": state.z[0], "lam": state.lam[0]}
+        return {"z": state.z[0], "lam": state.lam[0], "secant": state.secant[0], "use_secant": state.use_secant[0]}
     leaves = jax.tree.leaves(state.inner)
     return {"z": state.z_next[0], "lam": np.nan, **{f"opt_{i}": np.asarray(leaf)[0] for i, leaf in enumerate(leaves)}}
 
 
 def _restore(optimiser, saved: Mapping[str, Any], history: History):
     """The state of one start that ``_snapshot`` saved, continued: LM's rejections in a row
-    are those at the end of the history; Adam's evaluations are its iterations."""
+    are those at the end of the history, its secant estimate and model choice the file's (none
+    in a file from before they were kept, which is a Gauss–Newton fit's); Adam's evaluations are
+    its iterations."""
     state = optimiser.init(np.asarray(saved["z"], float)[None])
     common = {"done": np.array([bool(saved["done"])]), "message": np.array([saved["message"]], object)}
     if isinstance(state, LMState):
         accepted = history.arrays()["accepted"]
         rejections = len(accepted) - len(np.trim_zeros(accepted, "b"))
-        return state._replace(lam=np.array([float(saved["lam"])]), rejections=np.array([rejections]), **common)
+        secant = {"secant": np.asarray(saved["secant"], float)[None],
+                  "use_secant": np.array([bool(saved["use_secant"])])} if "secant" in saved else {}
+        return state._replace(lam=np.array([float(saved["lam"])]), rejections=np.array([rejections]), **secant,
+                              **common)
     template = jax.tree.leaves(state.inner)
     leaves = [jnp.asarray(saved[f"opt_{i}"], t.dtype)[None] for i, t in enumerate(template)]
     return state._replace(inner=jax.tree.unflatten(jax.tree.structure(state.inner), leaves),
