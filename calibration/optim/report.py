@@ -46,15 +46,18 @@ def fit_report(objective: ObjectiveLike, result, search=None) -> dict[str, Any]:
 
 def next_steps(result) -> list[str]:
     """What to run next where a fit (``FitResult``) did not end in a usable answer: one line per
-    reason the verdict or the interval gives (none for a fit of the data converged in the grid)."""
+    reason the verdict or the interval gives (none for a fit of the data converged in the grid),
+    read from their fields and the optimiser's message, not from the verdict's sentences."""
+    from ..inference.verdict import broken_relations
+
     verdict, unc = result.verdict, result.uncertainty
     if verdict is None:
         return []
-    steps, reasons = [], " ".join(verdict.reasons)
-    if "stopped after" in reasons:
+    steps, unverified = [], not verdict.verified
+    if unverified and result.message.startswith("stopped after"):
         steps.append(f"LM ran out of iterations ({result.iterations}): continue it with --out FIT.h5 --resume "
                      f"--steps {2 * result.iterations} (a fit without --out starts again: give --steps instead)")
-    if "rejected steps in a row" in reasons:
+    if unverified and "rejected steps in a row" in result.message:
         steps.append("LM found no lower loss near the point, yet the point is no verified minimum: the loss is "
                      "rough at the scale of its last steps (the particles' draw and the grid, not the data). "
                      "Look at the loss about it (python -m calibration posterior FIT.h5 --profiles 9), measure the "
@@ -63,10 +66,10 @@ def next_steps(result) -> list[str]:
         steps.append(f"{', '.join(verdict.at_bound)} ended at a bound: the data ask for what the model or the box "
                      "does not allow. Check the scene against the experiment (a channel's side walls: "
                      "--side-walls W,MU_W; the floor; the data's units), or fit fewer keys")
-    if "below" in reasons and "outside the model's rheology" in reasons:
+    if broken_relations(result.keys, [result.theta[k] for k in result.keys]):
         steps.append("the point breaks a rule of the rheology (mu2 below mu1): start from a point that keeps it "
                      "(--init), or hold one of the two (--set)")
-    if "misfit well above the noise" in reasons:
+    if any(value > verdict.chi2_limit[name] for name, value in verdict.chi2.items()):
         steps.append("the model does not reach the data: before reading any number, check what the scene leaves "
                      "out (a channel's side walls, the floor's friction, the release), and give the data's "
                      "known noise (--noise) where the residuals' own estimate is too small")
