@@ -80,14 +80,16 @@ def test_fit_from_starts_runs_one_start_a_search_or_two_stages(monkeypatch):
     search_module = importlib.import_module("calibration.optim.search")
     calls = []
 
+    fitted, best = SimpleNamespace(verdict=None), SimpleNamespace(verdict=None)
+
     def fake_fit(objective, init, **kw):
         calls.append(("fit", init, kw))
-        return "fitted"
+        return fitted
 
     def fake_search(name):
         def run(*args, **kw):
             calls.append((name, args, kw))
-            return SimpleNamespace(best="best")
+            return SimpleNamespace(best=best)
         return run
 
     monkeypatch.setattr(fit_module, "fit", fake_fit)
@@ -95,13 +97,13 @@ def test_fit_from_starts_runs_one_start_a_search_or_two_stages(monkeypatch):
     monkeypatch.setattr(search_module, "coarse_to_fine", fake_search("coarse_to_fine"))
     options, judge = FitOptions(steps=7, lm_model="adaptive"), JudgeOptions(roundoff_samples=0, grid_ratio=1.5)
     assert search_module.fit_from_starts("obj", {"beta": 0.2}, options=options, judge=judge, out="f.h5",
-                                         resume=True, meta={"a": 1}) == ("fitted", None)
+                                         resume=True, meta={"a": 1}) == (fitted, None)
     name, init, kw = calls[-1]
     assert name == "fit" and init == {"beta": 0.2} and kw["options"] is options and kw["judge"] is judge
     assert kw["out"] == "f.h5" and kw["resume"] and kw["meta"] == {"a": 1}
     result, found = search_module.fit_from_starts("obj", {}, starts=3, options=options, judge=judge, seed=4)
     name, args, kw = calls[-1]
-    assert (name, args, result, found.best) == ("search", ("obj", 3), "best", "best")
+    assert (name, args, result, found.best) == ("search", ("obj", 3), best, best)
     assert kw["steps"] == 7 and kw["seed"] == 4 and kw["init"] is None and kw["grid_ratio"] == 1.5
     assert kw["roundoff_samples"] == 0 and kw["lm_model"] == "adaptive"
     search_module.fit_from_starts("obj", None, starts=3, coarse="coarse", refine=5, options=options, judge=judge)
@@ -109,6 +111,37 @@ def test_fit_from_starts_runs_one_start_a_search_or_two_stages(monkeypatch):
     assert name == "coarse_to_fine" and args == ("obj", "coarse", 3) and kw["refine"] == 5 and kw["steps"] == 7
     with pytest.raises(ValueError, match="starts must be an integer >= 1, got 0"):
         search_module.fit_from_starts("obj", starts=0)
+
+
+def _probed(theta, passed, lowest=None):
+    probe = SimpleNamespace(passed=passed, lowest=lowest, lowest_rise=-5.0)
+    return SimpleNamespace(keys=("mu1",), theta={"mu1": theta}, loss=theta, wall_s=1.0, restarts=[],
+                           verdict=SimpleNamespace(probe=probe))
+
+
+@pytest.mark.parametrize("restarts", [0, 1, 2])
+def test_a_fit_whose_probe_finds_a_lower_loss_starts_again_from_it(monkeypatch, restarts):
+    """``fit_from_starts``' restarts: from the probe's lowest point, until a probe passes or
+    ``restarts`` are spent; the last fit is the answer, and it lists the ones before it."""
+    import importlib
+
+    fit_module = importlib.import_module("calibration.optim.fit")
+    search_module = importlib.import_module("calibration.optim.search")
+    ends = iter([_probed(0.30, False, [0.32]), _probed(0.325, False, [0.335]), _probed(0.337, True)])
+    starts = []
+
+    def fake_fit(objective, init, **kw):
+        starts.append(init)
+        assert "out" not in kw or init == {"mu1": 0.36}  # a restart keeps no history of its own
+        return next(ends)
+
+    monkeypatch.setattr(fit_module, "fit", fake_fit)
+    result, _ = search_module.fit_from_starts("obj", {"mu1": 0.36}, options=FitOptions(restarts=restarts),
+                                              judge=JudgeOptions())
+    assert starts == [{"mu1": 0.36}, {"mu1": 0.32}, {"mu1": 0.335}][:restarts + 1]
+    assert result.theta["mu1"] == (0.30, 0.325, 0.337)[restarts]
+    assert [r["ended"]["mu1"] for r in result.restarts] == [0.30, 0.325][:restarts]
+    assert result.wall_s == restarts + 1  # the walls of the fits before it added
 
 
 def test_lm_model_is_checked_and_a_history_without_it_resumes_as_gauss_newton():

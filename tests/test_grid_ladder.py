@@ -57,7 +57,7 @@ def test_each_rung_starts_from_the_coarser_fit_and_three_converging_grids_extrap
     calls = []
     _stub_fits(monkeypatch, calls)
     found = grid_ladder(_Graded(p=1.4), {"beta": 0.1}, rungs=3, ratio=1.5, judge=ladder_module.JudgeOptions(
-        noise=0.01, roundoff_samples=0))
+        noise=0.01, roundoff_samples=0, probe=False))
     dxs = [dx for dx, _ in calls]
     np.testing.assert_allclose(dxs, [0.5 * 2.25, 0.5 * 1.5, 0.5])  # coarsest first
     assert calls[0][1] == {"beta": 0.1}
@@ -84,7 +84,7 @@ def test_each_rung_starts_from_the_coarser_fit_and_three_converging_grids_extrap
 
 def test_grids_that_oscillate_or_show_an_unbelievable_order_are_not_extrapolated(monkeypatch):
     _stub_fits(monkeypatch, [])
-    judge = ladder_module.JudgeOptions(noise=0.01, roundoff_samples=0)
+    judge = ladder_module.JudgeOptions(noise=0.01, roundoff_samples=0, probe=False)
     swinging = grid_ladder(_Graded(alternate=True), rungs=3, judge=judge)
     assert not swinging.extrapolated and swinging.grid.order is None and "oscillate" in swinging.statement
     fine = TRUTH + C * 0.5

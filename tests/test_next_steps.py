@@ -7,9 +7,9 @@ from calibration.optim.report import next_steps
 
 
 def _result(message="converged", verified=True, misfit=False, at_bound=(), theta=None, grid_converged=None,
-            iterations=25):
+            iterations=25, probe=None):
     verdict = SimpleNamespace(verified=verified, at_bound=tuple(at_bound), chi2={"profile": 600.0 if misfit else 9.0},
-                              chi2_limit={"profile": 467.0})
+                              chi2_limit={"profile": 467.0}, probe=probe)
     theta = theta or {"mu1": 0.38, "mu2": 0.64}
     return SimpleNamespace(verdict=verdict, uncertainty=SimpleNamespace(grid_converged=grid_converged),
                            iterations=iterations, message=message, keys=tuple(theta), theta=theta)
@@ -31,3 +31,6 @@ def test_each_reason_has_its_next_step():
     assert bound[0].startswith("beta ended at a bound")
     assert "mu2 below mu1" in next_steps(_result(theta={"mu1": 0.61, "mu2": 0.16}))[0]
     assert "--dx" in next_steps(_result(grid_converged=False))[0]
+    lower = SimpleNamespace(passed=False, lowest=[0.3246, 0.64])
+    assert "--init mu1=0.3246 --init mu2=0.64" in next_steps(_result(probe=lower))[0]
+    assert next_steps(_result(probe=SimpleNamespace(passed=True, lowest=[0.38, 0.64]))) == []

@@ -23,6 +23,8 @@ from calibration.problem.options import DataOptions, FitRequest, OptionError, fi
     ("stat_tol", -0.1, ">= 0"),
     ("max_rejections", 0, "an integer >= 1"),
     ("max_rejections", True, "an integer >= 1"),
+    ("restarts", -1, "an integer >= 0"),
+    ("restarts", 1.5, "an integer >= 0"),
 ])
 def test_fit_options_refuse_bad_values(field, value, what):
     with pytest.raises(OptionError, match=what) as info:
@@ -34,6 +36,7 @@ def test_fit_options_refuse_bad_values(field, value, what):
     ("noise", -0.01, ">= 0"),
     ("noise", {"profile": float("inf")}, ">= 0"),
     ("uncertainty", 1, "True or False"),
+    ("probe", "yes", "True or False"),
     ("roundoff_samples", 1, "0 \\(not measured\\) or an integer >= 2"),
     ("sampling_seeds", 1, "0 \\(not measured\\) or an integer >= 2"),
     ("reference_noise", -1.0, ">= 0"),
@@ -75,11 +78,12 @@ def test_options_are_frozen_and_defaults_valid():
     assert judge.grid_ratio is None and judge.kwargs()["grid_draws"] >= 1
 
 
-def test_differences_cover_every_field_but_steps():
+def test_differences_cover_every_field_but_steps_and_restarts():
     saved = FitOptions().to_json()
     assert FitOptions(steps=99).differences(saved) == []
+    assert FitOptions(restarts=0).differences(saved) == []  # an outer loop: a resume may change it
     for field in dataclasses.fields(FitOptions):
-        if field.name in ("steps", "method", "grad_mode"):
+        if field.name in ("steps", "restarts", "method", "grad_mode"):
             continue
         other = "gauss-newton" if field.name == "lm_model" else getattr(FitOptions(), field.name) * 2
         changed = dataclasses.replace(FitOptions(), **{field.name: other})

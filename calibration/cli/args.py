@@ -184,14 +184,14 @@ def fit_options(args, noise=None) -> tuple[FitOptions | None, JudgeOptions]:
     (``--grid-check 0``: off), an error reported under the flag's name (``FLAGS``)."""
     try:
         options = (FitOptions(method=args.method, steps=cli_steps(args.method, args.steps), learning_rate=args.lr,
-                              lm_model=args.lm_model)
+                              lm_model=args.lm_model, restarts=args.restarts)
                    if getattr(args, "command", None) == "fit" else None)
         judge = JudgeOptions(noise=noise, roundoff_samples=getattr(args, "roundoff_samples", 0),
                              sampling_seeds=getattr(args, "sampling_seeds", 0),
                              reference_noise=getattr(args, "reference_noise", 0.01),
                              threshold=getattr(args, "threshold", 0.1),
                              grid_ratio=getattr(args, "grid_check", 0) or None,
-                             grid_levels=getattr(args, "grid_levels", 1))
+                             grid_levels=getattr(args, "grid_levels", 1), probe=getattr(args, "probe", True))
     except OptionError as err:
         raise as_flag(err) from None
     return options, judge
@@ -425,10 +425,10 @@ def finish(out: dict, args, errors: dict) -> int:
 FLAGS: dict[str, str | None] = {
     "method": "--method", "steps": "--steps", "learning_rate": "--lr", "clip": None, "grad_mode": None,
     "xtol": None, "ftol": None, "stat_tol": None, "max_rejections": None, "lm_model": "--lm-model",
-    "noise": "--noise", "uncertainty": None, "roundoff_samples": "--roundoff-samples",
+    "restarts": "--restarts",     "noise": "--noise", "uncertainty": None, "roundoff_samples": "--roundoff-samples",
     "sampling_seeds": "--sampling-seeds", "reference_noise": "--reference-noise", "threshold": "--threshold",
-    "grid_ratio": "--grid-check", "grid_draws": None, "grid_levels": "--grid-levels", "keys": "--fit",
-    "init": "--init", "weighting": "--weighting", "weight_profile": "--weight-profile",
+    "grid_ratio": "--grid-check", "grid_draws": None, "grid_levels": "--grid-levels", "probe": "--probe",
+    "keys": "--fit",     "init": "--init", "weighting": "--weighting", "weight_profile": "--weight-profile",
     "weight_front": "--weight-front", "front_threshold": "--front-threshold",
     "front_correlation_time": "--front-correlation-time", "jacobian": "--jacobian", "profiles": "--profiles",
     "posterior": "--posterior", "nuts": "--nuts", "chains": "--chains", "emulated": "--emulated",

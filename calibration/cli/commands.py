@@ -178,7 +178,8 @@ def _twin(args) -> int:
                   values=parse_pairs(args.set, "--set"), dtype=args.dtype or "float32", out=args.out,
                   resume=args.resume, overwrite=args.overwrite, progress=not args.no_progress,
                   reference_noise=args.reference_noise, threshold=args.threshold,
-                  roundoff_samples=args.roundoff_samples)
+                  roundoff_samples=args.roundoff_samples, probe=args.probe,
+                  restarts=args.restarts)
     out = result.to_json()
     errors: dict[str, str] = {}
     if args.plot:

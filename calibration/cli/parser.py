@@ -88,6 +88,13 @@ def _fit_options(p, default_keys: str | None) -> None:
     p.add_argument("--roundoff-samples", type=int, default=8, metavar="N",
                    help="perturbed runs at the end point that measure the run's own round-off scatter, for the "
                         "verdict and the interval (default 8, one forward run each; 0: not measured)")
+    p.add_argument("--restarts", type=int, default=2, metavar="N",
+                   help="where the probe finds a lower loss near the end point, fit again from the lowest point it "
+                        "ran, at most N times (default 2; restarts in the JSON)")
+    p.add_argument("--probe", action=argparse.BooleanOptionalAction, default=True,
+                   help="run the model about a fit's end point, at 1, 2, 4 and 8 times its 95%% half-width along "
+                        "each principal direction (8 runs a key), and call it no fit where the loss is lower there "
+                        "(a rough loss, or a stop on a slope; probe in the JSON; default on)")
 
 
 def build_parser() -> argparse.ArgumentParser:

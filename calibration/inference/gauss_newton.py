@@ -44,6 +44,7 @@ class Uncertainty:
     sampling: ModelScatter | None = None  # the particle sampling's scatter (None: not measured)
     grid: GridCheck | None = None  # the grid's share (None: not measured)
     grid_note: str = ""  # why the grid term is missing, when it was asked for
+    ci95_linearised: np.ndarray | None = None  # the Gauss–Newton interval, where the probe widened ``ci95``
 
     @property
     def grid_converged(self) -> bool | None:
@@ -72,6 +73,9 @@ class Uncertainty:
             if self.sampling is not None:
                 out["stderr_sampling"] = by_key(self.sampling.stderr)
             out["ci95"] = {k: [float(lo), float(hi)] for k, (lo, hi) in zip(self.keys, self.ci95)}
+            if self.ci95_linearised is not None:
+                out["ci95_linearised"] = {k: [float(lo), float(hi)] for k, (lo, hi) in
+                                          zip(self.keys, self.ci95_linearised)}
             out["relative_halfwidth_at_reference_noise"] = by_key(self.relative_halfwidth)
             if self.grid is not None:
                 out["stderr_grid"] = by_key(self.grid.stderr)

@@ -23,7 +23,9 @@ class JudgeOptions:
     ``sampling_seeds`` other particle draws (0, or 2 and more: 0 is not measured);
     ``reference_noise`` and ``threshold`` decide which parameters count as constrained;
     ``grid_ratio`` (None: not measured, else > 1), ``grid_draws`` and ``grid_levels`` (1 or 2
-    coarser grids): the grid term (``calibration.inference.gridcheck.grid_shift``)."""
+    coarser grids): the grid term (``calibration.inference.gridcheck.grid_shift``); ``probe``: run the
+    model at a fit's interval edges and 2, 4 and 8 times as far (``calibration.inference.probe``), 8 runs
+    a key."""
 
     noise: Mapping[str, float] | float | None = None
     uncertainty: bool = True
@@ -34,6 +36,7 @@ class JudgeOptions:
     grid_ratio: float | None = None
     grid_draws: int = GRID_DRAWS
     grid_levels: int = 1
+    probe: bool = True
 
     def __post_init__(self):
         noise = self.noise
@@ -41,7 +44,8 @@ class JudgeOptions:
         for value in values:
             _require(_is_number(value) and value >= 0, "noise", "None, a finite number >= 0 or one per block",
                      noise)
-        _require(isinstance(self.uncertainty, bool), "uncertainty", "True or False", self.uncertainty)
+        for name in ("uncertainty", "probe"):
+            _require(isinstance(getattr(self, name), bool), name, "True or False", getattr(self, name))
         for name in ("roundoff_samples", "sampling_seeds"):
             value = getattr(self, name)
             _require(_is_int(value) and (value == 0 or value >= 2), name, "0 (not measured) or an integer >= 2",

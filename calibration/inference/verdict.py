@@ -17,6 +17,7 @@ from ..problem.protocol import ObjectiveLike
 from .gauss_newton import gauss_newton_uncertainty
 from .gridcheck import GRID_DRAWS, GridCheck, check_grid_options, grid_shift
 from .noise import ABOVE_NOISE_P, NOISE_FLOOR, block_noise, chi2_quantile
+from .probe import LossProbe, probe_loss
 from .scatter import ROUNDOFF_SAMPLES, ModelScatter, model_scatter, roundoff_limit, sampling_scatter
 
 __all__ = ["Verdict", "assess_fit", "judge_point"]
@@ -37,6 +38,13 @@ class Verdict:
     statement: str
     convergence: str = ""  # how the minimum was verified (the optimiser's test, or the run's round-off)
     scatter: ModelScatter | None = None
+    noise_note: str = ""  # the blocks the noise test left out, in words
+    probe: LossProbe | None = None  # the loss about the point (``probe_loss``; None: not run)
+
+    def failing(self, reason: str) -> Verdict:
+        """This verdict with one more reason the point is not a fit of the data."""
+        reasons = (*self.reasons, reason)
+        return dataclasses.replace(self, is_fit=False, reasons=reasons, statement=_statement(reasons, self.noise_note))
 
     def to_dict(self) -> dict[str, Any]:
         out = {"is_fit": self.is_fit, "verdict": "a fit of the data" if self.is_fit else "not a fit of the data",
@@ -46,6 +54,15 @@ class Verdict:
         if self.convergence:
             out["convergence"] = self.convergence
         return out
+
+
+def _statement(reasons, noise_note: str) -> str:
+    if not reasons:
+        statement = "A fit of the data: a verified minimum, off the bounds, with a misfit within the noise."
+    else:
+        statement = ("Not a fit of the data: " + "; ".join(reasons) + ". No Gauss–Newton interval is given: it "
+                     "describes the curvature at a minimum of the data's misfit, which this point is not.")
+    return statement + noise_note
 
 
 def broken_relations(keys, theta) -> list[str]:
@@ -108,23 +125,16 @@ def assess_fit(r, row_scale, blocks: Mapping[str, slice], theta, *, converged: b
             rms = math.sqrt(float(np.mean(e[sl] ** 2)))
             reasons.append(f"{name} misfit well above the noise (rms {rms:.3g} against σ {sigma[name]:.3g} "
                            f"{'given' if source == 'given' else 'estimated'}; χ² {chi2[name]:.3g} > {limit[name]:.3g})")
-    is_fit = not reasons
-    if is_fit:
-        statement = "A fit of the data: a verified minimum, off the bounds, with a misfit within the noise."
-    else:
-        statement = ("Not a fit of the data: " + "; ".join(reasons) + ". No Gauss–Newton interval is given: it "
-                     "describes the curvature at a minimum of the data's misfit, which this point is not.")
-    if unknown:
-        statement += " The noise test left out " + ", ".join(unknown) + "."
-    return Verdict(is_fit, tuple(reasons), bool(converged), at_bound, sigma, source, chi2, limit, statement,
-                   convergence, scatter)
+    noise_note = " The noise test left out " + ", ".join(unknown) + "." if unknown else ""
+    return Verdict(not reasons, tuple(reasons), bool(converged), at_bound, sigma, source, chi2, limit,
+                   _statement(reasons, noise_note), convergence, scatter, noise_note)
 
 
 def judge_point(objective: ObjectiveLike, r, J, theta, *, converged: bool, message: str,
                 noise: Mapping[str, float] | float | None = None, uncertainty: bool = True,
                 roundoff_samples: int = ROUNDOFF_SAMPLES, sampling_seeds: int = 0, reference_noise: float = 0.01,
                 threshold: float = 0.1, grid_ratio: float | None = None, grid_draws: int = GRID_DRAWS,
-                grid_levels: int = 1, workers=None, scatter: ModelScatter | None = None,
+                grid_levels: int = 1, probe: bool = True, workers=None, scatter: ModelScatter | None = None,
                 grid: GridCheck | None = None):
     """The verdict on a fit's end point and, when ``uncertainty``, its Gauss–Newton uncertainty
     (intervals withheld unless the verdict is a fit): what ``fit`` and ``search`` report for
@@ -164,7 +174,36 @@ def judge_point(objective: ObjectiveLike, r, J, theta, *, converged: bool, messa
         else:
             if grid is None:
                 grid_note = f"no run at {grid_ratio:g} × dx ran without status bits"
-    return verdict, gauss_newton_uncertainty(J, r, objective.keys, theta, objective.blocks, objective.row_scale,
-                                             noise=noise, bounds=objective.bounds, verdict=verdict, scatter=scatter,
-                                             sampling=sampling, grid=grid, grid_note=grid_note,
-                                             reference_noise=reference_noise, threshold=threshold)
+    def interval(verdict):
+        return gauss_newton_uncertainty(J, r, objective.keys, theta, objective.blocks, objective.row_scale,
+                                        noise=noise, bounds=objective.bounds, verdict=verdict, scatter=scatter,
+                                        sampling=sampling, grid=grid, grid_note=grid_note,
+                                        reference_noise=reference_noise, threshold=threshold)
+
+    unc = interval(verdict)
+    # A verified minimum inside the box and the rheology is probed whatever its misfit: a stop on a
+    # ripple of the valley's wall can leave a misfit above the noise too.
+    if probe and verdict.verified and not verdict.at_bound and not broken_relations(objective.keys, theta):
+        cov = unc.cov if not unc.withheld else interval(None).cov
+        found = probe_loss(objective, theta, r, J, cov, verdict.noise, scatter=scatter, workers=workers)
+        verdict = dataclasses.replace(verdict, probe=found)
+        if not found.passed:
+            verdict = verdict.failing(found.reason(objective.keys))
+            unc = interval(verdict)
+        elif not unc.withheld:
+            unc = _widened(unc, found)
+    return verdict, unc
+
+
+def _widened(unc, found: LossProbe):
+    """``unc`` with its interval stretched where the probe's χ² had not risen by 1.96² at an edge
+    (``LossProbe.widened``), the Gauss–Newton one kept as ``ci95_linearised``; ``unc`` itself
+    where nothing moved."""
+    ci95 = found.widened(unc.theta, unc.ci95)
+    if np.allclose(ci95, unc.ci95, rtol=0.0, atol=0.0):
+        return unc
+    moved = [f"{k} to [{lo:.4g}, {hi:.4g}]" for k, (lo, hi), old in zip(unc.keys, ci95, unc.ci95)
+             if not np.array_equal([lo, hi], old)]
+    note = (" The loss is flatter than its curvature at the point says: the probe's χ² had not risen by 1.96² at "
+            "an edge, so the interval is widened to where it has: " + ", ".join(moved) + ".")
+    return dataclasses.replace(unc, ci95=ci95, ci95_linearised=unc.ci95, statement=unc.statement + note)

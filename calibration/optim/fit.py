@@ -62,6 +62,7 @@ class FitResult:
     start: dict[str, float] | None = None  # where the fit started (physical values)
     start_note: str = ""  # why the start differs from the scene's values, if it does
     verdict: Verdict | None = None
+    restarts: list[dict[str, Any]] = dataclasses.field(default_factory=list)  # the fits before it (``_restarted``)
 
     def to_json(self) -> dict[str, Any]:
         out = {"params": self.theta, "loss": self.loss, "iterations": self.iterations,
@@ -71,10 +72,14 @@ class FitResult:
             out["start"] = self.start
         if self.start_note:
             out["start_note"] = self.start_note
+        if self.restarts:
+            out["restarts"] = self.restarts
         if self.verdict is not None:
             out["verdict"] = self.verdict.to_dict()
             if self.verdict.scatter is not None:
                 out["roundoff"] = self.verdict.scatter.to_dict(self.keys)
+            if self.verdict.probe is not None:
+                out["probe"] = self.verdict.probe.to_dict(self.keys)
         if self.uncertainty is not None:
             u = self.uncertainty.to_dict()
             if "stderr" in u:

@@ -33,7 +33,10 @@ class FitOptions:
     ``grad_mode`` ("fwd" or "rev"): Adam's; ``xtol``, ``ftol``, ``stat_tol``, ``max_rejections``:
     LM's stopping tests (``calibration.optim.lm``, docs/fitting.md); ``lm_model``: LM's curvature,
     JᵀJ plus a secant estimate of the residuals' own curvature wherever that forecast the last
-    step better ("adaptive", the default) or JᵀJ alone ("gauss-newton"); Adam ignores it."""
+    step better ("adaptive", the default) or JᵀJ alone ("gauss-newton"); Adam ignores it;
+    ``restarts``: where the verdict's probe finds a lower loss near the end point, fit again from
+    the lowest point it ran, at most this many times (``calibration.optim.search.fit_from_starts``;
+    a resume does not compare it with the file's)."""
 
     method: str = "lm"
     steps: int = 30
@@ -45,6 +48,7 @@ class FitOptions:
     stat_tol: float = 0.1
     max_rejections: int = 6
     lm_model: str = DEFAULT_MODEL
+    restarts: int = 2
 
     def __post_init__(self):
         _require(self.method in METHODS, "method", f"one of {METHODS}", self.method)
@@ -59,6 +63,7 @@ class FitOptions:
         _require(_is_int(self.max_rejections) and self.max_rejections >= 1, "max_rejections", "an integer >= 1",
                  self.max_rejections)
         _require(self.lm_model in LM_MODELS, "lm_model", f"one of {LM_MODELS}", self.lm_model)
+        _require(_is_int(self.restarts) and self.restarts >= 0, "restarts", "an integer >= 0", self.restarts)
 
     def lm_options(self) -> LMOptions:
         """LM's options (``calibration.optim.lm.LMOptions``) from these."""
@@ -75,7 +80,7 @@ class FitOptions:
         its value from before."""
         out = []
         for field in dataclasses.fields(self):
-            if field.name == "steps":
+            if field.name in ("steps", "restarts"):  # how far a fit goes, not which path it takes
                 continue
             now = getattr(self, field.name)
             if field.name not in saved and field.name in BEFORE_RECORDED:

@@ -69,6 +69,12 @@ def next_steps(result) -> list[str]:
     if broken_relations(result.keys, [result.theta[k] for k in result.keys]):
         steps.append("the point breaks a rule of the rheology (mu2 below mu1): start from a point that keeps it "
                      "(--init), or hold one of the two (--set)")
+    if verdict.probe is not None and not verdict.probe.passed:
+        start = " ".join(f"--init {k}={v:.4g}" for k, v in zip(result.keys, verdict.probe.lowest))
+        steps.append(f"the loss is lower near the point than at it: fit again from the lowest point the probe ran "
+                     f"({start}). Where the loss is rough (the probe's rises jump from one point to the next), one "
+                     "fit ends on whichever ripple it meets: scan the loss (python -m calibration sweep --over "
+                     "KEY=LO:HI:N, and --seed for other particle draws) and fit on a finer grid")
     if any(value > verdict.chi2_limit[name] for name, value in verdict.chi2.items()):
         steps.append("the model does not reach the data: before reading any number, check what the scene leaves "
                      "out (a channel's side walls, the floor's friction, the release), and give the data's "

@@ -278,7 +278,7 @@ def search(objective: ObjectiveLike, starts: int | np.ndarray = DEFAULT_STARTS, 
            noise: Mapping[str, float] | float | None = None, uncertainty: bool = True, shrink: bool = True,
            roundoff_samples: int = ROUNDOFF_SAMPLES, sampling_seeds: int = 0, reference_noise: float = 0.01,
            threshold: float = 0.1, grid_ratio: float | None = None, grid_draws: int = GRID_DRAWS,
-           grid_levels: int = 1, drop_dominated: bool = False,
+           grid_levels: int = 1, probe: bool = True, drop_dominated: bool = False,
            progress: bool = False, workers=None) -> SearchResult:
     """Multi-start LM from ``starts`` design points (an int k) or from given physical starts
     ((k, n) array). ``init`` (physical values by key, as for ``fit``): one more start, placed
@@ -292,7 +292,7 @@ def search(objective: ObjectiveLike, starts: int | np.ndarray = DEFAULT_STARTS, 
     in that many single-threaded processes instead of one vmapped batch, and so do the verdict's."""
     judge = JudgeOptions(noise=noise, uncertainty=uncertainty, roundoff_samples=roundoff_samples,
                          sampling_seeds=sampling_seeds, reference_noise=reference_noise, threshold=threshold,
-                         grid_ratio=grid_ratio, grid_draws=grid_draws, grid_levels=grid_levels)
+                         grid_ratio=grid_ratio, grid_draws=grid_draws, grid_levels=grid_levels, probe=probe)
     with using(workers) as workers:
         clock0 = time.perf_counter()
         steps = check_int("steps", steps, 1)
@@ -408,18 +408,49 @@ def fit_from_starts(objective, init: Mapping[str, float] | None = None, *, start
     one start). A search's ``out`` is its best start's file (``save_start``), which a resume
     continues as one start."""
     options, judge = options or FitOptions(), judge or JudgeOptions()
-    if check_int("starts", starts, 1) == 1:
-        from .fit import fit  # looked up at the call: the fit that runs is the module's
+    from .fit import fit  # looked up at the call: the fit that runs is the module's
 
-        return fit(objective, init, options=options, judge=judge, out=out, resume=resume, overwrite=overwrite,
-                   progress=progress, meta=meta, workers=workers), None
+    if check_int("starts", starts, 1) == 1:
+        with using(workers) as workers:  # one pool for the fit and its restarts
+            result = fit(objective, init, options=options, judge=judge, out=out, resume=resume, overwrite=overwrite,
+                         progress=progress, meta=meta, workers=workers)
+            return _restarted(objective, result, options, judge, out, meta, progress, workers), None
     if resume:
         raise ValueError("resume continues one start's history: a search (starts > 1) cannot resume")
     path = check_out(out, resume=False, overwrite=overwrite)
-    common = dict(seed=seed, init=init or None, steps=options.steps, lm_model=options.lm_model, progress=progress,
-                  workers=workers, **judge.kwargs())
-    found = (coarse_to_fine(objective, coarse, starts, refine=refine, **common) if coarse is not None
-             else search(objective, starts, **common))
+    with using(workers) as workers:
+        common = dict(seed=seed, init=init or None, steps=options.steps, lm_model=options.lm_model,
+                      progress=progress, workers=workers, **judge.kwargs())
+        found = (coarse_to_fine(objective, coarse, starts, refine=refine, **common) if coarse is not None
+                 else search(objective, starts, **common))
+        found.best = _restarted(objective, found.best, options, judge, None, meta, progress, workers)
     if path is not None:
         save_start(path, objective, found.best, options, judge, meta)
     return found.best, found
+
+
+def _restarted(objective, result, options: FitOptions, judge: JudgeOptions, out, meta, progress: bool,
+               workers):
+    """``result`` or, where its verdict's probe found a lower loss near its point, the fit started
+    again from the lowest point the probe ran, at most ``options.restarts`` times; each restart
+    ends lower than the last (LM only accepts decreases from a start already lower). The result
+    lists the restarts; its file ``out`` (if any) becomes the last fit's."""
+    from .fit import fit
+
+    tried = []
+    while (len(tried) < options.restarts and result.verdict is not None and result.verdict.probe is not None
+           and not result.verdict.probe.passed):
+        start = dict(zip(result.keys, map(float, result.verdict.probe.lowest)))
+        if progress:
+            print(f"fit: the probe found a lower loss near the point; fitting again from {start}", file=sys.stderr,
+                  flush=True)
+        again = fit(objective, start, options=options, judge=judge, progress=progress, workers=workers)
+        tried.append({"ended": result.theta, "loss": result.loss, "probe_lowest": start,
+                      "probe_rise": result.verdict.probe.lowest_rise, "wall_s": round(result.wall_s, 3)})
+        again.wall_s += result.wall_s
+        result = again
+    if tried:
+        result.restarts = tried
+        if out is not None:
+            save_start(check_out(out, resume=False, overwrite=True), objective, result, options, judge, meta)
+    return result

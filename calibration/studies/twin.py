@@ -22,9 +22,11 @@ from jaxmpm.scenes.collapse import S4_SIDE
 
 from ..batch.sweep import SweepResult, grid_points, sweep
 from ..inference.noise import chi2_of, chi2_quantile
+from ..inference.options import JudgeOptions
 from ..inference.scatter import ROUNDOFF_SAMPLES
-from ..optim.fit import FitResult, fit
-from ..optim.options import cli_steps
+from ..optim.fit import FitResult
+from ..optim.options import FitOptions, cli_steps
+from ..optim.search import fit_from_starts
 from ..problem.objective import Objective
 from ..problem.targets import FrontTarget, ProfileTarget
 
@@ -124,10 +126,11 @@ def twin(*, quick: bool = False, noise: float = 0.0, keys: Sequence[str] = ("bet
          method: str = "lm", steps: int | None = None, seed: int = 0, dx: float | None = None, ppc: float | None = None,
          t_end: float | None = None, values: Mapping[str, float] | None = None, dtype=None, out=None,
          resume: bool = False, overwrite: bool = False, progress: bool = False, reference_noise: float = 0.01,
-         threshold: float = 0.1, roundoff_samples: int = ROUNDOFF_SAMPLES) -> TwinResult:
+         threshold: float = 0.1, roundoff_samples: int = ROUNDOFF_SAMPLES, probe: bool = True,
+         restarts: int = 2) -> TwinResult:
     """Run the twin experiment: make the data at the truth, fit them from the perturbed start.
     ``values`` are true scene parameters over ``TWIN_TRUTH``; ``out``/``resume``/``overwrite``
-    keep the fit's history (``calibration.optim.fit``)."""
+    keep the fit's history (``calibration.optim.fit``); ``probe`` and ``restarts`` as for ``fit_from_starts``."""
     if not (np.isfinite(noise) and 0 <= noise < 1):
         raise ValueError(f"noise must be in [0, 1), got {noise!r}")
     keys = tuple(keys)
@@ -143,10 +146,12 @@ def twin(*, quick: bool = False, noise: float = 0.0, keys: Sequence[str] = ("bet
     profiles, front = twin_data(scene, keys, truth, noise=noise, seed=seed)
     objective = Objective(scene, keys, profile=profiles, front=front)
     # Identifiability at the stated reference noise (or the twin's own noise when larger).
-    result = fit(objective, start, method=method, steps=cli_steps(method, steps), out=out,
-                 resume=resume, overwrite=overwrite, progress=progress, noise=None,
-                 reference_noise=max(reference_noise, noise), threshold=threshold, roundoff_samples=roundoff_samples,
-                 meta={"twin": True, "noise": noise, "seed": seed, "true": dict(zip(keys, truth.tolist()))})
+    options = FitOptions(method=method, steps=cli_steps(method, steps), restarts=restarts)
+    judge = JudgeOptions(noise=None, reference_noise=max(reference_noise, noise), threshold=threshold,
+                         roundoff_samples=roundoff_samples, probe=probe)
+    meta = {"twin": True, "noise": noise, "seed": seed, "true": dict(zip(keys, truth.tolist()))}
+    result, _ = fit_from_starts(objective, start, options=options, judge=judge, out=out, resume=resume,
+                                overwrite=overwrite, progress=progress, meta=meta)
     wall_s = time.perf_counter() - t0
     unc = result.uncertainty
     in_ci95 = (None if unc.withheld else

@@ -8,6 +8,8 @@ default jittered lattice with seeds 0, 1 and 2), against where LM stops from fou
                                              # differences of 1e-6 to 5e-3, float64 (3 minutes)
     python docs/scripts/bui_scan.py --ensemble # mu1 fitted to the three draws' summed loss (their mean),
                                              # from 0.30, 0.36 and 0.45 (11 minutes on one core)
+    python docs/scripts/bui_scan.py --probed # the four fits again with the verdict's probe and its
+                                             # restarts (the defaults since 2026-12-06; 10 minutes)
 
 Writes docs/results/bui_scan.json and docs/figures/bui_scan.png. Each scan is ``python -m
 calibration sweep --scene aluminium-bars --data experiments_data/bui2008/bui2008_final_surface.csv
@@ -46,6 +48,19 @@ def fit(folder: pathlib.Path, name: str, extra: list[str]) -> dict:
                  "--workers", "1", "--no-progress", "--json"], folder / f"fit_{name.split()[0]}.json")
     return {"mu1": out["params"]["mu1"], "loss": out["loss"], "ci95": out.get("ci95", {}).get("mu1"),
             "verdict": out["verdict"]["verdict"], "iterations": out["iterations"], "message": out["message"]}
+
+
+def probed(folder: pathlib.Path, name: str, extra: list[str]) -> dict:
+    """The fit from one of ``STARTS`` with today's defaults: the probe about the end point and up
+    to two restarts from the lowest point it ran."""
+    out = _json(["-m", "calibration", "fit", "--scene", "aluminium-bars", "--data", DATA, "--fit", "mu1", *extra,
+                 "--workers", "1", "--no-progress", "--json"], folder / f"probed_{name.split()[0]}.json")
+    probe = out.get("probe") or {}
+    return {"mu1": out["params"]["mu1"], "loss": out["loss"], "ci95": out.get("ci95", {}).get("mu1"),
+            "verdict": out["verdict"]["verdict"], "reasons": out["verdict"]["reasons"], "wall_s": out["wall_s"],
+            "restarts": [{"ended": r["ended"]["mu1"], "probe_lowest": r["probe_lowest"]["mu1"],
+                          "probe_rise": r["probe_rise"]} for r in out.get("restarts", [])],
+            "probe_rise": probe.get("directions", [{}])[0].get("rise"), "next": out.get("next")}
 
 
 def summarise(scans: dict) -> dict:
@@ -116,18 +131,22 @@ def plot(summary: dict, path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, ax = plt.subplots(figsize=(7.5, 4.2))
+    fig, ax = plt.subplots(figsize=(12, 4.6))
     for seed, color in zip(SEEDS, ("C0", "C1", "C2")):
         s = summary["scans"][str(seed)]
         ax.plot(s["mu1"], s["loss"], ".-", color=color, lw=0.8, ms=3, label=f"loss scan, particle draw {seed}")
     for (name, f), marker in zip(summary["fits"].items(), "osD^"):
         ax.plot([f["mu1"]], [f["loss"]], marker, color="k", mfc="none", ms=8,
                 label=f"LM from {name}: {f['mu1']:.3f} ({f['verdict']})")
+    for (name, f), marker in zip(summary.get("probed", {}).items(), "osD^"):
+        ax.plot([f["mu1"]], [f["loss"]], marker, color="C3", ms=6,
+                label=f"with the probe, from {name}: {f['mu1']:.3f} ({f['verdict']}, "
+                      f"{len(f['restarts'])} restart{'' if len(f['restarts']) == 1 else 's'})")
     ax.axvline(summary["summary"]["parabola_minimum_of_mean"], color="0.4", ls="--", lw=0.8,
                label=f"parabola through the draws' mean: {summary['summary']['parabola_minimum_of_mean']:.3f}")
     ax.set(xlabel="μ1", ylabel="loss (sum of squared residuals)", yscale="log",
            title="Bui et al. (2008) bars at dx = H/16: the loss against μ1")
-    ax.legend(fontsize=7, loc="upper center", framealpha=0.9)
+    ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0), framealpha=0.9)
     fig.tight_layout()
     fig.savefig(path, dpi=120)
 
@@ -138,10 +157,18 @@ def main(argv=None):
     parser.add_argument("--plot", action="store_true")
     parser.add_argument("--slopes", action="store_true", help="only the slopes, added to the results' JSON")
     parser.add_argument("--ensemble", action="store_true", help="only the fits to the three draws at once, added")
+    parser.add_argument("--probed", action="store_true", help="only the fits with the probe and its restarts, added")
     args = parser.parse_args(argv)
     results, figure = ROOT / "docs/results/bui_scan.json", ROOT / "docs/figures/bui_scan.png"
-    if args.slopes or args.ensemble:
+    if args.slopes or args.ensemble or args.probed:
         out = json.loads(results.read_text())
+        if args.probed:
+            folder = pathlib.Path(args.out)
+            folder.mkdir(parents=True, exist_ok=True)
+            with ThreadPoolExecutor(2) as pool:
+                out["probed"] = dict(zip(STARTS, pool.map(lambda n: probed(folder, n, STARTS[n]), STARTS)))
+            for name, f in out["probed"].items():
+                print(name, json.dumps(f), flush=True)
         if args.slopes:
             out["slopes"] = slopes()
         if args.ensemble:
