@@ -301,3 +301,43 @@ def test_a_search_keeps_its_best_start_and_its_interval_for_posterior(tmp_path):
     saved = read_history(path)
     assert bool(saved["resume"]["done"]) and saved["resume"]["lam"] == pytest.approx(3e-4)
     np.testing.assert_allclose(bounds.to_physical(saved["resume"]["z"]), [0.3, 0.4], rtol=1e-12)
+
+
+class _Box:
+    keys = ("beta", "mu1")
+
+    def __init__(self):
+        from calibration.problem.bounds import Bounds
+
+        self.bounds = Bounds(self.keys, (0.0, 0.1), (1.0, 1.5))
+
+    def check_thetas(self, thetas, name="thetas"):
+        pass
+
+
+@pytest.mark.parametrize("first_is_fit", [True, False])
+def test_coarse_to_fine_refines_the_next_coarse_minima_where_the_best_is_no_fit(monkeypatch, first_is_fit):
+    """Six coarse minima, refine = 2: the fine stage refines the best two; only where its best
+    point is not a fit of the data are the next two refined, and the lower loss kept."""
+    import importlib
+
+    search_module = importlib.import_module("calibration.optim.search")
+    fine, coarse = _Box(), _Box()
+    minima = [SimpleNamespace(theta={"beta": 0.1 * i, "mu1": 0.3 + 0.05 * i}, within_noise=False, starts=(i,))
+              for i in range(1, 7)]
+    refined = []
+
+    def fake_search(objective, starts, **kw):
+        if objective is coarse:
+            return SimpleNamespace(minima=minima, starts=np.zeros((6, 2)), wall_s=1.0)
+        refined.append(np.round(np.asarray(starts)[:, 0], 6).tolist())
+        second = len(refined) == 2
+        best = SimpleNamespace(loss=0.5 if second else 1.0, verdict=SimpleNamespace(is_fit=first_is_fit or second))
+        return SimpleNamespace(best=best, wall_s=1.0, start_note="")
+
+    monkeypatch.setattr(search_module, "search", fake_search)
+    result = search_module.coarse_to_fine(fine, coarse, 6, refine=2)
+    assert refined == ([[0.1, 0.2]] if first_is_fit else [[0.1, 0.2], [0.3, 0.4]])
+    assert result.best.loss == (1.0 if first_is_fit else 0.5)
+    assert ("the next 2 were refined too and gave the best point" in result.start_note) != first_is_fit
+    assert result.wall_s == (2.0 if first_is_fit else 3.0)

@@ -349,9 +349,11 @@ def coarse_to_fine(objective: ObjectiveLike, coarse: ObjectiveLike, starts: int 
     basins; the best ``refine`` distinct minima it reports (all within the noise of the best if
     there are more; one that breaks a rule of the engine, such as μ1 > μ2, replaced by the last
     valid point on the line from its start) start a batched ``search`` on ``objective`` with
-    ``options`` (steps, noise, ...). The result is the fine stage's, with the coarse one as
-    ``.coarse``: nothing the coarse stage gets wrong survives into it, except a basin it never
-    found."""
+    ``options`` (steps, noise, ...). Where the best point of that is not a fit of the data, the
+    next ``refine`` coarse minima are refined too and the lower of the two is kept (the coarse
+    grid's own model error can rank the data's basin below another). The result is the fine
+    stage's, with the coarse one as ``.coarse``: nothing the coarse stage gets wrong survives into
+    it, except a basin it never found or ranked below the refined ones."""
     refine = check_int("refine", refine, 1)
     if tuple(coarse.keys) != tuple(objective.keys):
         raise ValueError(f"coarse: fits {tuple(coarse.keys)}, the objective {tuple(objective.keys)}; they must agree")
@@ -377,20 +379,36 @@ def coarse_to_fine(objective: ObjectiveLike, coarse: ObjectiveLike, starts: int 
                 lo, hi = (mid, hi) if is_valid(objective, start + mid * (theta - start)) else (lo, mid)
             return start + lo * (theta - start), True
 
-        usable = [(m, *placed(m)) for m in first.minima]
-        within = [(t, moved) for m, t, moved in usable if m.within_noise]
+        usable = [(m.within_noise, *placed(m)) for m in first.minima]
+        within = [(t, moved) for inside, t, moved in usable if inside]
         chosen = within if len(within) > refine else [(t, moved) for _, t, moved in usable[:refine]]
-        thetas = np.stack([t for t, _ in chosen])
-        moved = sum(1 for _, mv in chosen if mv)
-        if progress:
-            print(f"coarse_to_fine: refining {len(thetas)} of {len(first.minima)} coarse minima", file=sys.stderr,
-                  flush=True)
-        result = search(objective, thetas, seed=seed, design=design, drop_dominated=True, progress=progress,
-                        workers=workers, **options)
+        rest = [(t, moved) for _, t, moved in usable[len(chosen):]]  # in loss order, those within the noise first
+
+        def refined(chosen):
+            if progress:
+                print(f"coarse_to_fine: refining {len(chosen)} of {len(first.minima)} coarse minima", file=sys.stderr,
+                      flush=True)
+            return search(objective, np.stack([t for t, _ in chosen]), seed=seed, design=design, drop_dominated=True,
+                          progress=progress, workers=workers, **options)
+
+        result, notes = refined(chosen), []
+        if rest and result.best.verdict is not None and not result.best.verdict.is_fit:
+            # The best refined basin is no fit of the data: the coarse grid ranks basins by its own
+            # model error, so the next ones get their turn before the search gives up.
+            more = rest[:refine]
+            second = refined(more)
+            notes.append(f"the best of the first {len(chosen)} refined coarse minima was not a fit of the data "
+                         f"(loss {result.best.loss:.4g}); the next {len(more)} were refined too"
+                         + (f" and gave the best point (loss {second.best.loss:.4g})"
+                            if second.best.loss < result.best.loss else ", without a lower loss"))
+            second.wall_s += result.wall_s
+            result, chosen = (second if second.best.loss < result.best.loss else result), chosen + more
         result.coarse = first
+        moved = sum(1 for _, mv in chosen if mv)
         if moved:
-            note = (f"{moved} coarse minimum(s) broke a rule of the engine's (such as mu1 <= mu2) and were "
-                    "refined from the last valid point on the line from their start")
+            notes.append(f"{moved} coarse minimum(s) broke a rule of the engine's (such as mu1 <= mu2) and were "
+                         "refined from the last valid point on the line from their start")
+        for note in notes:
             result.start_note = f"{result.start_note}; {note}" if result.start_note else note
         result.wall_s += first.wall_s
         return result
