@@ -194,3 +194,40 @@ def test_a_point_that_fails_the_probe_is_no_fit_and_gets_no_interval():
     assert len(verdict.reasons) == 1 and "misfit well above the noise" in verdict.reasons[0]
     with pytest.raises(OptionError, match="probe"):
         JudgeOptions(probe="yes")
+
+
+class TwoBlocks(Closed):
+    """Two blocks of rows weighted 1 and 5 (``row_scale``), as a fit weighs a short block: the
+    loss Σ r² and the data's χ² have different minima."""
+
+    def __init__(self, A, y):
+        super().__init__(A, y)
+        self.blocks = {"a": slice(0, 20), "b": slice(20, 40)}
+        self.row_scale = np.where(np.arange(40) < 20, 1.0, 5.0)
+
+    def residuals(self, theta):
+        r, pred = super().residuals(theta)
+        return self.row_scale * r, pred
+
+    def jacobian(self, theta):
+        return self.row_scale[:, None] * super().jacobian(theta)
+
+
+def test_the_probe_measures_the_loss_the_fit_minimises():
+    """At the minimum of the weighted loss the probe passes (a lower χ² elsewhere is the weights'
+    choice, not a lower loss a restart could descend to), and each rise is the loss's, scaled."""
+    rng = np.random.default_rng(3)
+    A = rng.standard_normal((40, 2)) @ np.array([[1.0, 0.8], [0.0, 0.4]])
+    y = A @ np.array([0.4, 0.6]) + SIGMA * rng.standard_normal(40) + np.where(np.arange(40) < 20, 0.1, 0.0)
+    objective = TwoBlocks(A, y)
+    w = objective.row_scale
+    theta = np.linalg.lstsq(w[:, None] * A, w * y, rcond=None)[0]
+    r, _ = objective.residuals(theta)
+    J = objective.jacobian(theta)
+    cov = SIGMA**2 * np.linalg.inv(A.T @ A)
+    found = probe_loss(objective, theta, r, J, cov, {"a": SIGMA, "b": SIGMA})
+    assert found.passed and np.all(found.rise > 0)
+    loss = lambda t: float(np.sum(objective.residuals(t)[0] ** 2))  # noqa: E731
+    d = found.directions[0]
+    scale = found.predicted[0] / float(np.sum((J @ d) ** 2))
+    assert found.rise[0, -1] == pytest.approx(scale * (loss(theta + 8 * d) - loss(theta)), rel=1e-10)

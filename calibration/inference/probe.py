@@ -6,7 +6,8 @@ Gauss–Newton step follows the local slope and the stop comes wherever that slo
 aluminium bars of docs/real_data.md: fits "of the data" from 0.300 and from 0.360 whose intervals
 do not overlap). The probe runs the model where the interval says the loss has risen: along each
 principal direction u_k of the interval's covariance, at the 95 % edge (s = ±1) and 2, 4 and 8
-times as far, 8 runs a key, and compares the data's χ² there with the end point's. (The far
+times as far, 8 runs a key, and compares the fit's own loss there with the end point's, in χ²
+units (the rise a restart could descend: the loss weighs the blocks as the optimiser does). (The far
 probes find the valley a fit on a ripple of its wall does not see: the bars' fit from 0.300 is a
 minimum within ±2 half-widths, and its χ² is 20 units lower 8 half-widths away.)
 
@@ -33,7 +34,7 @@ from typing import Any
 import numpy as np
 
 from ..problem.protocol import ObjectiveLike, is_valid
-from .noise import NOISE_FLOOR, Z95, chi2_of
+from .noise import NOISE_FLOOR, Z95
 from .scatter import _ran_cleanly, _runs
 
 __all__ = ["PROBE_DROP", "PROBE_STEPS", "LossProbe", "probe_loss"]
@@ -197,18 +198,23 @@ def probe_loss(objective: ObjectiveLike, theta, r, J, cov, sigma, *, scatter=Non
     points = [(k, j, theta + s * delta) for k, delta in enumerate(directions) for j, s in enumerate(steps)]
     points = [(k, j, t) for k, j, t in points if np.all((t > lower) & (t < upper)) and is_valid(objective, t)]
     runs = _runs(objective, [t for _, _, t in points], workers) if points else []
-    chi2_0 = chi2_of(r, objective.row_scale, objective.blocks, sigma)
-    rise = np.full((len(directions), len(steps)), np.nan)
-    lowest, lowest_rise, lowest_step = theta, 0.0, 0.0
-    for (k, j, t), (r_p, pred) in zip(points, runs):
-        if _ran_cleanly(r_p, pred):
-            rise[k, j] = chi2_of(np.asarray(r_p, float), objective.row_scale, objective.blocks, sigma) - chi2_0
-            if rise[k, j] < lowest_rise:
-                lowest, lowest_rise, lowest_step = t, float(rise[k, j]), abs(steps[j])
     Je = J / np.asarray(objective.row_scale, float)[:, None]
     fisher = sum(Je[sl].T @ Je[sl] / max(sigma[name], NOISE_FLOOR) ** 2
                  for name, sl in objective.blocks.items() if sigma.get(name) is not None)
     predicted = np.array([float(d @ fisher @ d) for d in directions]) if np.ndim(fisher) else np.zeros(len(directions))
+    # The rise is the fit's own loss Σ r² (its blocks weighted as the optimiser weighs them, so that
+    # a lower probe is one a restart descends to), in χ² units along each direction: scaled by the
+    # quadratic models' ratio δᵀFδ / δᵀJᵀJδ (1/σ² for one block of equal weights).
+    loss_0 = float(np.sum(r * r))
+    curvature = np.array([float(np.sum((J @ d) ** 2)) for d in directions])
+    scale = np.where(curvature > 0, predicted / np.where(curvature > 0, curvature, 1.0), 0.0)
+    rise = np.full((len(directions), len(steps)), np.nan)
+    lowest, lowest_rise, lowest_step = theta, 0.0, 0.0
+    for (k, j, t), (r_p, pred) in zip(points, runs):
+        if _ran_cleanly(r_p, pred):
+            rise[k, j] = scale[k] * (float(np.sum(np.asarray(r_p, float) ** 2)) - loss_0)
+            if rise[k, j] < lowest_rise:
+                lowest, lowest_rise, lowest_step = t, float(rise[k, j]), abs(steps[j])
     vertex, vertex_rise = np.array([_parabola(steps, row) for row in rise]).reshape(-1, 2).T
     threshold = max(PROBE_DROP, JITTER_SIGMAS * _jitter(objective, r, sigma, scatter))
     return LossProbe(directions, tuple(steps), rise, predicted, vertex, vertex_rise, threshold, np.asarray(lowest),
