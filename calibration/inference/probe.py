@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import time
 from collections.abc import Sequence
 from typing import Any
 
@@ -113,8 +114,12 @@ class LossProbe:
     def passed(self) -> bool:
         """No probe, and no parabola's lowest point beyond the edge, below the end point's χ² by
         more than ``threshold``."""
-        beyond = (np.abs(self.vertex) > 1.0) & (np.abs(self.vertex) <= PARABOLA_REACH)
-        return not (self.lowest_rise < -self.threshold or np.any(beyond & (self.vertex_rise < -self.threshold)))
+        return not (self.lowest_rise < -self.threshold or np.any(self._beyond & (self.vertex_rise < -self.threshold)))
+
+    @property
+    def _beyond(self) -> np.ndarray:
+        """(d,): the directions whose parabola has its lowest point beyond the edge, within reach."""
+        return (np.abs(self.vertex) > 1.0) & (np.abs(self.vertex) <= PARABOLA_REACH)
 
     def reason(self, keys: Sequence[str]) -> str:
         """Why the end point is not the lowest loss within its interval (empty when it is)."""
@@ -125,7 +130,7 @@ class LossProbe:
         if self.lowest_rise < -self.threshold:
             text += (f": χ² is {-self.lowest_rise:.3g} lower at {where}, {self.lowest_step:g} times its 95 % "
                      "interval's half-width away")
-        beyond = (np.abs(self.vertex) > 1.0) & (np.abs(self.vertex) <= PARABOLA_REACH)
+        beyond = self._beyond
         k = int(np.argmin(np.where(beyond, self.vertex_rise, np.inf)))
         if beyond[k] and self.vertex_rise[k] < -self.threshold:
             text += (f"; along {_direction(self.directions[k], keys)} the parabola through the probes has its "
@@ -188,8 +193,6 @@ def probe_loss(objective: ObjectiveLike, theta, r, J, cov, sigma, *, scatter=Non
     ``cov`` along each of its principal directions, and compare χ² (with the verdict's noise
     ``sigma`` by block) with θ's. Probes outside the bounds, or outside the model's rules, are
     not run. ``scatter``: the run's round-off (``model_scatter``), which sets the drop that counts."""
-    import time
-
     clock = time.perf_counter()
     theta, r, J = np.asarray(theta, float), np.asarray(r, float), np.asarray(J, float)
     evals, evecs = np.linalg.eigh(0.5 * (np.asarray(cov, float) + np.asarray(cov, float).T))
