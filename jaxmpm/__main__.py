@@ -10,6 +10,7 @@ import sys
 import numpy as np
 
 from .cli import (
+    add_devices_argument,
     add_scene_arguments,
     add_threads_argument,
     check_figure_file,
@@ -53,6 +54,8 @@ def _write_run(args, output, summary: dict, scene, result) -> None:
 def _run(args) -> int:
     check_scene_args(args)
     if args.scene == "avalanche":
+        if args.devices not in (None, 1):
+            raise ValueError("--devices: the avalanche runs on a sparse grid, which is not split over devices")
         return _run_avalanche(args)
     for option, value in (("--terrain", args.terrain), ("--station", args.station), ("--obstacle", args.obstacle)):
         if value is not None:
@@ -70,7 +73,7 @@ def _run(args) -> int:
     from .simulate import simulate
 
     scene = scene_from_args(args, frames=frames)
-    result = simulate(*scene, throw=False, progress=not args.no_progress, timed=True)
+    result = simulate(*scene, throw=False, progress=not args.no_progress, timed=True, devices=args.devices)
     summary = scene.summary(result)
     # The outputs were checked before the run; should one still fail (a full disk, a folder
     # removed meanwhile), the others are written and the summary is printed all the same.
@@ -228,7 +231,7 @@ def _bench(args) -> int:
     from .studies.bench import run_bench
 
     result = run_bench(args.grad, args.quick, args.dim, args.dtype, args.repeat, args.particles, args.scene,
-                       steps=args.steps, active_nodes=args.active_nodes)
+                       steps=args.steps, active_nodes=args.active_nodes, devices=args.devices)
     print(json.dumps(result) if args.json else json.dumps(result, indent=2))
     return 0
 
@@ -306,6 +309,8 @@ def build_parser() -> argparse.ArgumentParser:
                        help="steps: for --grad (default 5000); for the forward run, a cap (default: until t_end)")
     for command in sub.choices.values():
         add_threads_argument(command)
+    for command in (run, bench):
+        add_devices_argument(command)
     return parser
 
 
@@ -313,7 +318,7 @@ def main(argv=None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     try:
-        apply_threads(args.threads)
+        apply_threads(args.threads, getattr(args, "devices", None))
         handler = {"run": _run, "element": _element, "validate": _validate, "bench": _bench}[args.command]
         return handler(args)
     except ValueError as err:  # invalid input: a clear message, not a traceback
