@@ -10,7 +10,6 @@ import sys
 import numpy as np
 
 from .cli import (
-    add_devices_argument,
     add_scene_arguments,
     add_threads_argument,
     check_figure_file,
@@ -54,8 +53,6 @@ def _write_run(args, output, summary: dict, scene, result) -> None:
 def _run(args) -> int:
     check_scene_args(args)
     if args.scene == "avalanche":
-        if args.devices not in (None, 1):
-            raise ValueError("--devices: the avalanche runs on a sparse grid, which is not split over devices")
         return _run_avalanche(args)
     for option, value in (("--terrain", args.terrain), ("--station", args.station), ("--obstacle", args.obstacle)):
         if value is not None:
@@ -73,7 +70,7 @@ def _run(args) -> int:
     from .simulate import simulate
 
     scene = scene_from_args(args, frames=frames)
-    result = simulate(*scene, throw=False, progress=not args.no_progress, timed=True, devices=args.devices)
+    result = simulate(*scene, throw=False, progress=not args.no_progress, timed=True)
     summary = scene.summary(result)
     # The outputs were checked before the run; should one still fail (a full disk, a folder
     # removed meanwhile), the others are written and the summary is printed all the same.
@@ -231,7 +228,7 @@ def _bench(args) -> int:
     from .studies.bench import run_bench
 
     result = run_bench(args.grad, args.quick, args.dim, args.dtype, args.repeat, args.particles, args.scene,
-                       steps=args.steps, active_nodes=args.active_nodes, devices=args.devices)
+                       steps=args.steps, active_nodes=args.active_nodes)
     print(json.dumps(result) if args.json else json.dumps(result, indent=2))
     return 0
 
@@ -309,8 +306,6 @@ def build_parser() -> argparse.ArgumentParser:
                        help="steps: for --grad (default 5000); for the forward run, a cap (default: until t_end)")
     for command in sub.choices.values():
         add_threads_argument(command)
-    for command in (run, bench):
-        add_devices_argument(command)
     return parser
 
 
@@ -318,7 +313,7 @@ def main(argv=None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     try:
-        apply_threads(args.threads, getattr(args, "devices", None))
+        apply_threads(args.threads)
         handler = {"run": _run, "element": _element, "validate": _validate, "bench": _bench}[args.command]
         return handler(args)
     except ValueError as err:  # invalid input: a clear message, not a traceback

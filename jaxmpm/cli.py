@@ -25,8 +25,7 @@ from .sampling import SAMPLINGS
 from .scenes import SCENE_NAMES, build_scene, is_experiment_file
 from .threads import THREAD_CHOICES
 
-__all__ = ["OPTION_FIELDS", "add_scene_arguments", "add_threads_argument",
-           "add_devices_argument", "check_figure_file", "check_output_dir",
+__all__ = ["OPTION_FIELDS", "add_scene_arguments", "add_threads_argument", "check_figure_file", "check_output_dir",
            "check_output_file", "check_repeated_keys", "check_run_outputs", "check_scene_args", "experiment_from_args",
            "json_safe", "output_writer", "parse_set", "print_json", "scene_dtype", "scene_from_args",
            "side_walls_argument"]
@@ -193,14 +192,6 @@ def add_threads_argument(parser) -> None:
     parser.add_argument("--threads", choices=THREAD_CHOICES, default=None,
                         help="XLA's CPU threads: 1 (the default: the process on one core, faster below "
                              "about 1e5 particles, docs/performance.md) or all (XLA's own pool on every core)")
-
-
-def add_devices_argument(parser) -> None:
-    """``--devices N``: the run split over N devices by its particles (``jaxmpm.devices``; on a CPU,
-    N devices on N cores), applied by ``jaxmpm.threads.apply_threads``."""
-    parser.add_argument("--devices", type=int, default=None, metavar="N",
-                        help="split the run's particles over N devices (GPUs, or N CPU devices on N cores; default "
-                             "1); docs/performance.md says when it pays")
 
 
 # ---- outputs, checked before any work ------------------------------------------------------------

@@ -59,8 +59,8 @@ class RolloutParts(NamedTuple):
 
 
 def make_rollout_parts(config: Config, observer: Observer | None = frame_observer, checkpoint: bool = True,
-                       steps_per_block: int | None = None, axis_name: str | None = None) -> RolloutParts:
-    step = make_step(config, axis_name)
+                       steps_per_block: int | None = None) -> RolloutParts:
+    step = make_step(config)
     frame_times = config.frame_times if observer is not None else ()
     n_frames = len(frame_times)
     block = steps_per_block or config.blocks[1]
@@ -102,17 +102,15 @@ def make_rollout_parts(config: Config, observer: Observer | None = frame_observe
     return RolloutParts(start, run_block, finish, block)
 
 
-def make_rollout(config: Config, observer: Observer | None = frame_observer, checkpoint: bool = True,
-                 axis_name: str | None = None):
+def make_rollout(config: Config, observer: Observer | None = frame_observer, checkpoint: bool = True):
     """Build ``rollout(state, params) -> (final_state, frames)``.
 
     ``frames`` is the observer's pytree with a leading axis over ``config.frame_times`` (None
     when there are no frame times or no observer). The function is pure and unjitted: wrap it
     in ``jax.jit``, ``jax.vmap`` or ``jax.grad`` as needed. The final state's ``status`` carries
-    the ``BUDGET`` bit if ``t_end`` was not reached within ``config.max_steps``. ``axis_name``:
-    the run holds a share of the particles inside ``shard_map`` (``make_step``; ``jaxmpm.devices``).
+    the ``BUDGET`` bit if ``t_end`` was not reached within ``config.max_steps``.
     """
-    parts = make_rollout_parts(config, observer, checkpoint, axis_name=axis_name)
+    parts = make_rollout_parts(config, observer, checkpoint)
     n_full, remainder = divmod(config.max_steps, parts.steps_per_block)
 
     def rollout(state, params):

@@ -10,7 +10,6 @@ from typing import Any
 import jax
 import numpy as np
 
-from . import devices as dv
 from .config import Config
 from .params import Params, validate_params
 from .rollout import Observer, frame_observer, make_rollout, make_rollout_parts
@@ -51,37 +50,24 @@ class Result:
 
 
 @functools.lru_cache(maxsize=64)
-def compiled_rollout(config: Config, observer: Observer | None = frame_observer, checkpoint: bool = True,
-                     devices: int = 1):
-    """``jax.jit`` of ``make_rollout``, cached per (config, observer, devices): new parameter
-    values or initial states of the same shapes never recompile. ``devices`` > 1 shares the
-    particles over that many devices (``jaxmpm.devices``; the state padded by ``devices.padded``)."""
-    if devices == 1:
-        return jax.jit(make_rollout(config, observer, checkpoint))
-    rollout = make_rollout(config, observer, checkpoint, axis_name=dv.PARTICLE_AXIS)
-    spec = dv.specs(config, observer)
-    return jax.jit(dv.split(rollout, devices, (spec["state"], spec["params"]), spec["result"]))
+def compiled_rollout(config: Config, observer: Observer | None = frame_observer, checkpoint: bool = True):
+    """``jax.jit`` of ``make_rollout``, cached per (config, observer): new parameter values or
+    initial states of the same shapes never recompile."""
+    return jax.jit(make_rollout(config, observer, checkpoint))
 
 
 @functools.lru_cache(maxsize=16)
-def compiled_parts(config: Config, observer: Observer | None = frame_observer, devices: int = 1):
+def compiled_parts(config: Config, observer: Observer | None = frame_observer):
     """Jitted start/block/finish of the rollout, for block-by-block runs with a progress bar."""
     parts = make_rollout_parts(config, observer, checkpoint=False,
-                               steps_per_block=max(config.blocks[1], config.max_steps // 100),
-                               axis_name=None if devices == 1 else dv.PARTICLE_AXIS)
-    start, block, finish = parts.start, parts.block, parts.finish
-    if devices > 1:
-        spec = dv.specs(config, observer)
-        start = dv.split(start, devices, (spec["state"], spec["params"]), spec["carry"])
-        block = dv.split(block, devices, (spec["carry"], spec["params"]), spec["carry"])
-        finish = dv.split(finish, devices, (spec["carry"],), spec["result"])
-    return jax.jit(start), jax.jit(block), jax.jit(finish), parts.steps_per_block
+                               steps_per_block=max(config.blocks[1], config.max_steps // 100))
+    return jax.jit(parts.start), jax.jit(parts.block), jax.jit(parts.finish), parts.steps_per_block
 
 
-def _run_blocks(config: Config, state: State, params: Params, observer, show_bar: bool = True, devices: int = 1):
+def _run_blocks(config: Config, state: State, params: Params, observer, show_bar: bool = True):
     """Run block by block with a progress bar (tqdm, if installed), stopping at t_end.
     Returns (final, frames, compile_s, run_s)."""
-    start, block, finish, per_block = compiled_parts(config, observer, devices)
+    start, block, finish, per_block = compiled_parts(config, observer)
     try:
         from tqdm import tqdm
     except ImportError:  # the optional 'progress' extra
@@ -154,7 +140,6 @@ def simulate(
     throw: bool = True,
     progress: bool = False,
     timed: bool = False,
-    devices: int | None = None,
 ) -> Result:
     """Run ``config`` from ``state`` with ``params`` and return the final state and frames.
 
@@ -163,8 +148,7 @@ def simulate(
     raised unless ``throw=False``; the bits are always in ``Result.status``. With
     ``progress=True`` the run goes block by block with a progress bar (and stops early at
     t_end or on a fatal status bit); the result is the same. ``timed=True`` runs block by block
-    without the bar; both fill ``Result.compile_s`` and ``Result.run_s``. ``devices=K`` shares
-    the particles over K of JAX's devices (``jaxmpm.devices``: what it needs and what it refuses).
+    without the bar; both fill ``Result.compile_s`` and ``Result.run_s``.
     """
     if not isinstance(config, Config):
         raise ValueError(f"config must be a Config, got {type(config).__name__}")
@@ -172,15 +156,11 @@ def simulate(
         raise ValueError(f"params must be a Params, got {type(params).__name__}")
     validate_params(params)
     check_state(config, state)
-    devices = dv.check_devices(devices, config, state, observer)
-    n = state.n_particles
-    state = dv.padded(state, devices)
     timings = (None, None)
     if progress or timed:
-        final, frames, *timings = _run_blocks(config, state, params, observer, show_bar=progress, devices=devices)
+        final, frames, *timings = _run_blocks(config, state, params, observer, show_bar=progress)
     else:
-        final, frames = compiled_rollout(config, observer, devices=devices)(state, params)
-    final, frames = dv.unpadded(final, frames, n)
+        final, frames = compiled_rollout(config, observer)(state, params)
     status = int(np.bitwise_or.reduce(np.asarray(final.status).reshape(-1)))
     result = Result(state=final, frames=frames, frame_times=config.frame_times, status=status,
                     compile_s=timings[0], run_s=timings[1])

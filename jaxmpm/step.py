@@ -92,7 +92,7 @@ def _stencil_and_nodes(x, config: Config, node_x_np):
     return stencil._replace(index=slots), sparse.slot_positions(keys, grid, x.dtype), config.active_nodes, touched
 
 
-def _status_flags(x, v, tau, F_trial, touched, n_grid, bounds, axis_name=None):
+def _status_flags(x, v, tau, F_trial, touched, n_grid, bounds):
     """The status bits a step sets (``jaxmpm.state``): a particle outside the grid's interior
     (``x``, per axis) or within its edge band, a non-finite position, velocity or stress, an
     inverted trial deformation, more nodes touched than a sparse grid's slots. ``bounds``:
@@ -108,29 +108,17 @@ def _status_flags(x, v, tau, F_trial, touched, n_grid, bounds, axis_name=None):
     for row in tau:
         for t in row:
             finite = finite & jnp.isfinite(t)
-    flags = (
+    return (
         jnp.where(jnp.any(left), st.LEFT_GRID, 0)
         | jnp.where(jnp.any(edge), st.EDGE, 0)
         | jnp.where(jnp.all(finite), 0, st.NONFINITE)
         | jnp.where(jnp.any(det_planes(F_trial) <= 0), st.J_NONPOSITIVE, 0)
         | jnp.where(touched > n_grid, st.GRID_FULL, 0)
     )
-    if axis_name is None:
-        return flags
-    return jnp.bitwise_or.reduce(jax.lax.all_gather(flags.astype(jnp.int32), axis_name))  # any device's bits
 
 
-def _over_devices(tree, axis_name, reduce):
-    """``tree`` reduced over the devices that share the particles (``reduce``: psum, pmax), or as
-    it is on one device."""
-    return tree if axis_name is None else jax.tree.map(lambda a: reduce(a, axis_name), tree)
-
-
-def make_step(config: Config, axis_name: str | None = None):
-    """Build ``step(state, params) -> state`` for this static configuration. With ``axis_name``
-    the step runs inside ``shard_map`` on a share of the particles (``jaxmpm.devices``): the
-    grid's fields are summed over that axis, and the largest speed and the status bits are taken
-    over it, so every device holds the whole grid and the same clock."""
+def make_step(config: Config):
+    """Build ``step(state, params) -> state`` for this static configuration."""
     grid = config.grid
     dim, dx = grid.dim, grid.dx
     alpha = 0.0 if config.transfer == "apic" else config.alpha
@@ -153,14 +141,13 @@ def make_step(config: Config, axis_name: str | None = None):
         if config.side_walls is not None:  # V_p max(p_p, 0), p = -tr(τ)/dim (Kirchhoff: V0 τ = V σ)
             pressure = state.vol0 * jnp.maximum(-sum(tau[a][a] for a in range(dim)) / dim, 0.0)
         fields = p2g(stencil, mass, v, planes(state.C), state.vol0, tau, n_grid, pressure)
-        fields = _over_devices(fields, axis_name, jax.lax.psum)  # each device scattered its own particles
         v_old, v_new = grid_velocities(fields, dt, jnp.asarray(config.gravity, dtype))
         if config.side_walls is not None:
             v_new = side_wall_friction(config.side_walls, v_new, fields.pressure, fields.mass, dt, params)
         v_new, impulse = apply_walls(config.walls, v_new, node_x, state.t, dt, params, mass=fields.mass)
         v_flip = v
         if config.xpic and config.transfer == "aflip" and alpha != 0.0:
-            v_flip = list(xpic_velocity(stencil, mass, fields.mass, state.v, config.xpic, axis_name).T)
+            v_flip = list(xpic_velocity(stencil, mass, fields.mass, state.v, config.xpic).T)
         v_old, v_new = _materialize((v_old, v_new), token)
         moved = _materialize(g2p_planes(stencil, v_old, v_new, v_flip, dx, config.transfer, alpha), token)
         x = [x_a + dt * moved.v_pic[a] for a, x_a in enumerate(jnp.unstack(state.x, axis=-1))]
@@ -171,7 +158,7 @@ def make_step(config: Config, axis_name: str | None = None):
         F_trial = [[F[a][b] + dt * grad_v_F[a][b] for b in range(dim)] for a in range(dim)]
         F, tau, internal = config.material.update_planes(F_trial, state.internal, params, dt)
         F, tau = _materialize((F, tau), token)
-        flags = _status_flags(x, moved.v, tau, F_trial, touched, n_grid, bounds, axis_name)
+        flags = _status_flags(x, moved.v, tau, F_trial, touched, n_grid, bounds)
         return state.replace(
             x=jnp.stack(x, -1), v=jnp.stack(moved.v, -1), C=unplanes(moved.C), F=unplanes(F), tau=unplanes(tau),
             internal=internal, t=t_new, dt=dt, steps=state.steps + 1, status=state.status | flags,
@@ -182,7 +169,7 @@ def make_step(config: Config, axis_name: str | None = None):
         t = state.t
         stops = jnp.asarray(stops_np, t.dtype)
         next_stop = jnp.min(jnp.where(stops > t, stops, jnp.inf))
-        speed2 = _over_devices(jnp.max(jnp.sum(state.v * state.v, axis=-1)), axis_name, jax.lax.pmax)
+        speed2 = jnp.max(jnp.sum(state.v * state.v, axis=-1))
         dt = time_step(config, state, params, speed2)
         lands = t + dt >= next_stop
         dt = jnp.where(lands, next_stop - t, dt)

@@ -34,7 +34,7 @@ import os
 import sys
 
 __all__ = ["SINGLE_THREAD_FLAGS", "THREAD_CHOICES", "allowed_cores", "apply_threads", "cores_in_use",
-           "use_devices", "use_one_thread", "single_threaded"]
+           "use_one_thread", "single_threaded"]
 
 #: XLA's CPU runtime on one thread, as older JAX read it (module docstring: this JAX ignores them).
 SINGLE_THREAD_FLAGS = "--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1"
@@ -131,39 +131,14 @@ def use_one_thread(core: int | None = None) -> None:
     _allowed_before_pinning = allowed
 
 
-def use_devices(n: int) -> None:
-    """``n`` CPU devices for a run split over them by its particles (``jaxmpm.devices``), the
-    process on ``n`` of its allowed cores (all of them where it has fewer). Call before JAX's first
-    computation; raises ``RuntimeError`` after it."""
-    if _backend_started():
-        raise RuntimeError("JAX's CPU devices are made when it starts its backend; call use_devices() before the "
-                           "first computation")
-    import jax
-
-    jax.config.update("jax_num_cpu_devices", int(n))
-    allowed = allowed_cores()
-    if _affinity() is not None and len(allowed) > n:
-        try:
-            os.sched_setaffinity(0, set(allowed[:n]))
-        except OSError:  # pragma: no cover (a sandbox that refuses it)
-            return
-
-
 THREAD_CHOICES = ("1", "all")
 
 
-def apply_threads(choice: str | None, devices: int | None = None) -> None:
-    """Apply the command lines' ``--threads`` and ``--devices`` (``jaxmpm.cli.add_threads_argument``)
-    before the first computation: "1" (or None, the default) runs the process on one core; "all"
-    leaves XLA its own choice; ``devices`` N > 1 makes N CPU devices on N cores (``use_devices``)."""
+def apply_threads(choice: str | None) -> None:
+    """Apply the command lines' ``--threads`` (``jaxmpm.cli.add_threads_argument``) before the
+    first computation: "1" (or None, the default) runs the process on one core; "all" leaves XLA
+    its own choice."""
     if choice not in (None, *THREAD_CHOICES):
         raise ValueError(f"--threads must be one of {THREAD_CHOICES}, got {choice!r}")
-    if devices is not None and (isinstance(devices, bool) or not isinstance(devices, int) or devices < 1):
-        raise ValueError(f"--devices must be an integer >= 1, got {devices!r}")
-    if devices is not None and devices > 1:
-        if choice is not None:
-            raise ValueError(f"--threads {choice} with --devices {devices}: a split run uses one core per device; "
-                             "drop --threads")
-        use_devices(devices)
-    elif choice in (None, "1"):
+    if choice in (None, "1"):
         use_one_thread()

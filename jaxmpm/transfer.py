@@ -192,15 +192,13 @@ def g2p(stencil: Stencil, v_old, v_new, v_p, dx, transfer: str, alpha: float) ->
     return Transferred(jnp.stack(out.v, -1), jnp.stack(out.v_pic, -1), unplanes(out.C), unplanes(out.grad_v))
 
 
-def xpic_velocity(stencil: Stencil, mass, grid_mass, v_p, order: int, axis_name: str | None = None):
+def xpic_velocity(stencil: Stencil, mass, grid_mass, v_p, order: int):
     """The particle velocity XPIC(m) keeps of the last step (Hammerquist & Nairn 2017), for the
     FLIP part of the update: with S the grid-to-particle interpolation and T the mass-weighted
     particle-to-grid projection (plain PIC, no affine part), A = S T, the FLIP part v_p + S Δv
     becomes [I − (I − A)^m] v_p + S Δv. The null-space noise of v_p (what A maps to zero) is
     removed; m = 1 is PIC, m -> ∞ FLIP. With v_g^(1) = T v_p and v_g^(k+1) = T S v_g^(k) it is
-    S Σ_{k=1..m} (−1)^{k+1} C(m, k) v_g^(k): m extra scatters and gathers. Returns (N, dim).
-    ``axis_name``: the particles are shared over that axis (``jaxmpm.devices``), each projection
-    summed over it."""
+    S Σ_{k=1..m} (−1)^{k+1} C(m, k) v_g^(k): m extra scatters and gathers. Returns (N, dim)."""
     from math import comb
 
     dim = v_p.shape[-1]
@@ -211,8 +209,7 @@ def xpic_velocity(stencil: Stencil, mass, grid_mass, v_p, order: int, axis_name:
     empty = jnp.zeros_like(grid_mass)
 
     def project(vp):  # (dim, N) particle values -> (dim, nodes): T
-        scattered = jnp.stack([empty.at[index].add((mw * vp[a]).reshape(-1)) for a in range(dim)])
-        return (scattered if axis_name is None else jax.lax.psum(scattered, axis_name)) * inv_mass
+        return jnp.stack([empty.at[index].add((mw * vp[a]).reshape(-1)) for a in range(dim)]) * inv_mass
 
     def interpolate(vg):  # (dim, nodes) -> (dim, N): S
         return jnp.sum(weight * vg[:, stencil.index], axis=1)

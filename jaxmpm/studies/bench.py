@@ -25,11 +25,10 @@ import time
 import jax
 import jax.numpy as jnp
 
-from ..devices import padded
 from ..precision import use_dtype
 from ..rollout import make_rollout
 from ..scenes import S2_HEIGHT, S2_LENGTH, cohesive_collapse, falling_block, gates_collapse
-from ..simulate import compiled_rollout, simulate
+from ..simulate import simulate
 from ..threads import cores_in_use
 
 __all__ = ["bench_forward", "bench_gradient", "bench_scene", "device_name", "median_time", "run_bench", "temp_mb"]
@@ -85,11 +84,11 @@ def bench_scene(scene: str, quick: bool, dim: int, dtype, n_particles=None):
 
 
 def bench_forward(quick=False, dim=2, dtype="float32", repeat=3, n_particles=None, scene="block", steps=None,
-                  active_nodes=None, devices=None) -> dict:
+                  active_nodes=None) -> dict:
     """Forward-run throughput, as a user's run and as the steps alone (module docstring).
     ``steps`` caps the run at that many steps (the ``BUDGET`` status bit is then expected), so
     that large cases stay affordable. ``active_nodes`` runs the sparse grid with that many slots
-    instead of the dense grid. ``devices`` splits both over that many devices (``jaxmpm.devices``)."""
+    instead of the dense grid."""
     config, state, params = bench_scene(scene, quick, dim, dtype, n_particles)
     if active_nodes is not None:
         config = dataclasses.replace(config, active_nodes=active_nodes)
@@ -97,16 +96,14 @@ def bench_forward(quick=False, dim=2, dtype="float32", repeat=3, n_particles=Non
         if not (isinstance(steps, int) and steps >= 1):
             raise ValueError(f"steps must be a positive int, got {steps!r}")
         config = dataclasses.replace(config, max_steps=min(steps, config.max_steps), block_size=None)
-    runs = [simulate(config, state, params, throw=False, timed=True, devices=devices) for _ in range(repeat)]
+    runs = [simulate(config, state, params, throw=False, timed=True) for _ in range(repeat)]
     run_s = statistics.median(r.run_s for r in runs)
-    devices = devices or 1
-    rollout = compiled_rollout(config, None, checkpoint=False, devices=devices)
-    n, steps = state.n_particles, int(runs[0].state.steps)
-    state = padded(state, devices)
+    rollout = jax.jit(make_rollout(config, observer=None, checkpoint=False))
     start = time.perf_counter()
     compiled = rollout.lower(state, params).compile()
     step_compile_s = time.perf_counter() - start
     step_run_s, (final, _) = _timed(compiled, state, params, repeat=repeat)
+    n, steps = state.n_particles, int(runs[0].state.steps)
     return {
         "scene": {"block": "elastic-block", "column": "column-S2", "s4": "cohesive-collapse-S4"}[scene],
         "dim": dim,
@@ -125,7 +122,6 @@ def bench_forward(quick=False, dim=2, dtype="float32", repeat=3, n_particles=Non
         "run_over_step": round(n * steps / run_s / (n * int(final.steps) / step_run_s), 3),
         "peak_rss_mb": round(_peak_rss_mb(), 1),
         "device": device_name(),
-        "devices": devices,
         "cores": cores_in_use(),
         "status": runs[0].status,
         "repeat": repeat,
@@ -174,14 +170,11 @@ def bench_gradient(quick=False, dim=2, dtype="float32", repeat=3, n_particles=No
 
 
 def run_bench(grad=False, quick=False, dim=2, dtype="float32", repeat=3, n_particles=None, scene="block",
-              steps=None, active_nodes=None, devices=None) -> dict:
+              steps=None, active_nodes=None) -> dict:
     """The benchmark ``python -m jaxmpm bench`` runs: ``bench_gradient`` with ``grad`` (which
     takes neither ``scene`` nor ``active_nodes``), else ``bench_forward``; float64 turns JAX's
     64-bit mode on first (``precision.use_dtype``)."""
     use_dtype(dtype)
-    if grad and devices not in (None, 1):
-        raise ValueError("--devices applies to the forward run, not --grad")
     if grad:
         return bench_gradient(quick, dim, dtype, repeat, n_particles, steps)
-    return bench_forward(quick, dim, dtype, repeat, n_particles, scene, steps=steps, active_nodes=active_nodes,
-                         devices=devices)
+    return bench_forward(quick, dim, dtype, repeat, n_particles, scene, steps=steps, active_nodes=active_nodes)
