@@ -315,8 +315,9 @@ class _Box:
         pass
 
 
-@pytest.mark.parametrize("first_is_fit", [True, False])
-def test_coarse_to_fine_refines_the_next_coarse_minima_where_the_best_is_no_fit(monkeypatch, first_is_fit):
+@pytest.mark.parametrize("first_is_fit, second_loss", [(True, 0.5), (False, 0.5), (False, 2.0)])
+def test_coarse_to_fine_refines_the_next_coarse_minima_where_the_best_is_no_fit(monkeypatch, first_is_fit,
+                                                                                 second_loss):
     """Six coarse minima, refine = 2: the fine stage refines the best two; only where its best
     point is not a fit of the data are the next two refined, and the lower loss kept."""
     import importlib
@@ -332,12 +333,15 @@ def test_coarse_to_fine_refines_the_next_coarse_minima_where_the_best_is_no_fit(
             return SimpleNamespace(minima=minima, starts=np.zeros((6, 2)), wall_s=1.0)
         refined.append(np.round(np.asarray(starts)[:, 0], 6).tolist())
         second = len(refined) == 2
-        best = SimpleNamespace(loss=0.5 if second else 1.0, verdict=SimpleNamespace(is_fit=first_is_fit or second))
+        best = SimpleNamespace(loss=second_loss if second else 1.0,
+                               verdict=SimpleNamespace(is_fit=first_is_fit or second))
         return SimpleNamespace(best=best, wall_s=1.0, start_note="")
 
     monkeypatch.setattr(search_module, "search", fake_search)
     result = search_module.coarse_to_fine(fine, coarse, 6, refine=2)
     assert refined == ([[0.1, 0.2]] if first_is_fit else [[0.1, 0.2], [0.3, 0.4]])
-    assert result.best.loss == (1.0 if first_is_fit else 0.5)
-    assert ("the next 2 were refined too and gave the best point" in result.start_note) != first_is_fit
-    assert result.wall_s == (2.0 if first_is_fit else 3.0)
+    assert result.best.loss == (1.0 if first_is_fit else min(1.0, second_loss))
+    kept_second = not first_is_fit and second_loss < 1.0
+    assert ("the next 2 were refined too and gave the best point" in result.start_note) == kept_second
+    assert ("without a lower loss" in result.start_note) == (not first_is_fit and not kept_second)
+    assert result.wall_s == (2.0 if first_is_fit else 3.0)  # the coarse stage and every refinement

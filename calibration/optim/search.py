@@ -401,8 +401,9 @@ def coarse_to_fine(objective: ObjectiveLike, coarse: ObjectiveLike, starts: int 
                          f"(loss {result.best.loss:.4g}); the next {len(more)} were refined too"
                          + (f" and gave the best point (loss {second.best.loss:.4g})"
                             if second.best.loss < result.best.loss else ", without a lower loss"))
-            second.wall_s += result.wall_s
+            wall_s = result.wall_s + second.wall_s  # both refinements' time, whichever is kept
             result, chosen = (second if second.best.loss < result.best.loss else result), chosen + more
+            result.wall_s = wall_s
         result.coarse = first
         moved = sum(1 for _, mv in chosen if mv)
         if moved:
