@@ -55,6 +55,19 @@ def test_jacobian_columns_in_workers_equal_the_calling_process_bit_for_bit(objec
     np.testing.assert_array_equal(there[3]["h"], here[3]["h"])
 
 
+@pytest.mark.slow  # 60 s on two cores, compiling the forward-mode columns in every process
+def test_rows_without_their_jacobian_are_one_run_each_in_the_same_spread(objective, pool):
+    """LM's Broyden trials (``jacobian`` mask): the rows outside the mask are the plain runs in the
+    workers, their Jacobians NaN; the rows inside it are the full columns."""
+    Z = _rows(objective)[:2]
+    mixed = jacobians_z(objective, Z, pool, jacobian=[False, True])
+    full = jacobians_z(objective, Z, pool)
+    np.testing.assert_array_equal(mixed[0][0], residuals_at(objective, objective.bounds.to_physical(Z[:1]), pool)[0][0])
+    assert np.all(np.isnan(mixed[1][0])) and np.all(np.isnan(mixed[2][0]))
+    for a, b in zip(mixed[:3], full[:3]):
+        np.testing.assert_array_equal(a[1], b[1])
+
+
 @pytest.mark.slow  # 45-90 s on two cores; the runs they are made of are checked bit for bit above
 def test_a_fit_and_a_search_in_workers_follow_the_single_process(objective, pool):
     # The columns the workers compute are the objective's own Jacobian (all columns in one

@@ -153,18 +153,38 @@ def combine_columns(objective, results) -> tuple:
     return objective.join(outs)
 
 
-def jacobians_z(objective, Z, workers) -> tuple:
+def jacobians_z(objective, Z, workers, jacobian=None) -> tuple:
     """(r (k, m), dr/dz (k, m, n), dr/dθ (k, m, n), predictions stacked over k) at the rows of
     ``Z`` (k, n) and the objective's bounds: every forward-mode pass of every row (one per key of
-    each of the objective's parts, made by the part), spread over ``workers``."""
+    each of the objective's parts, made by the part), spread over ``workers``. ``jacobian`` (k,)
+    bool: the rows that need their Jacobian (default all); the others are one run of each part's
+    residuals, their Jacobians NaN, in the same spread of tasks."""
     Z = np.atleast_2d(np.asarray(Z))
-    tasks = [part.column_task(z[..., index], tangent, bounds) for z in Z for part, index, bounds in objective.parts
-             for tangent in np.eye(len(part.keys), dtype=part.dtype)]
-    n = len(tasks) // len(Z)  # every row: the same passes
+    jacobian = np.ones(len(Z), bool) if jacobian is None else np.asarray(jacobian, bool)
+    thetas = np.asarray(objective.bounds.to_physical(Z), float)
+    tasks, spans = [], []
+    for z, theta, with_jacobian in zip(Z, thetas, jacobian):
+        first = len(tasks)
+        if with_jacobian:
+            tasks += [part.column_task(z[..., index], tangent, bounds) for part, index, bounds in objective.parts
+                      for tangent in np.eye(len(part.keys), dtype=part.dtype)]
+        else:
+            tasks += [part.residual_task(theta[index]) for part, index, _ in objective.parts]
+        spans.append((first, len(tasks), with_jacobian))
     results = run_tasks(workers, tasks)
-    rows = [combine_columns(objective, results[i * n:(i + 1) * n]) for i in range(len(Z))]
+    rows = [combine_columns(objective, results[a:b]) if with_jacobian else _without_jacobian(objective, results[a:b])
+            for a, b, with_jacobian in spans]
     r, Jz, J, preds = zip(*rows)
     return np.stack(r), np.stack(Jz), np.stack(J), jax.tree.map(lambda *a: np.stack(a), *preds)
+
+
+def _without_jacobian(objective, results) -> tuple:
+    """(r, NaN, NaN, prediction) of ``objective`` from one residual run of each part."""
+    outs = []
+    for (part, _, _), (r, pred) in zip(objective.parts, results):
+        nan = np.full((np.size(r), len(part.keys)), np.nan)
+        outs.append((r, nan, nan, pred))
+    return objective.join(outs)
 
 
 def residuals_at(objective, thetas, workers, seeds=None) -> list[tuple]:

@@ -183,8 +183,9 @@ def fit_options(args, noise=None) -> tuple[FitOptions | None, JudgeOptions]:
     """The fit's ``FitOptions`` (``fit`` only, else None) and ``JudgeOptions`` from the flags
     (``--grid-check 0``: off), an error reported under the flag's name (``FLAGS``)."""
     try:
-        options = (FitOptions(method=args.method, steps=cli_steps(args.method, args.steps), learning_rate=args.lr,
-                              lm_model=args.lm_model, restarts=args.restarts)
+        options = (FitOptions(method=args.method, steps=cli_steps(args.method, args.steps, args.lm_jacobian),
+                              learning_rate=args.lr, lm_model=args.lm_model, lm_jacobian=args.lm_jacobian,
+                              restarts=args.restarts)
                    if getattr(args, "command", None) == "fit" else None)
         judge = JudgeOptions(noise=noise, roundoff_samples=getattr(args, "roundoff_samples", 0),
                              sampling_seeds=getattr(args, "sampling_seeds", 0),
@@ -425,7 +426,8 @@ def finish(out: dict, args, errors: dict) -> int:
 FLAGS: dict[str, str | None] = {
     "method": "--method", "steps": "--steps", "learning_rate": "--lr", "clip": None, "grad_mode": None,
     "xtol": None, "ftol": None, "stat_tol": None, "max_rejections": None, "lm_model": "--lm-model",
-    "restarts": "--restarts",     "noise": "--noise", "uncertainty": None, "roundoff_samples": "--roundoff-samples",
+    "lm_jacobian": "--lm-jacobian", "restarts": "--restarts", "noise": "--noise", "uncertainty": None,
+    "roundoff_samples": "--roundoff-samples",
     "sampling_seeds": "--sampling-seeds", "reference_noise": "--reference-noise", "threshold": "--threshold",
     "grid_ratio": "--grid-check", "grid_draws": None, "grid_levels": "--grid-levels", "probe": "--probe",
     "keys": "--fit",     "init": "--init", "weighting": "--weighting", "weight_profile": "--weight-profile",

@@ -13,7 +13,8 @@ from jaxmpm.scenes.collapse import S4_SIDE
 from ..batch.sweep import MODES as SWEEP_MODES
 from ..data.parse import TIME_UNITS, UNITS
 from ..inference.surrogates import EMULATORS
-from ..optim.lm import DEFAULT_MODEL
+from ..optim.lm import DEFAULT_JACOBIAN, DEFAULT_MODEL
+from ..optim.lm import JACOBIANS as LM_JACOBIANS
 from ..optim.options import LM_MODELS, METHODS
 from ..problem.options import JACOBIANS, WEIGHTINGS
 from .args import design_scene
@@ -64,12 +65,17 @@ def _fit_options(p, default_keys: str | None) -> None:
                    help="comma-separated parameters to fit, from beta,mu1,mu2,I0,xi (default: the experiment "
                         "file's [fit] keys)")
     p.add_argument("--method", choices=METHODS, default="lm")
-    p.add_argument("--steps", type=int, default=None, help="maximum iterations (default 25 for lm, 150 for adam)")
+    p.add_argument("--steps", type=int, default=None,
+                   help="maximum iterations (default 25 for lm, 50 for lm with --lm-jacobian broyden, 150 for adam)")
     p.add_argument("--lm-model", choices=LM_MODELS, default=DEFAULT_MODEL,
                    help="LM's model of the loss's curvature: J^T J plus a secant estimate of the residuals' own "
                         "curvature wherever that forecast the last step better (adaptive, the default: Gauss-Newton's "
                         "steps where the residuals vanish, half the iterations where the model cannot reach the "
                         "data), or J^T J alone (gauss-newton, before 2026-12; docs/fitting.md)")
+    p.add_argument("--lm-jacobian", choices=LM_JACOBIANS, default=DEFAULT_JACOBIAN,
+                   help="where LM takes a trial's Jacobian from: its own forward-mode runs (exact) or one run of its "
+                        "residuals and Broyden's update of the last Jacobian (broyden: the exact one again wherever a "
+                        "step from the estimate fails or would stop; docs/fitting.md)")
     p.add_argument("--out", default=None, metavar="FILE.h5",
                    help="the fit's file: its history (written after every iteration), its setup and its end point, "
                         "what posterior reads (a search's: its best start's)")

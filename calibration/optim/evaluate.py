@@ -38,17 +38,25 @@ class Evaluation(NamedTuple):
 
 def evaluator(objective: ObjectiveLike, rev: bool, workers=None) -> Callable[[np.ndarray], Evaluation]:
     """The model at the rows of z (k, n), one run each: residuals and their Jacobian from the
-    objective (forward mode, or its differences), or with ``rev`` the reverse-mode gradient alone.
+    objective (forward mode, or its differences), or with ``rev`` the reverse-mode gradient alone;
+    ``evaluate(z, jacobian=mask)``: the residuals alone in the rows outside ``mask`` (their
+    Jacobians and gradients NaN).
     With parallel ``workers`` (``calibration.batch.workers``) the forward-mode passes, one per key and
     row, run in the worker processes."""
     bounds = objective.bounds
     z_space = objective.jacobian == "ad"  # else central differences in θ (``residuals_and_jacobian``)
     if z_space and not rev and workers is not None and workers.parallel:
-        return lambda Z: _of_jacobians(bounds, Z, *jacobians_z(objective, Z, workers), with_grad_z=True)
+        return lambda Z, jacobian=None: _of_jacobians(bounds, Z, *jacobians_z(objective, Z, workers, jacobian),
+                                                      with_grad_z=True)
 
-    def one(z):
+    def one(z, with_jacobian=True):
         theta = np.asarray(bounds.to_physical(jnp.asarray(z)))
         dtheta_dz = np.asarray(bounds.jacobian_diag(jnp.asarray(z)))
+        if not (rev or with_jacobian):  # the residuals alone (LM's Broyden trials): the Jacobian NaN
+            r, pred = objective.residuals(theta)
+            r = np.asarray(r, float)
+            nan = np.full((r.size, len(theta)), np.nan)
+            return theta, float(np.sum(r * r)), int(np.asarray(pred["status"])), nan[0], r, nan, nan, nan[0], pred
         if rev:
             (loss, pred), g = objective.value_and_grad(theta)
             r = J = Jz = None
@@ -66,8 +74,9 @@ def evaluator(objective: ObjectiveLike, rev: bool, workers=None) -> Callable[[np
             return theta, float(loss), int(np.asarray(pred["status"])), g, r, J, Jz, 2.0 * Jz.T @ r, pred
         return theta, float(loss), int(np.asarray(pred["status"])), g, r, J, Jz, g * dtheta_dz, pred
 
-    def evaluate(z):
-        theta, loss, status, g, r, J, Jz, g_z, pred = zip(*[one(row) for row in z])
+    def evaluate(z, jacobian=None):
+        jacobian = np.ones(len(z), bool) if jacobian is None else jacobian
+        theta, loss, status, g, r, J, Jz, g_z, pred = zip(*[one(row, w) for row, w in zip(z, jacobian)])
         r, J, Jz = (None if parts[0] is None else np.stack(parts) for parts in (r, J, Jz))
         return Evaluation(theta=np.stack(theta), loss=np.array(loss), status=np.array(status), grad=np.stack(g),
                           residuals=r, jacobian=J, jacobian_z=Jz, grad_z=np.stack(g_z),
@@ -101,14 +110,16 @@ class BatchEvaluator:
         self.batch = None if self.parallel else objective.batched_jacobian_z()
         self.compile_s, self.evaluations, self.sizes = 0.0, 0, set()
 
-    def __call__(self, Z) -> Evaluation:
+    def __call__(self, Z, jacobian=None) -> Evaluation:
+        """The runs at the rows of Z; ``jacobian`` (mask): with workers, the residuals alone in the
+        rows outside it (their Jacobians NaN); the vmapped batch gives every row's Jacobian."""
         objective, dtype = self.objective, self.objective.dtype
         b = Z.shape[0]
         size = b if self.parallel else (min(self.k, 1 << (b - 1).bit_length()) if self.shrink else self.k)
         padded = np.concatenate([Z, np.repeat(Z[:1], size - b, axis=0)]) if size > b else Z
         clock = time.perf_counter()
         if self.parallel:
-            r, Jz, J, pred = jacobians_z(objective, np.asarray(padded, dtype), self.workers)
+            r, Jz, J, pred = jacobians_z(objective, np.asarray(padded, dtype), self.workers, jacobian)
         else:
             r, Jz, J, pred = jax.tree.map(np.asarray, self.batch(jnp.asarray(padded, dtype)))
         if size not in self.sizes:

@@ -32,7 +32,7 @@ from ..problem.protocol import ObjectiveLike
 from .adam import adam
 from .evaluate import evaluator
 from .history import History, check_out
-from .lm import LMState, levenberg_marquardt
+from .lm import LMState, levenberg_marquardt, with_exact_jacobians
 from .loop import run, status_text
 from .options import FitOptions, split_fields
 from .record import write_record
@@ -187,6 +187,8 @@ def fit(objective: ObjectiveLike, init: Mapping[str, float] | None = None, *, op
         with _progress(objective.keys, history, options, progress, callback) as report:
             state = run(optimiser, state, evaluate, history, steps=options.steps,
                         check_start=_check_start if method == "lm" else None, report=report, stop=stop)
+        if method == "lm":  # the verdict's Jacobian, not Broyden's estimate
+            state = with_exact_jacobians(state, [0], evaluate)
         result = _result(objective, state, history, method, start_note, judge, workers, scatters)
     if path is not None:
         write_record(path, result)

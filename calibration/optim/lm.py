@@ -14,14 +14,15 @@ from __future__ import annotations
 import dataclasses
 from typing import NamedTuple
 
+import jax
 import numpy as np
 
 from ..problem.bounds import MAX_STEP
 from .evaluate import Evaluation
 from .loop import Optimiser, where_rows
 
-__all__ = ["LAM0", "MODELS", "DEFAULT_MODEL", "LMOptions", "propose", "judge", "secant_update", "LMState",
-           "levenberg_marquardt"]
+__all__ = ["LAM0", "MODELS", "DEFAULT_MODEL", "JACOBIANS", "DEFAULT_JACOBIAN", "LMOptions", "propose", "judge",
+           "secant_update", "broyden_update", "LMState", "levenberg_marquardt", "with_exact_jacobians"]
 
 
 #: The damping of the first step.
@@ -35,6 +36,18 @@ MODELS = ("gauss-newton", "adaptive")
 #: minimum and reaches a large-residual minimum in half the iterations (docs/fitting.md).
 DEFAULT_MODEL = "adaptive"
 
+#: Where a trial's Jacobian comes from: its own forward-mode runs ("exact"), or a run of the
+#: residuals alone and Broyden's rank-one update of the last Jacobian ("broyden"; the exact one again
+#: wherever a step taken with the estimate fails or would stop LM). Measured: docs/fitting.md.
+JACOBIANS = ("exact", "broyden")
+
+#: With Broyden's estimate, an accepted step that gained less than this fraction of what its
+#: linear model forecast (a poor model: the trust-region ratio ρ of Moré 1978) is followed by the exact Jacobian.
+POOR_RATIO = 0.25
+
+#: The default source of the trials' Jacobians.
+DEFAULT_JACOBIAN = "exact"
+
 #: The smallest eigenvalue of (JᵀJ + S), scaled to JᵀJ's unit diagonal, for the secant model to be used.
 SECANT_MIN_EIGENVALUE = 1e-2
 
@@ -46,6 +59,7 @@ class LMOptions:
     stat_tol: float = 0.1
     max_rejections: int = 6
     model: str = DEFAULT_MODEL
+    jacobian: str = DEFAULT_JACOBIAN
 
 
 def propose(r, Jz, lam, secant=None):
@@ -104,6 +118,15 @@ def secant_update(S, step, r, J, r_new, J_new):
     return S + np.where(ok[:, None, None], change, 0.0)
 
 
+def broyden_update(Jz, step, r, r_new):
+    """Broyden's rank-one update (k, m, n) of the Jacobians ``Jz`` after the steps ``step`` (k, n)
+    took the residuals from ``r`` to ``r_new`` (k, m): the least change of Jz (in the Frobenius
+    norm) whose linear model gives r_new at the step, Jz + (r_new − r − Jz s) sᵀ / sᵀs."""
+    Jz, s = np.asarray(Jz, float), np.asarray(step, float)
+    miss = np.asarray(r_new, float) - np.asarray(r, float) - np.einsum("kmi,ki->km", Jz, s)
+    return Jz + miss[:, :, None] * s[:, None, :] / np.maximum(np.sum(s * s, axis=1), 1e-300)[:, None, None]
+
+
 def judge(loss_c, theta_c, loss_t, theta_t, ok_t, promised, lam, rejections, m: int, options: LMOptions):
     """Accept or reject k trials and apply the stopping tests.
 
@@ -152,6 +175,9 @@ class LMState(NamedTuple):
     message: np.ndarray  # (k,) object: "" while a start goes on
     secant: np.ndarray | None = None  # (k, n, n) the secant estimate S of Σ rᵢ ∇²rᵢ ("adaptive")
     use_secant: np.ndarray | None = None  # (k,) whether the next step's model is JᵀJ + S
+    fresh: np.ndarray | None = None  # (k,) current.jacobian_z is the runs' own, not Broyden's ("broyden")
+    want_jacobian: np.ndarray | None = None  # (k,) the next runs must give their Jacobian ("broyden"; None: all)
+    polish: np.ndarray | None = None  # (k,) LM would have stopped on an estimate: exact Jacobians from then on
 
 
 def levenberg_marquardt(options: LMOptions = LMOptions()) -> Optimiser:
@@ -159,10 +185,21 @@ def levenberg_marquardt(options: LMOptions = LMOptions()) -> Optimiser:
     ``update(evaluation, state)`` judges the trials (the first evaluation: takes the starts
     whose runs succeed) and proposes the next ones. With ``options.model == "adaptive"`` each step
     uses JᵀJ or JᵀJ + S, whichever forecast the last accepted step's decrease better
-    (``_choose_model``), S kept by ``secant_update``; "gauss-newton" steps with JᵀJ alone."""
+    (``_choose_model``), S kept by ``secant_update``; "gauss-newton" steps with JᵀJ alone. With
+    ``options.jacobian == "broyden"`` a trial is one run of its residuals (``want_jacobian`` false)
+    and an accepted one updates the Jacobian by ``broyden_update``; where a step proposed from such
+    an estimate is rejected, gains less than ``POOR_RATIO`` of its forecast, or would stop LM, the
+    next runs are the exact Jacobian at the current point (``want_jacobian`` true) and the next
+    step is proposed from it; a rejection from an estimate is not counted. Once LM would have
+    stopped on an estimate, the start takes exact Jacobians from then on (``polish``): the last
+    steps, at the runs' round-off, are exact LM's. A start can stop holding
+    an estimate (a stop judged on a step from the exact Jacobian): ``with_exact_jacobians``
+    replaces it before the point is judged."""
     if options.model not in MODELS:
         raise ValueError(f"model must be one of {MODELS}, got {options.model!r}")
-    adaptive = options.model == "adaptive"
+    if options.jacobian not in JACOBIANS:
+        raise ValueError(f"jacobian must be one of {JACOBIANS}, got {options.jacobian!r}")
+    adaptive, broyden = options.model == "adaptive", options.jacobian == "broyden"
 
     def init(z):
         z = np.asarray(z, float)
@@ -170,37 +207,90 @@ def levenberg_marquardt(options: LMOptions = LMOptions()) -> Optimiser:
         return LMState(z=z, current=None, lam=np.full(k, LAM0), rejections=np.zeros(k, int), z_next=z,
                        promised=np.full(k, np.nan), accepted=np.zeros(k, bool), done=np.zeros(k, bool),
                        message=np.full(k, "", object), secant=np.zeros((k, z.shape[1], z.shape[1])),
-                       use_secant=np.zeros(k, bool))
+                       use_secant=np.zeros(k, bool), fresh=np.zeros(k, bool) if broyden else None,
+                       want_jacobian=np.ones(k, bool) if broyden else None,
+                       polish=np.zeros(k, bool) if broyden else None)
 
     def update(evaluation: Evaluation, state: LMState) -> LMState:
-        secant, use_secant = state.secant, state.use_secant
+        secant, use_secant, fresh, polish = state.secant, state.use_secant, state.fresh, state.polish
+        redo = np.zeros(len(state.z), bool)
         if state.current is None:  # the runs at the starts
             accepted = (evaluation.status == 0) & np.isfinite(evaluation.loss)
             z, lam, rejections, stop = state.z_next, state.lam, state.rejections, ~accepted
             current = evaluation._replace(loss=np.where(accepted, evaluation.loss, np.nan))
             messages = [f"stopped: the run at the start fails (status {s}; loss {v})"
                         for s, v in zip(evaluation.status, evaluation.loss)]
+            fresh = None if fresh is None else np.ones(len(z), bool)
         else:
             c = state.current
+            refreshed = state.want_jacobian & (state.z_next == state.z).all(axis=1) if broyden else redo
+            if broyden:
+                evaluation, own = _broyden_filled(evaluation, c, state.z_next - state.z)
             accepted, lam, rejections, stop, messages = judge(
                 c.loss, c.theta, evaluation.loss, evaluation.theta, evaluation.status == 0, state.promised,
                 state.lam, state.rejections, c.residuals.shape[1], options)
+            accepted &= ~refreshed
             if adaptive:
                 secant, use_secant = _choose_model(state, evaluation, accepted)
             z = np.where(accepted[:, None], state.z_next, state.z)
-            current = where_rows(accepted, evaluation, c)
+            current = where_rows(accepted | refreshed, evaluation, c)
+            if broyden:  # a step from an estimate that fails, gains little or would stop: the exact Jacobian next
+                step = state.z_next - state.z
+                with np.errstate(all="ignore"):
+                    forecast = c.loss - np.sum((c.residuals + np.einsum("kmi,ki->km", c.jacobian_z, step)) ** 2, 1)
+                    poor = accepted & ~((c.loss - evaluation.loss) >= POOR_RATIO * forecast)
+                redo = ~state.fresh & ~refreshed & (~accepted | stop | poor)
+                polish = polish | (~state.fresh & ~refreshed & stop)
+                keep = redo | refreshed
+                lam, rejections = np.where(refreshed, state.lam, lam), np.where(keep, state.rejections, rejections)
+                stop = stop & ~keep
+                use_secant = np.where(refreshed, state.use_secant, use_secant)
+                messages = ["" if keep[i] else m for i, m in enumerate(messages)]
+                fresh = np.where(refreshed, True, np.where(accepted, own, state.fresh))
         done = state.done | stop
         message = np.where(stop, np.array(messages, object), state.message)
         z_next, promised = z.copy(), np.full(len(z), np.nan)
-        go = ~done
+        go = ~done & ~redo
         if go.any():
             model = np.where(use_secant[go, None, None], secant[go], 0.0) if adaptive else None
             delta, promised[go] = propose(current.residuals[go], current.jacobian_z[go], lam[go], model)
             z_next[go] = z[go] + delta
         return LMState(z=z, current=current, lam=lam, rejections=rejections, z_next=z_next, promised=promised,
-                       accepted=accepted, done=done, message=message, secant=secant, use_secant=use_secant)
+                       accepted=accepted, done=done, message=message, secant=secant, use_secant=use_secant,
+                       fresh=fresh, want_jacobian=redo | polish if broyden else None, polish=polish)
 
     return Optimiser(init, update)
+
+
+def _broyden_filled(evaluation: Evaluation, current: Evaluation, step):
+    """``evaluation`` with ``jacobian_z`` Broyden's estimate (``broyden_update`` from ``current``)
+    in the rows whose runs did not give their own (``jacobian`` stays NaN there), and (k,) whether
+    each row's is its own."""
+    own = np.all(np.isfinite(evaluation.jacobian_z), axis=(1, 2))
+    with np.errstate(all="ignore"):  # a failed trial's residuals may be NaN; it is rejected
+        estimate = broyden_update(current.jacobian_z, step, current.residuals, evaluation.residuals)
+    return evaluation._replace(jacobian_z=np.where(own[:, None, None], evaluation.jacobian_z, estimate)), own
+
+
+def with_exact_jacobians(state: LMState, rows, evaluate) -> LMState:
+    """``state`` with the current evaluation of each of ``rows`` whose Jacobian is Broyden's
+    estimate replaced by runs with their own (``evaluate(z, jacobian=...)``, at the accepted
+    points): what a verdict or an interval needs. Unchanged for "exact" LM."""
+    if state.fresh is None:
+        return state
+    rows = np.array([i for i in np.atleast_1d(rows) if not state.fresh[i]], int)
+    if rows.size == 0:
+        return state
+    evaluation = evaluate(state.z[rows], jacobian=np.ones(rows.size, bool))
+
+    def put(full, part):
+        full = np.array(full, copy=True)
+        full[rows] = part
+        return full
+
+    fresh = state.fresh.copy()
+    fresh[rows] = True
+    return state._replace(current=jax.tree.map(put, state.current, evaluation), fresh=fresh)
 
 
 def _choose_model(state: LMState, evaluation: Evaluation, accepted):

@@ -68,7 +68,9 @@ def run(optimiser: Optimiser, state, evaluate: Callable[[np.ndarray], Evaluation
     holds ``steps`` iterations; returns the final state, in which a start that ran out of
     iterations has the message "stopped after N iterations (steps = ...)".
 
-    ``evaluate(z)``: the model at the rows z (b, n) of the starts that are not done.
+    ``evaluate(z)``: the model at the rows z (b, n) of the starts that are not done; where the
+    state has ``want_jacobian`` (LM with Broyden's updates), ``evaluate(z, jacobian=mask)``, the
+    Jacobian needed only in the rows of ``mask``.
     ``check_start(evaluation)``: called with the first evaluation of an empty history before
     it is recorded (it raises to refuse the starts). ``stop(state) -> state``: after each update,
     may end starts the optimiser would go on with (``done``, with their message). ``report(state,
@@ -76,7 +78,8 @@ def run(optimiser: Optimiser, state, evaluate: Callable[[np.ndarray], Evaluation
     while history.iterations < steps and not state.done.all():
         rows = np.flatnonzero(~state.done)
         z = state.z_next[rows]
-        evaluation = evaluate(z)
+        want = getattr(state, "want_jacobian", None)  # LM with Broyden's updates: which rows need their Jacobian
+        evaluation = evaluate(z) if want is None else evaluate(z, jacobian=want[rows])
         if check_start is not None and not history.iterations:
             check_start(evaluation)
         state = _put(state, rows, optimiser.update(evaluation, _take(state, rows)))

@@ -10,10 +10,10 @@ from typing import Any
 
 from ..inference.options import JudgeOptions
 from ..problem.options import _is_int, _is_number, _require
-from .lm import DEFAULT_MODEL, LMOptions
+from .lm import DEFAULT_JACOBIAN, DEFAULT_MODEL, JACOBIANS, LMOptions
 from .lm import MODELS as LM_MODELS
 
-__all__ = ["METHODS", "GRAD_MODES", "LM_MODELS", "FitOptions", "cli_steps"]
+__all__ = ["METHODS", "GRAD_MODES", "LM_MODELS", "JACOBIANS", "FitOptions", "cli_steps"]
 
 
 METHODS = ("lm", "adam")
@@ -23,7 +23,7 @@ GRAD_MODES = ("fwd", "rev")
 
 
 #: What a field added since the first history files were written was before it was recorded there.
-BEFORE_RECORDED = {"lm_model": "gauss-newton"}
+BEFORE_RECORDED = {"lm_model": "gauss-newton", "lm_jacobian": "exact"}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -34,6 +34,8 @@ class FitOptions:
     LM's stopping tests (``calibration.optim.lm``, docs/fitting.md); ``lm_model``: LM's curvature,
     JᵀJ plus a secant estimate of the residuals' own curvature wherever that forecast the last
     step better ("adaptive", the default) or JᵀJ alone ("gauss-newton"); Adam ignores it;
+    ``lm_jacobian``: each trial's Jacobian from its own forward-mode runs ("exact") or from one run
+    of its residuals and Broyden's update ("broyden", ``calibration.optim.lm``);
     ``restarts``: where the verdict's probe finds a lower loss near the end point, fit again from
     the lowest point it ran, at most this many times (``calibration.optim.search.fit_from_starts``;
     a resume does not compare it with the file's)."""
@@ -48,6 +50,7 @@ class FitOptions:
     stat_tol: float = 0.1
     max_rejections: int = 6
     lm_model: str = DEFAULT_MODEL
+    lm_jacobian: str = DEFAULT_JACOBIAN
     restarts: int = 2
 
     def __post_init__(self):
@@ -63,12 +66,13 @@ class FitOptions:
         _require(_is_int(self.max_rejections) and self.max_rejections >= 1, "max_rejections", "an integer >= 1",
                  self.max_rejections)
         _require(self.lm_model in LM_MODELS, "lm_model", f"one of {LM_MODELS}", self.lm_model)
+        _require(self.lm_jacobian in JACOBIANS, "lm_jacobian", f"one of {JACOBIANS}", self.lm_jacobian)
         _require(_is_int(self.restarts) and self.restarts >= 0, "restarts", "an integer >= 0", self.restarts)
 
     def lm_options(self) -> LMOptions:
         """LM's options (``calibration.optim.lm.LMOptions``) from these."""
         return LMOptions(xtol=self.xtol, ftol=self.ftol, stat_tol=self.stat_tol, max_rejections=self.max_rejections,
-                         model=self.lm_model)
+                         model=self.lm_model, jacobian=self.lm_jacobian)
 
     def to_json(self) -> dict[str, Any]:
         return dataclasses.asdict(self)
@@ -94,9 +98,12 @@ class FitOptions:
         return out
 
 
-def cli_steps(method: str, steps: int | None) -> int:
-    """The command line's iteration budget: ``steps``, or 25 for LM and 150 for Adam."""
-    return steps if steps is not None else (25 if method == "lm" else 150)
+def cli_steps(method: str, steps: int | None, lm_jacobian: str = DEFAULT_JACOBIAN) -> int:
+    """The command line's iteration budget: ``steps``, or 25 for LM (50 with Broyden's updates,
+    whose runs are more and cheaper) and 150 for Adam."""
+    if steps is not None:
+        return steps
+    return (50 if lm_jacobian == "broyden" else 25) if method == "lm" else 150
 
 
 def split_fields(fields: Mapping[str, Any]) -> tuple[dict[str, Any], dict[str, Any]]:

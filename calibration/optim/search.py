@@ -32,7 +32,7 @@ from ..problem.protocol import ObjectiveLike, is_valid
 from .evaluate import BatchEvaluator
 from .fit import FitResult, measured_at, roundoff_stop, save_start, start_theta
 from .history import History, check_out
-from .lm import DEFAULT_MODEL, LMOptions, levenberg_marquardt
+from .lm import DEFAULT_JACOBIAN, DEFAULT_MODEL, LMOptions, levenberg_marquardt, with_exact_jacobians
 from .loop import run
 from .options import FitOptions
 
@@ -238,6 +238,8 @@ def dominated_stop(n: int):
         bar = loss[best] * (1.0 + limit / max(m - n, 1))
         with np.errstate(invalid="ignore"):
             drop = ~state.done & (np.arange(loss.size) != best) & (loss - DOMINATED_MARGIN * state.promised > bar)
+        if getattr(state, "fresh", None) is not None:  # LM with Broyden's updates: judged on exact Jacobians only
+            drop &= state.fresh
         message = state.message.copy()
         for i in np.flatnonzero(drop):
             message[i] = (f"stopped: dominated by start {best}: its loss {loss[i]:.3g}, less {DOMINATED_MARGIN:g} "
@@ -274,7 +276,8 @@ def _run_starts(objective: ObjectiveLike, thetas, evaluate, steps: int, lm_optio
 
 def search(objective: ObjectiveLike, starts: int | np.ndarray = DEFAULT_STARTS, *, seed: int = 0, design: str = "sobol",
            init: Mapping[str, float] | None = None, steps: int = 30, xtol: float = 1e-6, ftol: float = 1e-7,
-           stat_tol: float = 0.1, max_rejections: int = 6, lm_model: str = DEFAULT_MODEL, cluster_tol: float = 0.01,
+           stat_tol: float = 0.1, max_rejections: int = 6, lm_model: str = DEFAULT_MODEL,
+           lm_jacobian: str = DEFAULT_JACOBIAN, cluster_tol: float = 0.01,
            noise: Mapping[str, float] | float | None = None, uncertainty: bool = True, shrink: bool = True,
            roundoff_samples: int = ROUNDOFF_SAMPLES, sampling_seeds: int = 0, reference_noise: float = 0.01,
            threshold: float = 0.1, grid_ratio: float | None = None, grid_draws: int = GRID_DRAWS,
@@ -297,7 +300,8 @@ def search(objective: ObjectiveLike, starts: int | np.ndarray = DEFAULT_STARTS, 
         clock0 = time.perf_counter()
         steps = check_int("steps", steps, 1)
         lm_options = FitOptions(steps=int(steps), xtol=xtol, ftol=ftol, stat_tol=stat_tol,
-                                max_rejections=max_rejections, lm_model=lm_model).lm_options()
+                                max_rejections=max_rejections, lm_model=lm_model,
+                                lm_jacobian=lm_jacobian).lm_options()
         if not (math.isfinite(cluster_tol) and 0 < cluster_tol < 1):
             raise ValueError(f"cluster_tol must be in (0, 1), got {cluster_tol!r}")
         if objective.jacobian != "ad":
@@ -311,10 +315,11 @@ def search(objective: ObjectiveLike, starts: int | np.ndarray = DEFAULT_STARTS, 
         at_roundoff = roundoff_stop(objective, roundoff_samples if uncertainty else 0, workers, scatters)
         state, history = _run_starts(objective, thetas, evaluate, steps, lm_options, progress, clock0,
                                      stop=lambda s: at_roundoff(dominated(s) if dominated else s))
-        cur, messages = state.current, list(state.message)
-        valid = np.flatnonzero(np.isfinite(cur.loss))
-        order = valid[np.argsort(cur.loss[valid], kind="stable")]
+        valid = np.flatnonzero(np.isfinite(state.current.loss))
+        order = valid[np.argsort(state.current.loss[valid], kind="stable")]
         i_best = int(order[0])
+        state = with_exact_jacobians(state, [i_best], evaluate)  # the verdict's Jacobian, not Broyden's estimate
+        cur, messages = state.current, list(state.message)
         converged = messages[i_best].startswith("converged")
         theta_b, r_b, J_b = cur.theta[i_best], cur.residuals[i_best], cur.jacobian[i_best]
         judged = dataclasses.replace(judge, uncertainty=uncertainty and bool(np.all(np.isfinite(J_b))),
@@ -349,7 +354,9 @@ def coarse_to_fine(objective: ObjectiveLike, coarse: ObjectiveLike, starts: int 
     basins; the best ``refine`` distinct minima it reports (all within the noise of the best if
     there are more; one that breaks a rule of the engine, such as μ1 > μ2, replaced by the last
     valid point on the line from its start) start a batched ``search`` on ``objective`` with
-    ``options`` (steps, noise, ...). Where the best point of that is not a fit of the data, the
+    ``options`` (steps, noise, ``lm_jacobian``, ...; the coarse stage's LM takes exact Jacobians:
+    its few steps a start rank the basins, fewer than Broyden's estimate needs). Where the best
+    point of that is not a fit of the data, the
     next ``refine`` coarse minima are refined too and the lower of the two is kept (the coarse
     grid's own model error can rank the data's basin below another). The result is the fine
     stage's, with the coarse one as ``.coarse``: nothing the coarse stage gets wrong survives into
@@ -439,6 +446,7 @@ def fit_from_starts(objective, init: Mapping[str, float] | None = None, *, start
     path = check_out(out, resume=False, overwrite=overwrite)
     with using(workers) as workers:
         common = dict(seed=seed, init=init or None, steps=options.steps, lm_model=options.lm_model,
+                      lm_jacobian=options.lm_jacobian,
                       progress=progress, workers=workers, **judge.kwargs())
         found = (coarse_to_fine(objective, coarse, starts, refine=refine, **common) if coarse is not None
                  else search(objective, starts, **common))
