@@ -85,11 +85,16 @@ def test_differences_cover_every_field_but_steps_and_restarts():
     for field in dataclasses.fields(FitOptions):
         if field.name in ("steps", "restarts", "method", "grad_mode"):
             continue
-        other = "gauss-newton" if field.name == "lm_model" else getattr(FitOptions(), field.name) * 2
+        other = {"lm_model": "gauss-newton", "lm_jacobian": "broyden"}.get(field.name,
+                                                                         getattr(FitOptions(), field.name) * 2)
         changed = dataclasses.replace(FitOptions(), **{field.name: other})
         assert [d.split(":")[0] for d in changed.differences(saved)] == [field.name]
     older = {k: v for k, v in saved.items() if k != "stat_tol"}  # a file written before stat_tol was recorded
     assert FitOptions().differences(older) == ["stat_tol: 0.1 now, not recorded in the file"]
+    # A file from before Broyden's option was LM with exact Jacobians, which resumes as it was.
+    before = {k: v for k, v in saved.items() if k != "lm_jacobian"}
+    assert FitOptions().differences(before) == []
+    assert [d.split(":")[0] for d in FitOptions(lm_jacobian="broyden").differences(before)] == ["lm_jacobian"]
 
 
 def test_one_flag_table_for_every_field():
