@@ -9,7 +9,7 @@ recovers the point exact LM does."""
 import numpy as np
 import pytest
 from helpers import model_data, tiny_s4
-from test_lm import jennrich_sampson, osborne
+from test_lm import _Rows, jennrich_sampson, osborne
 
 from calibration.optim.evaluate import Evaluation, evaluator
 from calibration.optim.fit import fit
@@ -22,16 +22,6 @@ from jaxmpm.scenes import S4_SIDE
 def rosenbrock(x):
     """Rosenbrock's valley as residuals (MGH 1): minimum 0 at (1, 1)."""
     return np.array([10.0 * (x[1] - x[0] ** 2), 1.0 - x[0]]), np.array([[-20.0 * x[0], 10.0], [-1.0, 0.0]])
-
-
-class _Rows:
-    iterations = 0
-
-    def record(self, rows, z, evaluation, state):
-        self.iterations += 1
-
-    def length(self, i):
-        return self.iterations
 
 
 class _Counted:
