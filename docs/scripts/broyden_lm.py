@@ -11,9 +11,11 @@ one core, to a loss of 1e-10 (the twin is noise-free) or LM's stop:
         --set mu1=0.55 --profile-csv twin4mm.csv
     taskset -c 0 python docs/scripts/broyden_lm.py twin4mm.csv start0 out_start0.json &
     taskset -c 1 python docs/scripts/broyden_lm.py twin4mm.csv start1 out_start1.json   # 8 minutes
+    python docs/scripts/broyden_lm.py --plot      # docs/figures/broyden_lm_4mm.png from the results
 """
 
 import json
+import pathlib
 import sys
 import time
 
@@ -23,6 +25,9 @@ import numpy as np
 import calibration as cal
 from calibration.optim.lm import LAM0, LMOptions, broyden_update, judge, propose
 from jaxmpm.scenes import build_scene
+
+ROOT = pathlib.Path(__file__).resolve().parents[2]
+RESULTS = ROOT / "docs" / "results" / "broyden_lm_4mm.json"
 
 #: The two coarse minima (8 mm) the fine stage starts from (docs/results/fit_4mm_2026-12-06.json).
 STARTS = {"start0": (0.5437837839126587, 0.3526687026023865), "start1": (0.40797165036201477, 0.39925453066825867)}
@@ -98,5 +103,39 @@ def main(twin_csv, name, out):
         json.dump(result, f, indent=1)
 
 
+def plot(path=ROOT / "docs" / "figures" / "broyden_lm_4mm.png") -> None:
+    """The loss against the wall time of each start's two runs (RESULTS)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    runs = json.loads(RESULTS.read_text())["lm_from_the_coarse_minima"]["runs"]
+    fig, axes = plt.subplots(1, len(runs), figsize=(9, 3.6), sharey=True)
+    for ax, result in zip(axes, runs.values()):
+        for kind, color in (("exact", "C0"), ("broyden", "C3")):
+            run = result["runs"][kind]
+            log = run["log"]
+            wall = [0.0] + [r["wall_s"] for r in log]
+            loss = [None] + [r["loss"] for r in log]
+            theta = run["final_theta"]
+            end = "the truth" if run["final_loss"] < 1e-9 else f"({theta[0]:.3f}, {theta[1]:.3f})"
+            ax.semilogy(wall[1:], loss[1:], "o-", ms=3, color=color,
+                        label=f"{kind}: {len(log)} it, {log[-1]['jacobians']} Jacobians, {run['wall_s']:.0f} s, {end}")
+            fresh = [r["wall_s"] for r in log if r.get("refreshed")]
+            ax.semilogy(fresh, [r["loss"] for r in log if r.get("refreshed")], "s", mfc="none", color=color, ms=7)
+        start = result["runs"]["exact"]["start"]
+        ax.set(title=f"from the coarse minimum ({start[0]:.3f}, {start[1]:.3f})", xlabel="wall time on one core (s)")
+        ax.legend(fontsize=7, loc="best")
+    axes[0].set_ylabel("loss (accepted point)")
+    fig.suptitle("S4 at dx = 4 mm, noise-free twin at (0.3, 0.55): LM's Jacobian exact or by Broyden's updates "
+                 "(squares: the exact one again)", fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+
+
 if __name__ == "__main__":
-    main(*sys.argv[1:])
+    if sys.argv[1:] == ["--plot"]:
+        plot()
+    else:
+        main(*sys.argv[1:])
