@@ -161,7 +161,8 @@ def jacobians_z(objective, Z, workers, jacobian=None) -> tuple:
     residuals, their Jacobians NaN, in the same spread of tasks."""
     Z = np.atleast_2d(np.asarray(Z))
     jacobian = np.ones(len(Z), bool) if jacobian is None else np.asarray(jacobian, bool)
-    thetas = np.asarray(objective.bounds.to_physical(Z), float)
+    # θ for the rows run without their Jacobian (a column pass maps its z itself)
+    thetas = np.asarray(objective.bounds.to_physical(Z), float) if not jacobian.all() else [None] * len(Z)
     tasks, spans = [], []
     for z, theta, with_jacobian in zip(Z, thetas, jacobian):
         first = len(tasks)

@@ -222,10 +222,10 @@ def levenberg_marquardt(options: LMOptions = LMOptions()) -> Optimiser:
                         for s, v in zip(evaluation.status, evaluation.loss)]
             fresh = None if fresh is None else np.ones(len(z), bool)
         else:
-            c = state.current
-            refreshed = state.want_jacobian & (state.z_next == state.z).all(axis=1) if broyden else redo
+            c, step = state.current, state.z_next - state.z
+            refreshed = state.want_jacobian & (step == 0).all(axis=1) if broyden else redo  # the runs at z again
             if broyden:
-                evaluation, own = _broyden_filled(evaluation, c, state.z_next - state.z)
+                evaluation, own = _broyden_filled(evaluation, c, step)
             accepted, lam, rejections, stop, messages = judge(
                 c.loss, c.theta, evaluation.loss, evaluation.theta, evaluation.status == 0, state.promised,
                 state.lam, state.rejections, c.residuals.shape[1], options)
@@ -235,10 +235,8 @@ def levenberg_marquardt(options: LMOptions = LMOptions()) -> Optimiser:
             z = np.where(accepted[:, None], state.z_next, state.z)
             current = where_rows(accepted | refreshed, evaluation, c)
             if broyden:  # a step from an estimate that fails, gains little or would stop: the exact Jacobian next
-                step = state.z_next - state.z
                 with np.errstate(all="ignore"):
-                    forecast = c.loss - np.sum((c.residuals + np.einsum("kmi,ki->km", c.jacobian_z, step)) ** 2, 1)
-                    poor = accepted & ~((c.loss - evaluation.loss) >= POOR_RATIO * forecast)
+                    poor = accepted & ~((c.loss - evaluation.loss) >= POOR_RATIO * _linear_decrease(c, step))
                 redo = ~state.fresh & ~refreshed & (~accepted | stop | poor)
                 polish = polish | (~state.fresh & ~refreshed & stop)
                 keep = redo | refreshed
@@ -260,6 +258,11 @@ def levenberg_marquardt(options: LMOptions = LMOptions()) -> Optimiser:
                        fresh=fresh, want_jacobian=redo | polish if broyden else None, polish=polish)
 
     return Optimiser(init, update)
+
+
+def _linear_decrease(current: Evaluation, step):
+    """(k,) the loss decrease the linear model at ``current`` forecasts for ``step``: ‖r‖² − ‖r + J s‖²."""
+    return current.loss - np.sum((current.residuals + np.einsum("kmi,ki->km", current.jacobian_z, step)) ** 2, axis=1)
 
 
 def _broyden_filled(evaluation: Evaluation, current: Evaluation, step):
@@ -305,7 +308,7 @@ def _choose_model(state: LMState, evaluation: Evaluation, accepted):
     r, J = c.residuals, c.jacobian_z
     with np.errstate(all="ignore"):  # a rejected trial's residuals may be NaN; only accepted rows are used
         updated = secant_update(secant, step, r, J, evaluation.residuals, evaluation.jacobian_z)
-        gauss_newton = c.loss - np.sum((r + np.einsum("kmi,ki->km", J, step)) ** 2, axis=1)
+        gauss_newton = _linear_decrease(c, step)
         forecast_with = np.where(np.any(secant != 0, axis=(1, 2))[:, None, None], secant, updated)
         with_secant = gauss_newton - np.einsum("ki,kij,kj->k", step, forecast_with, step)
         actual = c.loss - evaluation.loss
