@@ -112,10 +112,13 @@ def test_a_failed_step_from_an_estimate_asks_for_the_exact_jacobian_and_is_not_a
 
 def test_once_lm_would_stop_on_an_estimate_it_polishes_with_exact_jacobians():
     """The last steps, at the round-off, are exact LM's: after the first stop claimed on Broyden's
-    estimate, every run a start asks for comes with its Jacobian."""
+    estimate, every run a start asks for comes with its Jacobian. Whether a run's stop is first
+    claimed on an estimate or on an exact Jacobian is decided at the round-off (with numpy 2.4.6
+    Osborne's and Jennrich–Sampson's runs below end on exact Jacobians, with the numpy before on
+    estimates), so the property is checked on five runs and at least two must exercise it."""
     polished = 0
     for problem, x0 in ((osborne, [0.5, 1.5, -1.0, 0.01, 0.02]), (jennrich_sampson, [0.3, 0.4]),
-                        (rosenbrock, [-1.2, 1.0])):
+                        (rosenbrock, [-1.2, 1.0]), (rosenbrock, [2.0, 2.0]), (rosenbrock, [0.5, -0.5])):
         lm = levenberg_marquardt(LMOptions(model="gauss-newton", jacobian="broyden", stat_tol=0.0, xtol=1e-10,
                                            ftol=1e-12))
         evaluate, log = _Counted(problem), []
