@@ -30,7 +30,9 @@ def test_convergence_profile_difference_falls_with_dx_and_the_front_from_10mm_do
 
 @pytest.fixture(scope="module")
 def bagnold():
-    return run_study("bagnold")
+    # The slopes the checks below read; the study's default adds 28° (docs/validation.md), a quarter
+    # of its cost that no check here reads.
+    return run_study("bagnold", slopes=(22.0, 24.0, 26.0))
 
 
 def test_bagnold_surface_velocity_within_3_percent_and_better_than_coarse(bagnold):
