@@ -7,6 +7,7 @@ re-exports what a user's script needs; everything else is reached by its module.
 
 from jaxmpm.datasets import list_datasets
 
+from .data.collapse import read_measurements, with_measurements
 from .data.loaders import FrontHistory, Profile, RunoutLaw, load_front_history, load_profile, load_scaling_law
 from .data.measurements import load_measurements
 from .inference.gauss_newton import Uncertainty, gauss_newton_uncertainty
@@ -37,7 +38,7 @@ __all__ = [
     "Minimum", "ModelFunctions", "Objective", "Observations", "Profile", "ProfileTarget", "RunoutLaw", "SearchResult",
     "GridCheck", "Uncertainty", "Verdict",
     "assess_fit", "design_starts", "fit", "gauss_newton_uncertainty", "list_datasets", "load_front_history",
-    "load_measurements",
+    "load_measurements", "read_measurements", "with_measurements",
     "coarse_to_fine", "load_profile", "model_functions", "load_scaling_law", "read_history", "search",
     "grid_shift", "structural_noise", "FitOptions", "JudgeOptions", "OptionError", "fit_report",
     "ObjectiveLike", "ResidualModel", "Problem", "make_residuals", "FlowRuleObjective",

@@ -16,10 +16,10 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from ._toml import LENGTH, PURE, TIME, ExperimentError, Table, key_name
+from ._toml import LENGTH, PURE, ExperimentError, Table, key_name
 from .boundary import SideWalls
 from .config import TRANSFERS
-from .params import DEFAULTS, LENGTH_UNITS, PARAM_KEYS, RELATIONS, param_help, param_problem
+from .params import DEFAULTS, PARAM_KEYS, RELATIONS, param_help, param_problem
 from .precision import DTYPES
 from .sampling import SAMPLINGS
 from .scenes.collapse import DEFAULT_SAMPLING, FLOORS, channel_cells_problem
@@ -27,8 +27,13 @@ from .scenes.collapse import DEFAULT_SAMPLING, FLOORS, channel_cells_problem
 if TYPE_CHECKING:
     from .experiment import Experiment
 
-__all__ = ["GATES", "SIDE_WALLS", "Invalid", "check_experiment", "side_walls_of"]
+__all__ = ["GATES", "MEASUREMENT_SECTIONS", "SIDE_WALLS", "Invalid", "check_experiment", "side_walls_of"]
 
+#: The sections a file holds for calibration: what was measured (``[[profile]]``, ``[front]``) and
+#: what to fit (``[fit]``). The engine keeps them as written (``Experiment.measurements``) and reads
+#: nothing in them but the data files they name (``file``, relative to the experiment file), which
+#: must exist; ``calibration.data.read_measurements`` reads them.
+MEASUREMENT_SECTIONS = ("profile", "front", "fit")
 #: The gates of ``[boundaries] gate`` (``Experiment.gate_speeds``).
 GATES = ("none", "front", "back", "both")
 #: ``[boundaries] side_walls``, the walls of a 2D channel (``jaxmpm.SideWalls``): its entries.
@@ -57,12 +62,6 @@ def _one_of(choices: tuple[str, ...], value) -> str:
     return f"must be one of {choices}, got {value!r}"
 
 
-def _names(units: Mapping[str, float]) -> str:
-    """The unit names as text: "m, cm or mm"."""
-    names = [u for u in units if u]
-    return ", ".join(names[:-1]) + " or " + names[-1]
-
-
 def check_experiment(e: Experiment) -> None:
     """Check the values of ``e``; raises ``Invalid`` at the first that fails."""
     _need(isinstance(e.name, str) and e.name.strip() != "", "experiment", "name", "must be a non-empty name")
@@ -84,9 +83,7 @@ def check_experiment(e: Experiment) -> None:
     _check_boundaries(e)
     _check_material(e)
     _check_numerics(e)
-    _check_measurements(e)
-    if e.fit is not None:
-        _check_fit(e)
+    _check_measurement_tables(e)
 
 
 def _check_boundaries(e: Experiment) -> None:
@@ -193,35 +190,13 @@ def _check_numerics(e: Experiment) -> None:
     _need(0.0 < e.cfl <= 1.0, "numerics", "cfl", f"must be in (0, 1], got {e.cfl}")
 
 
-def _check_measurements(e: Experiment) -> None:
-    lengths, times = _names(LENGTH_UNITS), _names(TIME.table)
-    for i, p in enumerate(e.profiles):
-        if p.time is not None:
-            _need(0.0 < p.time <= e.t_end * (1 + 1e-9), "profile", "time",
-                  f"#{i + 1} at {p.time:g} s: must be in (0, t_end = {e.t_end:g} s]")
-        _need(p.units is None or p.units in LENGTH_UNITS, "profile", "units",
-              f"#{i + 1}: must be {lengths}, got {p.units!r}")
-    if e.front is not None:
-        _need(e.front.units is None or e.front.units in LENGTH_UNITS, "front", "units",
-              f"must be {lengths}, got {e.front.units!r}")
-        _need(e.front.time_units is None or e.front.time_units in TIME.table, "front", "time_units",
-              f"must be {times}, got {e.front.time_units!r}")
-        if e.front.correlation_time is not None:
-            _positive("front", "correlation_time", e.front.correlation_time, "s")
-
-
-def _check_fit(e: Experiment) -> None:
-    unknown = sorted(set(e.fit.keys) - set(PARAM_KEYS))
-    _need(not unknown, "fit", "keys", f"unknown parameter(s) {unknown}; valid keys are {list(PARAM_KEYS)}")
-    _need(len(set(e.fit.keys)) == len(e.fit.keys), "fit", "keys", f"a key is listed twice: {list(e.fit.keys)}")
-    walls_read = e.side_walls is not None and e.side_walls.friction == "mu_w"
-    _need("mu_w" not in e.fit.keys or e.floor != "no-slip" or walls_read, "fit", "keys",
-          "mu_w is read by no boundary: the floor is no-slip and the side walls' friction is not \"mu_w\" (fit "
-          "the floor's friction with floor = \"slip-stick\" and floor_friction, the side walls' with "
-          "side_walls = { ..., friction = \"mu_w\" } and [material] mu_w as the start)")
-    stray = sorted(set(e.fit.init) - set(e.fit.keys))
-    _need(not stray, "fit", "init", f"{stray} are not fitted (keys = {list(e.fit.keys)})")
-    if e.fit.noise is not None:
-        _need(e.fit.noise >= 0, "fit", "noise", f"must be >= 0, got {e.fit.noise}")
-    for key in ("weight_profile", "weight_front"):
-        _need(getattr(e.fit, key) >= 0, "fit", key, f"must be >= 0, got {getattr(e.fit, key)}")
+def _check_measurement_tables(e: Experiment) -> None:
+    """The measurement sections' shape only: what they hold is calibration's to read."""
+    _need(isinstance(e.measurements, Mapping), None, "measurements", "must be a mapping of section -> tables")
+    unknown = sorted(set(e.measurements) - set(MEASUREMENT_SECTIONS))
+    _need(not unknown, None, "measurements", f"unknown sections {unknown}; they are {list(MEASUREMENT_SECTIONS)}")
+    profiles = e.measurements.get("profile", [])
+    _need(isinstance(profiles, (list, tuple)) and all(isinstance(t, Mapping) for t in profiles), None, "profile",
+          "must be a list of tables ([[profile]])")
+    for section in ("front", "fit"):
+        _need(isinstance(e.measurements.get(section, {}), Mapping), None, section, f"must be a table ([{section}])")

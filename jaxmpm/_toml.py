@@ -19,7 +19,7 @@ from typing import Any, NamedTuple
 from .params import LENGTH_UNITS, PURE_UNITS
 
 __all__ = ["ANGLE", "LENGTH", "PURE", "SPEED", "TIME", "ExperimentError", "Table", "Units", "Where", "inline_table",
-           "key_name", "number", "plain", "provenance", "read_section", "relative", "toml_entry"]
+           "key_name", "number", "plain", "provenance", "read_section", "relative", "toml_entry", "toml_value"]
 
 
 class ExperimentError(ValueError):
@@ -251,7 +251,7 @@ def read_section(raw: dict, name: str, schema: Mapping[str, Any], where: Where, 
 
 # -- writing --------------------------------------------------------------------------------------------
 
-def _toml_value(value) -> str:
+def toml_value(value) -> str:
     if isinstance(value, bool):
         return "true" if value else "false"
     if isinstance(value, int):
@@ -262,9 +262,9 @@ def _toml_value(value) -> str:
         escaped = value.replace("\\", "\\\\").replace('"', '\\"').replace("\n", "\\n").replace("\t", "\\t")
         return f'"{escaped}"'
     if isinstance(value, (list, tuple)):
-        return "[" + ", ".join(_toml_value(v) for v in value) + "]"
+        return "[" + ", ".join(toml_value(v) for v in value) + "]"
     if isinstance(value, dict):
-        return "{ " + ", ".join(f"{k} = {_toml_value(v)}" for k, v in value.items()) + " }"
+        return "{ " + ", ".join(f"{k} = {toml_value(v)}" for k, v in value.items()) + " }"
     raise TypeError(f"cannot write {value!r} as TOML")
 
 
@@ -284,8 +284,8 @@ def toml_entry(key: str, value, meta: Mapping[str, Any] | None) -> str:
     value in SI units: the unit it was written in is kept as a note, not applied). An inline
     table of numbers (a dict ``value``) takes its entries' provenance, entry -> meta."""
     if isinstance(value, dict):
-        return f"{key} = {_toml_value({k: _with_meta(v, (meta or {}).get(k)) for k, v in value.items()})}"
-    return f"{key} = {_toml_value(_with_meta(value, meta))}"
+        return f"{key} = {toml_value({k: _with_meta(v, (meta or {}).get(k)) for k, v in value.items()})}"
+    return f"{key} = {toml_value(_with_meta(value, meta))}"
 
 
 def relative(file: pathlib.Path, base: pathlib.Path | None) -> str:

@@ -1,5 +1,5 @@
-"""A collapse experiment described in one file: geometry, boundaries, material, numerics, the
-measurements taken and what to fit (docs/experiments.md).
+"""A collapse experiment described in one file: geometry, boundaries, material, numerics and,
+for calibration, the measurements taken and what to fit (docs/experiments.md).
 
     [experiment]
     name = "my-collapse"
@@ -28,8 +28,10 @@ and the key, before anything is built or compiles): the material against the par
 ``jaxmpm.params.PARAMS`` (its units, rules and relations), each choice against the list of the
 module that owns it (``jaxmpm.config.TRANSFERS``, ``jaxmpm.sampling.SAMPLINGS``,
 ``jaxmpm.precision.DTYPES``, ``jaxmpm.scenes.collapse.FLOORS``), and each measurement file for
-its existence. ``scene()`` builds it with ``jaxmpm.scenes.collapse``; ``to_toml`` writes it back,
-so that a run's HDF5 file can record the experiment it ran (``Experiment.from_h5``).
+its existence. The measurement sections (``MEASUREMENT_SECTIONS``) are calibration's: kept as
+written and read by ``calibration.data.read_measurements``. ``scene()`` builds it with
+``jaxmpm.scenes.collapse``; ``to_toml`` writes it back, so that a run's HDF5 file can record the
+experiment it ran (``Experiment.from_h5``).
 """
 
 from __future__ import annotations
@@ -45,14 +47,27 @@ if sys.version_info >= (3, 11):
 else:  # pragma: no cover - Python 3.10
     import tomli as tomllib
 
-from ._experiment_checks import GATES, SIDE_WALLS, Invalid, check_experiment, side_walls_of
-from ._toml import ANGLE, LENGTH, PURE, SPEED, TIME, ExperimentError, Units, Where, read_section, relative, toml_entry
+from ._experiment_checks import GATES, MEASUREMENT_SECTIONS, SIDE_WALLS, Invalid, check_experiment, side_walls_of
+from ._toml import (
+    ANGLE,
+    LENGTH,
+    PURE,
+    SPEED,
+    TIME,
+    ExperimentError,
+    Units,
+    Where,
+    read_section,
+    relative,
+    toml_entry,
+    toml_value,
+)
 from .boundary import SideWalls
 from .params import DEFAULTS, PARAM_KEYS, PARAMS, Params, param_help, validate_params
 from .scenes.collapse import aspect_column, collapse, default_runout
 
-__all__ = ["Experiment", "ExperimentError", "ProfileMeasurement", "FrontMeasurement", "FitSpec", "shipped_experiment",
-           "SHIPPED_EXPERIMENTS", "FORMAT", "GATES"]
+__all__ = ["Experiment", "ExperimentError", "shipped_experiment", "SHIPPED_EXPERIMENTS", "FORMAT", "GATES",
+           "MEASUREMENT_SECTIONS"]
 
 #: The file format's version, written by ``to_toml``; a file may state it as ``format = 1``.
 FORMAT = 1
@@ -68,45 +83,8 @@ _SCHEMA: dict[str, dict[str, Any]] = {
     "numerics": {"dim": "int", "dx": LENGTH, "ppc": PURE, "sampling": "str", "seed": "int", "dtype": "str",
                  "t_end": TIME, "frames": "int", "runout": LENGTH, "backward_runout": LENGTH, "transfer": "str",
                  "alpha": PURE, "cfl": PURE},
-    "profile": {"file": "path", "time": TIME, "units": "str", "dataset": "str"},
-    "front": {"file": "path", "units": "str", "time_units": "str", "correlation_time": TIME},
-    "fit": {"keys": "strings", "init": "numbers", "noise": PURE, "weight_profile": PURE, "weight_front": PURE},
 }
 _TOP = ("format",)
-
-
-@dataclasses.dataclass(frozen=True)
-class ProfileMeasurement:
-    """A measured surface profile h(x) (``calibration.load_profile``): its CSV file, the time it
-    was taken (None: the file's header says, or the final deposit), its length unit (None: the
-    file's header says) and, for a file holding several, which data set."""
-
-    file: pathlib.Path
-    time: float | None = None
-    units: str | None = None
-    dataset: str | None = None
-
-
-@dataclasses.dataclass(frozen=True)
-class FrontMeasurement:
-    """A measured front history x_f(t) (``calibration.load_front_history``)."""
-
-    file: pathlib.Path
-    units: str | None = None
-    time_units: str | None = None
-    correlation_time: float | None = None
-
-
-@dataclasses.dataclass(frozen=True)
-class FitSpec:
-    """What to fit: the keys, optional starting values (a single start), the data's noise as a
-    fraction of the peak height (None: estimated from the fit) and the blocks' weights."""
-
-    keys: tuple[str, ...]
-    init: Mapping[str, float] = dataclasses.field(default_factory=dict)
-    noise: float | None = None
-    weight_profile: float = 1.0
-    weight_front: float = 1.0
 
 
 @dataclasses.dataclass(frozen=True)
@@ -140,14 +118,17 @@ class Experiment:
     transfer: str = "aflip"
     alpha: float = 0.95
     cfl: float = 0.5
-    profiles: tuple[ProfileMeasurement, ...] = ()
-    front: FrontMeasurement | None = None
-    fit: FitSpec | None = None
+    #: The measurement sections as written (``MEASUREMENT_SECTIONS``: "profile" -> a list of
+    #: tables, "front" and "fit" -> a table), each data file (``file``) a path placed relative to
+    #: the experiment file; read by ``calibration.data.read_measurements``.
+    measurements: Mapping[str, Any] = dataclasses.field(default_factory=dict)
     title: str = ""
     #: "section.key" -> where the value came from (the file's ``source``/``note``/``unit`` entries).
     sources: Mapping[str, Mapping[str, str]] = dataclasses.field(default_factory=dict, compare=False)
     #: The file this experiment was read from (None: built in Python).
     path: pathlib.Path | None = dataclasses.field(default=None, compare=False)
+    #: The file's text (None: built in Python), for the line of an error in a measurement section.
+    text: str | None = dataclasses.field(default=None, compare=False, repr=False)
     #: The aspect ratio a the column was made at (height = a x length) by the aspect-ratio family
     #: (``jaxmpm.scenes.named_experiment``), which its scene records (``SceneInfo.aspect``); None
     #: for any other experiment. Not a key of the file, which states the height.
@@ -295,24 +276,23 @@ def _parse(raw: dict, where: Where, check_files: bool) -> Experiment:
         what = (" (steady flows down an incline: fitted by `python -m calibration flow-rule FILE`, "
                 "docs/incline_fits.md)" if kind == "incline" else "")
         raise where.error("experiment", "kind", f"this file describes a collapse; got kind = {kind!r}{what}")
-    unknown = sorted(k for k in raw if k not in _SCHEMA and k not in _TOP)
+    unknown = sorted(k for k in raw if k not in _SCHEMA and k not in _TOP and k not in MEASUREMENT_SECTIONS)
     if unknown:
+        sections = ", ".join("[" + s + "]" for s in (*_SCHEMA, *MEASUREMENT_SECTIONS))
         raise where.error(None, unknown[0], f"unknown section or key; a file holds {', '.join(_TOP)} and the "
-                                            f"sections {', '.join('[' + s + ']' for s in _SCHEMA)}")
+                                            f"sections {sections}")
     if "format" in raw and raw["format"] != FORMAT:
         raise where.error(None, "format", f"this jaxmpm reads format {FORMAT}, got {raw['format']!r}")
     sources: dict[str, Mapping[str, str]] = {}
     sections = {}
-    for name in ("experiment", "geometry", "boundaries", "material", "numerics", "fit"):
-        if name == "fit" and name not in raw:
-            continue
+    for name in ("experiment", "geometry", "boundaries", "material", "numerics"):
         sections[name], meta = _section(raw, name, where)
         sources.update(meta)
     sections["experiment"].pop("kind", None)  # "collapse" (checked first)
     for name in ("geometry", "numerics"):
         if name not in raw:
             raise where.error(None, None, f"[{name}] is missing")
-    profiles, front = _measurements(raw, where, sources, check_files)
+    measurements = _measurements(raw, where, check_files)
     geometry, boundaries, numerics = sections["geometry"], sections["boundaries"], sections["numerics"]
     for key in ("length", "height"):
         if key not in geometry:
@@ -327,15 +307,9 @@ def _parse(raw: dict, where: Where, check_files: bool) -> Experiment:
             raise where.error("boundaries", "gate_lift_time", f"must be > 0 s, got {time}")
         boundaries["gate_speed"] = geometry["height"] / time
     name = sections["experiment"].get("name") or (where.path.stem if where.path is not None else "experiment")
-    fit = None
-    if "fit" in sections:
-        spec = dict(sections["fit"])
-        if "keys" not in spec:
-            raise where.error("fit", "keys", "missing: the parameters to fit, e.g. [\"beta\", \"mu1\"]")
-        fit = FitSpec(**spec)
     kwargs = dict(name=name, title=sections["experiment"].get("title", ""), **geometry, **boundaries,
-                  material=sections["material"], **numerics, profiles=profiles, front=front, fit=fit,
-                  sources=sources, path=where.path)
+                  material=sections["material"], **numerics, measurements=measurements, sources=sources,
+                  path=where.path, text=where.text)
     for key in ("source", "note"):
         if key in sections["experiment"]:
             sources[f"experiment.{key}"] = {key: sections["experiment"][key]}
@@ -347,33 +321,30 @@ def _parse(raw: dict, where: Where, check_files: bool) -> Experiment:
         raise where.error(err.section, err.key, err.what) from None
 
 
-def _measurements(raw: dict, where: Where, sources: dict, check_files: bool):
-    """(the profiles, the front history or None) of a file, their files relative to its folder
-    and, with ``check_files``, present."""
+def _measurements(raw: dict, where: Where, check_files: bool) -> dict[str, Any]:
+    """The measurement sections of a file as written, each data file (``file``) placed relative
+    to the file's folder and, with ``check_files``, present. Nothing else in them is read here."""
     base = where.path.parent if where.path is not None else pathlib.Path(".")
 
-    def located(values, section, index=None) -> pathlib.Path:
-        if "file" not in values:
-            what = "the profile's CSV file" if section == "profile" else "the front history's CSV file"
-            raise where.error(section, "file", "missing: " + what, index)
-        file = base / values.pop("file")
-        if check_files and not file.is_file():
-            raise where.error(section, "file", f"no such file: {file}", index)
-        return file
+    def placed(table, section, index=None) -> dict:
+        if not isinstance(table, dict):
+            raise where.error(None, section, f"must be a table ([{section}])")
+        table = dict(table)
+        if isinstance(table.get("file"), str) and table["file"].strip():
+            table["file"] = base / table["file"]
+            if check_files and not table["file"].is_file():
+                raise where.error(section, "file", f"no such file: {table['file']}", index)
+        return table
 
-    profiles = []
-    listed = raw.get("profile", [])
-    if isinstance(listed, dict):
-        raise where.error(None, "profile", "write each profile as [[profile]] (a list of tables)")
-    for i, table in enumerate(listed):
-        values, meta = _section(table, "profile", where, index=i)
-        sources.update({f"profile.{i}.{k.split('.', 1)[1]}": v for k, v in meta.items()})
-        profiles.append(ProfileMeasurement(located(values, "profile", i), **values))
-    front = None
-    if "front" in raw:
-        values, meta = _section(raw, "front", where)
-        front = FrontMeasurement(located(values, "front"), **values)
-    return tuple(profiles), front
+    out: dict[str, Any] = {}
+    if "profile" in raw:
+        if not isinstance(raw["profile"], list):
+            raise where.error(None, "profile", "write each profile as [[profile]] (a list of tables)")
+        out["profile"] = [placed(table, "profile", i) for i, table in enumerate(raw["profile"])]
+    for section in ("front", "fit"):
+        if section in raw:
+            out[section] = placed(raw[section], section)
+    return out
 
 
 # -- writing --------------------------------------------------------------------------------------------
@@ -400,25 +371,13 @@ def _write(e: Experiment) -> str:
     section("numerics", [(k, getattr(e, k)) for k in ("dim", "dx", "ppc", "sampling", "seed", "dtype", "t_end",
                                                         "frames", "runout", "backward_runout", "transfer", "alpha",
                                                         "cfl")])
-    for i, p in enumerate(e.profiles):
-        lines.extend(["", "[[profile]]", toml_entry("file", relative(p.file, e.path), None)])
-        for key in ("time", "units", "dataset"):
-            if getattr(p, key) is not None:
-                lines.append(toml_entry(key, getattr(p, key), meta.get(f"profile.{i}.{key}")))
-    if e.front is not None:
-        lines.extend(["", "[front]", toml_entry("file", relative(e.front.file, e.path), None)])
-        for key in ("units", "time_units", "correlation_time"):
-            if getattr(e.front, key) is not None:
-                lines.append(toml_entry(key, getattr(e.front, key), None))
-    if e.fit is not None:
-        lines.extend(["", "[fit]", toml_entry("keys", list(e.fit.keys), None)])
-        if e.fit.init:
-            lines.append(toml_entry("init", dict(e.fit.init), None))
-        if e.fit.noise is not None:
-            lines.append(toml_entry("noise", e.fit.noise, None))
-        for key in ("weight_profile", "weight_front"):
-            if getattr(e.fit, key) != 1.0:
-                lines.append(toml_entry(key, getattr(e.fit, key), None))
+    for section in MEASUREMENT_SECTIONS:
+        tables = e.measurements.get(section, [] if section == "profile" else None)
+        for table in (tables if section == "profile" else [tables] if tables is not None else []):
+            lines.extend(["", f"[[{section}]]" if section == "profile" else f"[{section}]"])
+            for key, value in table.items():
+                value = relative(value, e.path) if isinstance(value, pathlib.PurePath) else value
+                lines.append(f"{key} = {toml_value(value)}")
     return "\n".join(lines) + "\n"
 
 

@@ -266,7 +266,7 @@ def test_measurement_files_are_checked_where_the_experiment_is_read(tmp_path):
     with pytest.raises(ExperimentError, match="no such file"):
         Experiment.from_text(text, path)
     unchecked = Experiment.from_toml(path, check_files=False)
-    assert unchecked.profiles[0].file == tmp_path / "deposit.csv"
+    assert unchecked.measurements["profile"][0]["file"] == tmp_path / "deposit.csv"
     (tmp_path / "deposit.csv").write_text("# units: m\n# time_s: 0.1\nx_m,h_m\n0,0.05\n0.05,0.04\n0.1,0\n")
     experiment = Experiment.from_toml(path)
     assert experiment == unchecked

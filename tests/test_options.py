@@ -113,11 +113,13 @@ def test_split_fields():
 
 
 def test_fit_request_from_the_files_and_over_them():
-    from jaxmpm.experiment import FitSpec
+    from calibration.data import FitSpec, with_measurements
+    from jaxmpm.experiment import shipped_experiment
 
-    class E:  # the one field fit_request reads
-        def __init__(self, fit):
-            self.fit = fit
+    s4 = shipped_experiment("cohesive-collapse")
+
+    def E(fit):  # noqa: N802 - an experiment file whose [fit] is ``fit``
+        return with_measurements(s4, fit=fit)
 
     a, b = E(FitSpec(keys=("beta", "mu1"), init={"beta": 0.2}, noise=0.01)), E(FitSpec(keys=("beta", "mu1")))
     assert fit_request([a]) == FitRequest(("beta", "mu1"), {"beta": 0.2}, 0.01)

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 import jaxmpm as jm
-from calibration import Objective
+from calibration import Objective, read_measurements
 from calibration.data.loaders import load_profile
 from jaxmpm.datasets import dataset_path, list_datasets
 from jaxmpm.scenes import S7_PARAMS, aluminium_bars, build_scene
@@ -61,7 +61,8 @@ def test_experiment_file_agrees_with_the_builder():
         assert "modelling choice" in experiment.sources[f"material.{key}"]["note"], key
     assert "modelling choice" not in experiment.sources["material.beta"].get("note", "")
     # the measured deposit is the file's profile
-    assert [p.file.resolve() for p in experiment.profiles] == [dataset_path("bui2008/bui2008_final_surface").resolve()]
+    measured = read_measurements(experiment).profiles
+    assert [p.file.resolve() for p in measured] == [dataset_path("bui2008/bui2008_final_surface").resolve()]
 
 
 def test_short_cli_run_writes_the_initial_state(tmp_path):

@@ -9,6 +9,7 @@ import pytest
 from helpers import ROOT, S4_DATA, call_main, main_exit
 
 import jaxmpm as jm
+from calibration.data import read_measurements
 from jaxmpm.__main__ import main as jaxmpm_main
 from jaxmpm.experiment import Experiment, ExperimentError
 
@@ -338,7 +339,7 @@ def test_a_file_s_side_walls_may_take_the_parameter_mu_w():
     assert scene.config.reads_mu_w and float(scene.params.mu_w) == 0.3
     assert Experiment.from_text(e.to_toml(), S4_FILE) == e
     fitted = text + '\n[fit]\nkeys = ["beta", "mu_w"]\n'
-    assert Experiment.from_text(fitted, S4_FILE).fit.keys == ("beta", "mu_w")
+    assert read_measurements(Experiment.from_text(fitted, S4_FILE)).fit.keys == ("beta", "mu_w")
 
 
 @pytest.mark.parametrize("walls, material, fit, at, message", [
@@ -357,7 +358,7 @@ def test_mu_w_walls_refusals_name_file_line_and_key(walls, material, fit, at, me
     if fit:
         text += f"\n[fit]\nkeys = {fit}\n"
     with pytest.raises(ExperimentError) as err:
-        Experiment.from_text(text, "walls.toml")
+        read_measurements(Experiment.from_text(text, "walls.toml"))  # [fit] is calibration's to read
     assert str(err.value).startswith(f"walls.toml:{line_of(text, at)}: "), str(err.value)
     assert message in str(err.value), str(err.value)
 

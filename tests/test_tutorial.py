@@ -9,7 +9,7 @@ import sys
 import numpy as np
 import pytest
 
-from calibration import Objective
+from calibration import Objective, read_measurements
 from jaxmpm import Experiment
 
 TUTORIAL = pathlib.Path(__file__).resolve().parent.parent / "docs" / "tutorial"
@@ -17,7 +17,7 @@ TUTORIAL = pathlib.Path(__file__).resolve().parent.parent / "docs" / "tutorial"
 
 def test_tutorial_files_load_and_make_their_objective():
     experiment = Experiment.from_toml(TUTORIAL / "column.toml")
-    assert experiment.fit.keys == ("beta", "mu1") and experiment.gate_speed == pytest.approx(1.5)
+    assert read_measurements(experiment).fit.keys == ("beta", "mu1") and experiment.gate_speed == pytest.approx(1.5)
     objective = Objective.from_experiment(experiment)  # the data checked against the geometry
     assert set(objective.blocks) == {"profile", "front"}
     assert objective.scene.info.dx == pytest.approx(0.01)
@@ -82,7 +82,7 @@ def test_the_joint_fit_files_load_into_one_objective():
     folder = TUTORIAL.parent / "five_keys"
     files = [folder / f"{name}.toml" for name in ("column", "slope20", "tall_slope20")]
     experiments = [Experiment.from_toml(f) for f in files]
-    assert {e.fit.keys for e in experiments} == {("beta", "mu1", "mu2", "I0", "xi")}
+    assert {read_measurements(e).fit.keys for e in experiments} == {("beta", "mu1", "mu2", "I0", "xi")}
     members = [Objective.from_experiment(e, ("beta", "mu1", "mu2", "xi")) for e in experiments]
     assert all(len(m.blocks) == 5 for m in members)  # four profiles and the front
     joint = CompositeObjective(members)

@@ -68,8 +68,8 @@ def test_an_installed_copy_finds_its_data_without_the_environment_variable(wheel
         "print(json.dumps({'module': calibration.__file__, 'data': str(d.data_dir()), 'found': found,\n"
         "                  'terrain': str(default_terrain_path()),"
         " 'setup': d.load_setup('setups/S1_incline') is not None,\n"
-        "                  'experiment': __import__('jaxmpm.experiment').experiment.shipped_experiment("
-        "'aluminium-bars').profiles[0].file.is_file(),\n"
+        "                  'experiment': d.read_measurements(__import__('jaxmpm.experiment').experiment"
+        ".shipped_experiment('aluminium-bars')).profiles[0].file.is_file(),\n"
         "                  'profile_points':"
         " len(d.load_profile(d.dataset_path('bui2008/bui2008_final_surface')).x)}))\n"
     )

@@ -15,11 +15,11 @@ import sys
 
 from jaxmpm import Experiment
 from jaxmpm.cli import parse_set, print_json
-from jaxmpm.experiment import FrontMeasurement, ProfileMeasurement
 from jaxmpm.precision import use_dtype
 from jaxmpm.scenes import SCENE_NAMES, experiments_dtype, is_experiment_file
 
 from ..batch.workers import available_cores
+from ..data.collapse import FrontMeasurement, ProfileMeasurement, read_measurements, with_measurements
 from ..data.flow_rule import load_flow_rule
 from ..data.incline import InclineExperiment, is_incline_file, load_incline
 from ..inference.options import JudgeOptions
@@ -342,17 +342,19 @@ def experiments_of(args) -> list[Experiment | InclineExperiment]:
     if args.data or args.front:
         return [_with_data(experiments[0], args)]
     for e in experiments:
-        if not isinstance(e, InclineExperiment) and not e.profiles and e.front is None:
+        if not isinstance(e, InclineExperiment) and read_measurements(e)[:2] == ((), None):
             raise ValueError(f"{e.path}: lists no measurement ([[profile]] or [front]); give --data or --front")
     return experiments
 
 
-def _with_data(experiment: Experiment, args) -> Experiment:
-    """``experiment`` measured by --data and --front (read with --units, --dataset, --time-units)."""
-    kept = experiment.front.correlation_time if experiment.front is not None else None
+def _with_data(experiment: Experiment, args, **changes) -> Experiment:
+    """``experiment`` measured by --data and --front (read with --units, --dataset, --time-units),
+    its other measurements (``fit``) as ``changes`` say."""
+    filed = read_measurements(experiment).front
+    kept = filed.correlation_time if filed is not None else None
     front = (FrontMeasurement(pathlib.Path(args.front), args.units, args.time_units, kept) if args.front else None)
     profiles = tuple(ProfileMeasurement(pathlib.Path(p), units=args.units, dataset=args.dataset) for p in args.data)
-    return experiment.replace(profiles=profiles, front=front)
+    return with_measurements(experiment, profiles=profiles, front=front, **changes)
 
 
 def _scene_experiment(args) -> Experiment:
@@ -373,7 +375,7 @@ def _scene_experiment(args) -> Experiment:
                                   slope=args.slope, aspect=args.aspect, dtype=args.dtype,
                                   values=parse_pairs(args.set, "--set"), sampling=args.sampling, seed=args.seed,
                                   side_walls=getattr(args, "side_walls", None))
-    return _with_data(experiment.replace(fit=None, dtype=experiment.dtype or "float32"), args)
+    return _with_data(experiment.replace(dtype=experiment.dtype or "float32"), args, fit=None)
 
 
 def setup_of(args, keys) -> FitSetup:

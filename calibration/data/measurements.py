@@ -12,6 +12,7 @@ from typing import Any
 
 from jaxmpm.datasets import dataset_path  # the one finder, re-exported
 
+from .collapse import read_measurements
 from .loaders import load_front_history, load_profile
 
 __all__ = ["data_end_time", "load_measurements", "check_run_status", "load_data", "load_setup"]
@@ -31,12 +32,13 @@ def load_measurements(experiment, *, sort: bool = False, clip_noise: bool = Fals
     """(profiles, front history or None) that a ``jaxmpm.Experiment`` lists ([[profile]],
     [front]), read with the units and times it states; ``sort`` and ``clip_noise`` as for
     ``load_profile``."""
+    listed = read_measurements(experiment)
     profiles = [load_profile(p.file, units=p.units, time_s=p.time, dataset=p.dataset, sort=sort, clip_noise=clip_noise)
-                for p in experiment.profiles]
+                for p in listed.profiles]
     front = None
-    if experiment.front is not None:
-        front = load_front_history(experiment.front.file, units=experiment.front.units,
-                                   time_units=experiment.front.time_units, sort=sort)
+    if listed.front is not None:
+        front = load_front_history(listed.front.file, units=listed.front.units, time_units=listed.front.time_units,
+                                   sort=sort)
     return profiles, front
 
 

@@ -253,9 +253,11 @@ class Objective:
         (``weights=`` over them, block by block: a block given None keeps the file's); the front's
         correlation time is the file's unless ``front_correlation_time`` is given; ``options`` as
         for ``Objective``."""
+        from ..data.collapse import read_measurements
         from ..data.measurements import load_measurements
 
-        spec = experiment.fit
+        listed = read_measurements(experiment)
+        spec = listed.fit
         if keys is None:
             if spec is None:
                 raise ValueError(f"{experiment.path or experiment.name}: no [fit] keys; pass keys")
@@ -272,8 +274,8 @@ class Objective:
             options["weights"] = {k: given[k] if given.get(k) is not None else filed.get(k, 1.0)
                                   for k in ("profile", "front")}
         front, tau = options.get("front"), front_correlation_time
-        if tau is None and experiment.front is not None and not isinstance(front, FrontTarget):
-            tau = experiment.front.correlation_time  # the file's, unless the target carries its own
+        if tau is None and listed.front is not None and not isinstance(front, FrontTarget):
+            tau = listed.front.correlation_time  # the file's, unless the target carries its own
         if front is not None and tau is not None:
             target = front if isinstance(front, FrontTarget) else FrontTarget.of(front)
             options["front"] = dataclasses.replace(target, correlation_time=tau)

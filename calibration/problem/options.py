@@ -141,8 +141,9 @@ class _InclineSpec:
 
 def _fit_spec(experiment):
     """An experiment file's [fit] table (None: it has none)."""
+    from ..data.collapse import read_measurements
     from ..data.incline import InclineExperiment
 
     if isinstance(experiment, InclineExperiment):
         return _InclineSpec(experiment.keys, experiment.init)
-    return experiment.fit
+    return read_measurements(experiment).fit

@@ -32,8 +32,8 @@ import pathlib
 import numpy as np
 
 from calibration import FrontTarget, Objective, ProfileTarget
+from calibration.data import FitSpec, FrontMeasurement, ProfileMeasurement, with_measurements
 from jaxmpm import Experiment
-from jaxmpm.experiment import FitSpec, FrontMeasurement, ProfileMeasurement
 from jaxmpm.scenes import S4_SIDE
 
 ROOT = pathlib.Path(__file__).resolve().parents[2]
@@ -104,9 +104,10 @@ def make_data(seed: int = 7, fit_cells: int = FIT_CELLS, data_cells: int = DATA_
             header + [f"# noise: {100 * NOISE:g} % of L", "t_s,xf_m"]
             + [f"{t:.4f},{x:.5f}" for t, x in zip(FRONT_TIMES, front)]) + "\n")
         path = out / f"{label}.toml"
-        experiment = dataclasses.replace(
-            experiment, profiles=tuple(profiles), front=FrontMeasurement(out / f"{label}_front.csv"),
-            fit=FitSpec(keys=tuple(fit_keys), init={k: INIT[k] for k in fit_keys} if start else {}), path=path)
+        experiment = with_measurements(
+            dataclasses.replace(experiment, path=path), profiles=tuple(profiles),
+            front=FrontMeasurement(out / f"{label}_front.csv"),
+            fit=FitSpec(keys=tuple(fit_keys), init={k: INIT[k] for k in fit_keys} if start else {}))
         path.write_text(f"# {label}: a filmed collapse of S4's material, synthetic (docs/scripts/five_keys_twin.py)\n"
                         + experiment.to_toml())
         print(f"{label}: {data_scene.state.n_particles} particles in the data's run; wrote {path.name}")
