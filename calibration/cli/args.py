@@ -342,7 +342,8 @@ def experiments_of(args) -> list[Experiment | InclineExperiment]:
     if args.data or args.front:
         return [_with_data(experiments[0], args)]
     for e in experiments:
-        if not isinstance(e, InclineExperiment) and read_measurements(e)[:2] == ((), None):
+        listed = None if isinstance(e, InclineExperiment) else read_measurements(e)
+        if listed is not None and not listed.profiles and listed.front is None:
             raise ValueError(f"{e.path}: lists no measurement ([[profile]] or [front]); give --data or --front")
     return experiments
 
