@@ -3,8 +3,9 @@
 ``make_step(config)`` returns ``step(state, params) -> state``:
 
 1. dt = min(cfl·dx/max|v_p|, cfl_e·dx/c), clipped so the step lands exactly on the next frame
-   time or the end time; after t_end the step returns the state unchanged, and once the
-   material is at rest (``Config.rest_speed``) it only moves the time on to the next stop;
+   time or the end time; after t_end, or past ``max_steps`` steps, the step returns the state
+   unchanged, and once the material is at rest (``Config.rest_speed``) it only moves the time
+   on to the next stop;
 2. APIC P2G of mass, momentum and internal force (stress from the previous step: USL);
 3. grid update with gravity, the side walls' friction of a 2D channel (``Config.side_walls``),
    then the walls (each one's impulse from the material accumulates in ``state.impulse``);
@@ -174,16 +175,20 @@ def make_step(config: Config):
         lands = t + dt >= next_stop
         dt = jnp.where(lands, next_stop - t, dt)
         t_new = jnp.where(lands, next_stop, t + dt)
-        active = t < config.t_end
+        # A step beyond the budget (the rollout's last block runs past max_steps) does nothing.
+        in_budget = state.steps < config.max_steps
+        running = (t < config.t_end) & in_budget
+        active = running
         if config.rest_speed is not None:
             # The material is at rest once every particle has stayed slower than rest_speed for
             # rest_duration; from then on a step only carries the state to the next stop time.
             quiet = speed2 < config.rest_speed**2
-            state = state.replace(quiet_since=jnp.where(quiet, jnp.minimum(state.quiet_since, t), jnp.inf))
+            quiet_since = jnp.where(quiet, jnp.minimum(state.quiet_since, t), jnp.inf)
+            state = state.replace(quiet_since=jnp.where(in_budget, quiet_since, state.quiet_since))
             active &= t - state.quiet_since < config.rest_duration
 
         def idle(s):  # at rest before t_end: jump to the next stop (a frame or t_end); else nothing
-            return s.replace(t=jnp.where(t < config.t_end, next_stop, t))
+            return s.replace(t=jnp.where(running, next_stop, t))
 
         # No jax.checkpoint inside the step's cond: rematerialising ``advance`` there made the
         # critical-state model's backward pass 3.6 times slower, recomputing the return map's

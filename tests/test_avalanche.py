@@ -6,7 +6,7 @@ import math
 
 import numpy as np
 import pytest
-from helpers import cli
+from helpers import cli, main_exit
 
 import jaxmpm as jm
 from jaxmpm.scenes.avalanche import SNOW, avalanche
@@ -94,16 +94,16 @@ def test_run_avalanche_quick_prints_the_fields(tmp_path):
     (("run", "cohesive-collapse", "--obstacle", "5"), "--obstacle applies to the avalanche scene"),
     (("run", "avalanche", "--obstacle", "5"), "--obstacle needs --station"),
 ])
-def test_run_avalanche_refuses_bad_options(args, message):
-    out = _cli(*args, "--no-progress")
-    assert out.returncode != 0 and message in out.stderr, out.stderr
+def test_run_avalanche_refuses_bad_options(args, message, capsys):
+    code, err = main_exit("jaxmpm", (*args, "--no-progress"), capsys)  # in this process: no JAX import to wait for
+    assert code == 2 and message in err, err
 
 
-def test_run_avalanche_refuses_a_bad_terrain_file(tmp_path):
+def test_run_avalanche_refuses_a_bad_terrain_file(tmp_path, capsys):
     bad = tmp_path / "terrain.csv"
     bad.write_text("x_m,z_m\n0,10\n0,5\n")
-    out = _cli("run", "avalanche", "--terrain", str(bad), "--no-progress")
-    assert out.returncode != 0 and "Terrain.x must increase strictly" in out.stderr, out.stderr
+    code, err = main_exit("jaxmpm", ("run", "avalanche", "--terrain", bad, "--no-progress"), capsys)
+    assert code == 2 and "Terrain.x must increase strictly" in err, err
 
 
 @pytest.mark.slow  # 25 s; the terrain's mu_w gradient is checked against FD by default (test_terrain.py)
