@@ -150,6 +150,7 @@ def objective():
     return Objective(scene, ("beta", "mu1"), profile=profile)
 
 
+@pytest.mark.slow  # 22 s cold, one more program of the run; the Broyden twin fit below runs by default
 def test_the_evaluators_runs_of_the_residuals_alone_are_the_jacobian_runs_residuals(objective):
     evaluate = evaluator(objective, rev=False)
     Z = np.stack([objective.bounds.to_unconstrained(np.array(t)) for t in ([0.1, 0.3], [0.3, 0.45])])

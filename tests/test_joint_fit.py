@@ -61,6 +61,9 @@ def test_two_inclines_share_their_material_and_a_composite_of_closed_forms_has_n
     assert np.isnan(both.dx)
 
 
+# 42 s cold, compiling NUTS around a flow rule; NUTS runs by default in tests/test_mcmc.py, the flow rule's fits
+# here
+@pytest.mark.slow
 def test_the_posterior_of_a_flow_rule_samples_its_support():
     """NUTS reads μ1 and μ2 of every part to keep μ2 ≥ μ1; a flow rule's part has them too (the
     posterior of a joint fit with an incline raised AttributeError before its first draw)."""

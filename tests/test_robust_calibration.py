@@ -283,6 +283,8 @@ def test_loader_hints_name_the_command_line_options(no_work, tmp_path, monkeypat
 
 
 # ---- a sweep over one key: a curve, an atomic --out ----------------------------------------------------
+# 21 s cold; the command line's sweep, its figure and --out run by default (tests/test_calibration_cli.py)
+@pytest.mark.slow
 def test_sweep_over_one_key_draws_its_loss_and_writes_out(tmp_path):
     out = tmp_path / "sweep.h5"
     code, stdout, err = call([*SWEEP, "--data", S4, "--over", "beta=0.1:0.3:2", "--out", out,

@@ -91,6 +91,9 @@ def test_a_point_at_a_bound_gets_no_interval(found, objective):
     # tests/test_calibration_cli.py::test_fit_prints_the_documented_json_and_writes_history_and_figures.
 
 
+# 22 s cold: a single fit's Jacobian program beside the search's batched one; moving starts inside runs by
+# default (below)
+@pytest.mark.slow
 def test_a_scene_default_on_a_bound_starts_inside_and_says_where(objective):
     assert float(objective.initial()["beta"]) == 0.0  # S4's default: on the bound of (0, 1)
     result = fit(objective, steps=1, uncertainty=False)
