@@ -76,6 +76,13 @@ def test_step_budget_bit_and_raise():
     result = jm.simulate(cfg, s0, params, throw=False)
     assert result.status & jm.BUDGET
     assert int(result.state.steps) == 10 and float(result.state.t) < 0.5
+    # Ten steps in blocks of three: the last block's two steps past the budget do nothing, in the
+    # compiled rollout and block by block alike (which ran twelve before the budget guard).
+    assert cfg.blocks == (4, 3)
+    timed = jm.simulate(cfg, s0, params, throw=False, timed=True)
+    assert timed.status == result.status and int(timed.state.steps) == 10
+    for a, b in zip(jax.tree.leaves(timed.state), jax.tree.leaves(result.state)):
+        np.testing.assert_array_equal(a, b)
 
 
 def test_left_grid_bit():
