@@ -112,9 +112,10 @@ def make_rollout(config: Config, observer: Observer | None = frame_observer, che
     """
     parts = make_rollout_parts(config, observer, checkpoint)
     # Whole blocks only: the last one's steps beyond max_steps do nothing (the step's budget
-    # guard). A shorter last block was a second copy of the step in the program, compiled as
-    # dearly as the first (S4 at L/6 in float64: the run compiled in 13.7 s, now 9.8 s; its
-    # forward-mode derivative in 26 s, now 17.6 s).
+    # guard). A shorter last block was a second copy of the step in the program, which XLA
+    # compiled too (S4 at L/6 in float64, paired on one core: the run compiles in 8.2-9.2 s
+    # against 10.8-11.4 s, its forward-mode derivative in 17.2-17.9 s against 22.9-23.1 s;
+    # docs/scripts/compile_time.py).
     n_blocks = -(-config.max_steps // parts.steps_per_block)
 
     def rollout(state, params):
